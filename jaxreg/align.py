@@ -1,0 +1,270 @@
+"""Closed-form alignment of matched point sets: weighted Kabsch and Umeyama, batched.
+
+Problem (``R`` a proper rotation, ``c`` a scale fixed to 1 for Kabsch)::
+
+    min_{R, t, c}  sum_i w_i || c R src_i + t - dst_i ||^2
+
+The translation is eliminated by the weighted centroids, ``t = mu_dst - c R mu_src``, and
+the rotation maximises ``sum_i w_i b_i . (R a_i) = tr(R H)`` for the centred sets
+``a = src - mu_src``, ``b = dst - mu_dst`` and ``H = sum_i w_i a_i b_i^T``.
+
+Formulation. The rotation is found as Horn's unit quaternion: the top eigenvector of a 4x4
+symmetric matrix ``N(H)`` built from the cross-covariance ``H``. This
+is the same optimum as the SVD form (Kabsch/Umeyama), but
+
+* a quaternion is always a proper rotation: no reflection guard is needed, and the result
+  can never have det -1;
+* its derivative involves only the gap between the top eigenvalue and the others. For
+  ``H = U diag(s) V^T`` that gap is ``2 (s2 + s3)`` (``2 (s2 - s3)`` when ``det H < 0``),
+  which is zero exactly when the optimal rotation is not unique. The SVD gradient instead
+  divides by ``s_i^2 - s_j^2`` and is infinite on planar or symmetric clouds whose singular
+  values repeat although the rotation is perfectly determined. A custom JVP rule
+  differentiates the top eigenvector alone, so the gradient is finite (and exact) whenever
+  the solution is unique, and is set to zero with ``degenerate`` raised when it is not.
+
+Batching: every array may carry leading batch axes ``(...)``; points are ``(..., N, 3)``
+and weights ``(..., N)``. Rows with zero weight are padding: they take no part, whatever
+their coordinates (NaN included). Rows with a non-finite coordinate are treated as
+zero-weight (depth holes are masked, never propagated).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxlie import SE3, SO3
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+__all__ = ["Alignment", "align", "kabsch", "umeyama"]
+
+
+class Alignment(eqx.Module):
+    """Result of :func:`align`; every field carries the problem's batch axes ``(...)``.
+
+    Attributes:
+        pose: ``SE3`` mapping source into destination coordinates (``dst ~ scale * R src + t``;
+            with a scale, ``pose`` holds ``R`` and ``t``).
+        scale: ``(...)`` similarity scale (exactly 1 for Kabsch).
+        weight_sum: ``(...)`` total weight of the finite rows used.
+        count: ``(...)`` number of rows with positive weight.
+        rms: ``(...)`` weighted RMS residual of the aligned sets.
+        eigengap: ``(...)`` relative gap between the top two eigenvalues of Horn's matrix, in
+            ``[0, 2]``; 0 means the optimal rotation is not unique.
+        collinear: ``(...)`` source or destination points lie on a line (rotation about it
+            is unobservable).
+        planar: ``(...)`` source points lie on a plane. Informational: three non-collinear
+            points fix a rotation, but planar scenes are where the SVD gradient fails.
+        degenerate: ``(...)`` fewer than 3 weighted rows, collinear geometry, or a
+            non-unique rotation. The pose is then not trustworthy (identity when there is
+            no weight at all) and its gradient is cut to zero along the unobservable
+            directions.
+    """
+
+    pose: SE3
+    scale: Float[Array, "..."]
+    weight_sum: Float[Array, "..."]
+    count: Float[Array, "..."]
+    rms: Float[Array, "..."]
+    eigengap: Float[Array, "..."]
+    collinear: Bool[Array, "..."]
+    planar: Bool[Array, "..."]
+    degenerate: Bool[Array, "..."]
+
+
+def _eps(dtype) -> float:
+    return float(jnp.finfo(dtype).eps)
+
+
+@jax.custom_jvp
+def _top_eigenpair(n: Float[Array, "... 4 4"]) -> tuple[Array, Array]:
+    """Eigenvalues ``(..., 4)`` ascending and the top eigenvector ``(..., 4)`` of ``n``."""
+    w, v = jnp.linalg.eigh(n)
+    return w, v[..., -1]
+
+
+@_top_eigenpair.defjvp
+def _top_eigenpair_jvp(primals, tangents):
+    (n,), (dn,) = primals, tangents
+    w, v = jnp.linalg.eigh(n)
+    top = v[..., -1]
+    # v_j^T dn v_top for every eigenvector j, and the eigenvalue tangents v_j^T dn v_j.
+    vt_dn = jnp.einsum("...ji,...jk->...ik", v, dn)
+    proj = jnp.einsum("...ik,...k->...i", vt_dn, top)
+    dw = jnp.einsum("...ik,...ki->...i", vt_dn, v)
+    gap = w[..., -1:] - w
+    tiny = 64 * _eps(n.dtype) * (jnp.abs(w[..., -1:]) + jnp.abs(w[..., :1]))
+    ok = (gap > tiny) & (jnp.arange(4) < 3)
+    coeff = jnp.where(ok, proj / jnp.where(ok, gap, 1.0), 0.0)
+    dtop = jnp.einsum("...ij,...j->...i", v, coeff)
+    return (w, top), (dw, dtop)
+
+
+def _horn_matrix(h: Float[Array, "... 3 3"]) -> Float[Array, "... 4 4"]:
+    """Horn's symmetric 4x4 matrix for ``H[a, b] = sum_i w_i src_a dst_b``.
+
+    For a unit quaternion ``q = (w, x, y, z)``, ``q^T N q = tr(R(q) H)``, the quantity the
+    optimal rotation maximises.
+    """
+    sxx, sxy, sxz = h[..., 0, 0], h[..., 0, 1], h[..., 0, 2]
+    syx, syy, syz = h[..., 1, 0], h[..., 1, 1], h[..., 1, 2]
+    szx, szy, szz = h[..., 2, 0], h[..., 2, 1], h[..., 2, 2]
+    rows = [
+        [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
+        [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
+        [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
+        [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
+    ]
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def _shape_invariants(c: Float[Array, "... 3 3"]) -> tuple[Array, Array, Array]:
+    """Trace, second invariant and determinant of a symmetric PSD 3x3 matrix."""
+    tr = jnp.trace(c, axis1=-2, axis2=-1)
+    i2 = 0.5 * (tr**2 - jnp.sum(c * c, axis=(-2, -1)))
+    return tr, i2, jnp.linalg.det(c)
+
+
+def _check_shapes(src, dst, weights):
+    src = jnp.asarray(src)
+    dst = jnp.asarray(dst)
+    if src.ndim < 2 or src.shape[-1] != 3:
+        raise ValueError(f"src must have shape (..., N, 3), got {src.shape}")
+    if dst.shape[-2:] != src.shape[-2:]:
+        raise ValueError(
+            f"src and dst must be matched row for row: got {src.shape} and {dst.shape}"
+        )
+    if src.shape[-2] < 3:
+        raise ValueError(
+            f"a rigid alignment needs at least 3 correspondences, got {src.shape[-2]}"
+        )
+    dtype = jnp.result_type(src.dtype, dst.dtype, float)
+    src, dst = src.astype(dtype), dst.astype(dtype)
+    if weights is None:
+        weights = jnp.ones(src.shape[:-1], dtype)
+    weights = jnp.asarray(weights, dtype)
+    if weights.shape[-1:] != src.shape[-2:-1]:
+        raise ValueError(
+            f"weights must have shape (..., N) with N = {src.shape[-2]}, got {weights.shape}"
+        )
+    return src, dst, weights
+
+
+@eqx.filter_jit
+def align(
+    src: Float[ArrayLike, "... N 3"],
+    dst: Float[ArrayLike, "... N 3"],
+    weights: Float[ArrayLike, "... N"] | None = None,
+    *,
+    with_scale: bool = False,
+) -> Alignment:
+    """Weighted least-squares rigid (or similarity) transform from ``src`` to ``dst``.
+
+    Args:
+        src: ``(..., N, 3)`` source points; row ``i`` corresponds to row ``i`` of ``dst``.
+        dst: ``(..., N, 3)`` destination points (batch axes broadcast against ``src``).
+        weights: optional ``(..., N)`` non-negative weights (negative values count as 0).
+            Zero-weight rows are padding. Defaults to 1.
+        with_scale: also estimate a similarity scale (Umeyama).
+
+    Returns:
+        An :class:`Alignment` with the pose, scale, residual and degeneracy signals.
+    """
+    src, dst, weights = _check_shapes(src, dst, weights)
+    finite = jnp.all(jnp.isfinite(src) & jnp.isfinite(dst), axis=-1)
+    w = jnp.where(finite & (weights > 0), weights, 0.0)
+    used = (w > 0)[..., None]
+    src = jnp.where(used, src, 0.0)
+    dst = jnp.where(used, dst, 0.0)
+
+    weight_sum = jnp.sum(w, axis=-1)
+    count = jnp.sum(w > 0, axis=-1).astype(w.dtype)
+    has_weight = weight_sum > 0
+    wn = w / jnp.where(has_weight, weight_sum, 1.0)[..., None]
+    mu_src = jnp.einsum("...n,...nd->...d", wn, src)
+    mu_dst = jnp.einsum("...n,...nd->...d", wn, dst)
+    a = jnp.where(used, src - mu_src[..., None, :], 0.0)
+    b = jnp.where(used, dst - mu_dst[..., None, :], 0.0)
+    h = jnp.einsum("...n,...na,...nb->...ab", wn, a, b)
+
+    eig, q = _top_eigenpair(_horn_matrix(h))
+    rotation = SO3(wxyz=q)
+    top = jnp.einsum("...i,...ij,...j->...", q, _horn_matrix(h), q)  # = tr(R H)
+    var_src = jnp.einsum("...n,...nd->...", wn, a * a)
+    if with_scale:
+        scale = top / jnp.where(var_src > 0, var_src, 1.0)
+    else:
+        scale = jnp.ones_like(top)
+    translation = mu_dst - scale[..., None] * rotation.apply(mu_src)
+    pose = SE3.from_rotation_and_translation(rotation, translation)
+    rotated = jnp.einsum("...ij,...nj->...ni", rotation.as_matrix(), a)
+    resid = scale[..., None, None] * rotated - b
+    sq = jnp.einsum("...n,...nd->...", wn, resid * resid)
+    rms = jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
+
+    eps = _eps(w.dtype)
+    scale_ref = jnp.abs(eig[..., -1]) + jnp.abs(eig[..., 0])
+    eigengap = (eig[..., -1] - eig[..., -2]) / jnp.where(scale_ref > 0, scale_ref, 1.0) * 2
+    cov_src = jnp.einsum("...n,...na,...nb->...ab", wn, a, a)
+    cov_dst = jnp.einsum("...n,...na,...nb->...ab", wn, b, b)
+    tol = 100 * eps
+
+    def line_and_plane(c):
+        tr, i2, det = _shape_invariants(c)
+        tr = jnp.where(tr > 0, tr, 1.0)
+        line = i2 <= tol * tr**2
+        plane = line | (det <= tol * jnp.where(i2 > 0, i2, 1.0) * tr)
+        return line, plane
+
+    src_line, src_plane = line_and_plane(cov_src)
+    dst_line, _ = line_and_plane(cov_dst)
+    collinear = src_line | dst_line
+    degenerate = (count < 3) | collinear | (eigengap <= tol)
+    identity = jnp.array([1, 0, 0, 0, 0, 0, 0], w.dtype)
+    pose = SE3(wxyz_xyz=jnp.where(has_weight[..., None], pose.wxyz_xyz, identity))
+    return Alignment(
+        pose=pose,
+        scale=scale,
+        weight_sum=weight_sum,
+        count=count,
+        rms=rms,
+        eigengap=eigengap,
+        collinear=collinear,
+        planar=src_plane,
+        degenerate=degenerate,
+    )
+
+
+def kabsch(
+    src: Float[ArrayLike, "... N 3"],
+    dst: Float[ArrayLike, "... N 3"],
+    weights: Float[ArrayLike, "... N"] | None = None,
+) -> SE3:
+    """Rigid transform minimising ``sum_i w_i ||R src_i + t - dst_i||^2``.
+
+    Args:
+        src: ``(..., N, 3)`` source points, row-matched to ``dst``.
+        dst: ``(..., N, 3)`` destination points.
+        weights: optional ``(..., N)`` non-negative weights; zero rows are padding.
+
+    Returns:
+        ``SE3`` with batch axes ``(...)`` mapping source into destination coordinates. It is
+        always a proper rotation. Callers that need the degeneracy signal (collinear points,
+        fewer than 3 weighted rows, non-unique rotation) use :func:`align`.
+    """
+    return align(src, dst, weights).pose
+
+
+def umeyama(
+    src: Float[ArrayLike, "... N 3"],
+    dst: Float[ArrayLike, "... N 3"],
+    weights: Float[ArrayLike, "... N"] | None = None,
+) -> tuple[SE3, Float[Array, "..."]]:
+    """Similarity transform minimising ``sum_i w_i ||c R src_i + t - dst_i||^2``.
+
+    Returns:
+        ``(pose, scale)``: ``pose`` holds ``R`` and ``t`` (batch axes ``(...)``) and ``scale``
+        is ``c`` with shape ``(...)``, so ``dst ~ scale * pose.rotation() @ src + t``.
+    """
+    result = align(src, dst, weights, with_scale=True)
+    return result.pose, result.scale
