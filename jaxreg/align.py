@@ -185,12 +185,15 @@ def align(
     mu_dst = jnp.einsum("...n,...nd->...d", wn, dst)
     a = jnp.where(used, src - mu_src[..., None, :], 0.0)
     b = jnp.where(used, dst - mu_dst[..., None, :], 0.0)
-    h = jnp.einsum("...n,...na,...nb->...ab", wn, a, b)
+    # One pass for all second moments: [[cov_src, H], [H^T, cov_dst]].
+    ab = jnp.concatenate([a, b], axis=-1)
+    moments = jnp.einsum("...ni,...nj->...ij", wn[..., None] * ab, ab)
+    h, cov_src, cov_dst = moments[..., :3, 3:], moments[..., :3, :3], moments[..., 3:, 3:]
 
     eig, q = _top_eigenpair(_horn_matrix(h))
     rotation = SO3(wxyz=q)
     top = jnp.einsum("...i,...ij,...j->...", q, _horn_matrix(h), q)  # = tr(R H)
-    var_src = jnp.einsum("...n,...nd->...", wn, a * a)
+    var_src = jnp.trace(cov_src, axis1=-2, axis2=-1)
     if with_scale:
         scale = top / jnp.where(var_src > 0, var_src, 1.0)
     else:
@@ -205,8 +208,6 @@ def align(
     eps = _eps(w.dtype)
     scale_ref = jnp.abs(eig[..., -1]) + jnp.abs(eig[..., 0])
     eigengap = (eig[..., -1] - eig[..., -2]) / jnp.where(scale_ref > 0, scale_ref, 1.0) * 2
-    cov_src = jnp.einsum("...n,...na,...nb->...ab", wn, a, a)
-    cov_dst = jnp.einsum("...n,...na,...nb->...ab", wn, b, b)
     tol = 100 * eps
 
     def line_and_plane(c):
