@@ -330,6 +330,26 @@ def test_ascii_float_rgb_accepts_bit_pattern_and_float(tmp_path):
     np.testing.assert_array_equal(cloud.colors, [[0x10, 0x20, 0x30], [0x40, 0x50, 0x60]])
 
 
+@pytest.mark.parametrize("data", ["ascii", "binary", "binary_compressed"])
+def test_empty_cloud_round_trip(tmp_path, data):
+    path = tmp_path / "empty.pcd"
+    write_pcd(path, np.zeros((0, 3), np.float32), colors=np.zeros((0, 3), np.uint8), data=data)
+    cloud = read_pcd(path)
+    assert cloud.points.shape == (0, 3) and cloud.colors.shape == (0, 3)
+    with pytest.raises(ValueError, match="no finite points"):
+        load_points(path)
+
+
+def test_ascii_long_token_is_cheap(tmp_path):
+    """One megabyte-long number must not cost a megabyte per value (no fixed-width table)."""
+    path = tmp_path / "long.pcd"
+    path.write_bytes(_xyz(2000, 1, 2000, "ascii") + b"1 2 3\n" * 1999 + b"1 2 " + b"7" * 10**6)
+    start = time.perf_counter()
+    cloud = read_pcd(path)
+    assert time.perf_counter() - start < 1.0
+    assert cloud.points[-1, 2] == np.inf and (cloud.points[:-1] == [1, 2, 3]).all()
+
+
 def test_organized_binary_keeps_layout(tmp_path):
     points = np.arange(2 * 3 * 3, dtype=np.float32).reshape(2, 3, 3)
     points[1, 2] = np.nan
@@ -500,6 +520,25 @@ def test_load_points_samples_meshes(tmp_path, suffix):
     assert load_points(path).shape == (10_000, 3)
 
 
+def test_load_points_scene_of_several_meshes(tmp_path):
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    sphere = trimesh.creation.icosphere(radius=0.5).apply_translation([3.0, 0.0, 0.0])
+    path = tmp_path / "scene.glb"
+    trimesh.Scene([box, sphere]).export(path)
+    points = load_points(path, n_points=2_000)
+    on_box = np.abs(points).max(axis=1) < 0.5 + 1e-6
+    on_sphere = np.linalg.norm(points - [3.0, 0.0, 0.0], axis=1) < 0.5 + 1e-6
+    assert (on_box | on_sphere).all() and on_box.any() and on_sphere.any()
+
+
+@pytest.mark.parametrize("n_points", [0, -3, 2.5])
+def test_load_points_rejects_bad_n_points(tmp_path, n_points):
+    path = tmp_path / "one.pcd"
+    write_pcd(path, np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="n_points"):
+        load_points(path, n_points=n_points)
+
+
 def test_load_points_ply_without_normals(tmp_path):
     path = tmp_path / "plain.ply"
     write_ply(path, np.eye(3), data="ascii")
@@ -576,6 +615,10 @@ MALFORMED = {
     "ascii too few rows": (_xyz(3, 1, 3, "ascii") + b"1 2 3\n4 5 6\n", "holds 2 rows"),
     "ascii short row": (_xyz(2, 1, 2, "ascii") + b"1 2 3\n4 5\n", "hold 5 values"),
     "ascii not a number": (_xyz(1, 1, 1, "ascii") + b"1 2 abc\n", "could not convert"),
+    "ascii giant integer": (
+        _xyz(2000, 1, 2000, "ascii", types="FFU") + b"1 2 3\n" * 1999 + b"1 2 " + b"7" * 10**6,
+        "digits",
+    ),
     "ascii int overflow": (
         _xyz(1, 1, 1, "ascii", types="FFU", sizes=[4, 4, 1]) + b"1 2 300\n",
         "out of bounds",
