@@ -1,0 +1,41 @@
+# Two commands do all the set-up on a fresh machine: `make demo` and `make test`.
+# Both create .venv from pyproject.toml when it is missing or older than pyproject.toml.
+
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: demo test bench figs lint clean system-libs
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev,peers,figs]'
+	@touch $@
+
+# Open3D (a peer in the tests) loads libusb-1.0; install it when missing and we can.
+system-libs:
+	@if ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+		echo "installing libusb-1.0-0 for Open3D"; \
+		apt-get update -qq && apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	else echo "libusb-1.0-0 is missing and cannot be installed here: Open3D cross-checks will skip"; fi
+
+demo: $(STAMP)
+	$(PY) -m jaxreg demo
+
+test: $(STAMP) system-libs
+	$(PY) -m pytest -q
+
+bench: $(STAMP) system-libs
+	cd benchmarks && for f in bench_*.py; do echo "== $$f"; ../$(PY) $$f || exit 1; done
+
+figs: $(STAMP)
+	cd paper_figs && for f in fig_*.py; do echo "== $$f"; ../$(PY) $$f || exit 1; done
+
+lint: $(STAMP)
+	$(PY) -m ruff check jaxreg tests benchmarks examples paper_figs
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis

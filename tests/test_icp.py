@@ -1,0 +1,195 @@
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jaxlie import SE3, SO3
+
+from jaxreg.icp import ICPStatus, icp, multistart_icp, select_best
+from jaxreg.io import load_points
+from jaxreg.kernels import Tukey
+
+try:
+    import open3d as o3d
+except ImportError:  # open3d is in the `peers` extra and needs libusb
+    o3d = None
+needs_open3d = pytest.mark.skipif(o3d is None, reason="open3d not importable (peers extra)")
+
+# PCL's test/registration/test_registration.cpp (IterativeClosestPoint): bun0 -> bun4.
+PCL_BUNNY_TRANSFORM = np.array(
+    [
+        [0.8806, 0.03648, -0.4724, 0.03453],
+        [-0.02354, 0.9992, 0.03326, -0.001519],
+        [0.4732, -0.01817, 0.8808, 0.04116],
+    ]
+)
+
+
+def rotation_error_deg(pose, rotation_matrix):
+    r = np.asarray(pose.rotation().as_matrix())
+    return np.degrees(np.arccos(np.clip((np.trace(r.T @ rotation_matrix) - 1) / 2, -1, 1)))
+
+
+def lesson_cube(angle_deg, seed=0):
+    """The lesson's experiment: 800 points in a 6 cm cube, a z rotation, 2 mm noise."""
+    rng = np.random.default_rng(seed)
+    model = rng.uniform(-0.03, 0.03, size=(800, 3))
+    a = np.deg2rad(angle_deg)
+    r = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
+    scene = model @ r.T + np.array([0.01, -0.02, 0.005]) + rng.normal(0, 0.002, model.shape)
+    return model.astype(np.float32), scene.astype(np.float32), r
+
+
+def o3d_cloud(points):
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+
+
+def test_reproduces_pcl_icp_unit_test(pcl_dir):
+    source = load_points(pcl_dir / "bun0.pcd")
+    target = load_points(pcl_dir / "bun4.pcd")
+    result = icp(source, target, max_correspondence_distance=0.05, max_iterations=50,
+                 tolerance=1e-8)
+    matrix = np.asarray(result.pose.as_matrix())
+    np.testing.assert_allclose(matrix[:3], PCL_BUNNY_TRANSFORM, atol=1e-3)
+    assert bool(result.converged) and result.status == ICPStatus.success
+    if o3d is not None:
+        ref = o3d.pipelines.registration.registration_icp(
+            o3d_cloud(source), o3d_cloud(target), 0.05, np.eye(4),
+            o3d.pipelines.registration.TransformationEstimationPointToPoint(),
+            o3d.pipelines.registration.ICPConvergenceCriteria(1e-8, 1e-8, 50),
+        )
+        np.testing.assert_allclose(matrix, ref.transformation, atol=1e-4)
+        assert float(result.inlier_rmse) == pytest.approx(ref.inlier_rmse, rel=1e-3)
+        assert float(result.inlier_fraction) == pytest.approx(ref.fitness, rel=1e-3)
+
+
+def test_lesson_cube_inside_and_outside_the_basin():
+    model, scene, r = lesson_cube(15.0)
+    inside = icp(model, scene, max_correspondence_distance=0.02, max_iterations=40)
+    assert rotation_error_deg(inside.pose, r) < 0.5  # the lesson: about 0.3 degrees
+    assert inside.status == ICPStatus.success
+
+    model, scene, r = lesson_cube(60.0)
+    outside = icp(model, scene, max_correspondence_distance=0.02, max_iterations=40)
+    # Confidently wrong: > 80 degrees off, yet every point matched at a ~4 mm residual.
+    assert rotation_error_deg(outside.pose, r) > 80.0
+    assert 0.003 < float(outside.inlier_rmse) < 0.005
+    assert float(outside.inlier_fraction) > 0.95
+    np.testing.assert_array_equal(np.isnan(outside.rmse_history), False)  # all 40 ran
+
+
+def test_multistart_escapes_the_wrong_basin_and_keeps_per_start_status():
+    model, scene, r = lesson_cube(60.0)
+    angles = np.deg2rad(np.arange(0, 360, 30))
+    starts = SE3.from_rotation(SO3.from_z_radians(jnp.asarray(angles, jnp.float32)))
+    far = SE3.from_translation(jnp.array([[5.0, 0.0, 0.0]], jnp.float32))
+    inits = SE3(jnp.concatenate([starts.wxyz_xyz, far.wxyz_xyz]))
+    results = multistart_icp(model, scene, inits, max_correspondence_distance=0.02)
+    assert results.pose.get_batch_axes() == (13,)
+    failed = np.asarray(results.status == ICPStatus.too_few_correspondences)
+    np.testing.assert_array_equal(failed, [False] * 12 + [True])
+    assert "fewer than 3 correspondences" in results.status_message()[12]
+    best = int(select_best(results))
+    best_pose = SE3(results.pose.wxyz_xyz[best])
+    assert rotation_error_deg(best_pose, r) < 1.0
+    single = icp(model, scene, SE3(inits.wxyz_xyz[2]), max_correspondence_distance=0.02)
+    np.testing.assert_allclose(results.pose.wxyz_xyz[2], single.pose.wxyz_xyz, atol=1e-5)
+
+
+def test_init_as_matrix_and_distance_schedule():
+    model, scene, r = lesson_cube(15.0)
+    schedule = np.geomspace(0.05, 0.01, 30)
+    result = icp(model, scene, np.eye(4), max_correspondence_distance=schedule,
+                 max_iterations=30)
+    assert rotation_error_deg(result.pose, r) < 0.5
+    with pytest.raises(ValueError, match="one distance per iteration"):
+        icp(model, scene, max_correspondence_distance=schedule[:5], max_iterations=30)
+
+
+def test_partial_view_needs_trimming_or_a_robust_kernel():
+    """A full box model against a scan that sees half of it (the lesson's partial view):
+    unmatched model points bias plain ICP; trimming to the overlap or a redescending
+    kernel removes the bias."""
+    rng = np.random.default_rng(3)
+    f = rng.uniform(-0.03, 0.03, (1500, 3))
+    f[np.arange(1500), rng.integers(0, 3, 1500)] = np.sign(rng.normal(size=1500)) * 0.03
+    f *= np.array([1.5, 1.0, 0.7])  # surface of a 9 x 6 x 4.2 cm box
+    model = f.astype(np.float32)
+    a = np.deg2rad(5.0)
+    r = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
+    t = np.array([0.01, -0.02, 0.005])
+    seen = (f[:, 0] < 0.044) & (f[:, 1] < 0.029) & (f[:, 2] > -0.02)
+    scene = model[seen] @ r.T + t + rng.normal(0, 0.001, (seen.sum(), 3))
+    init = SE3.from_translation(jnp.asarray(t, jnp.float32))
+
+    def errors(**options):
+        res = icp(model, scene.astype(np.float32), init, max_correspondence_distance=0.02,
+                  **options)
+        assert res.status == ICPStatus.success
+        t_err = np.linalg.norm(np.asarray(res.pose.translation()) - t)
+        return rotation_error_deg(res.pose, r), t_err
+
+    plain_r, plain_t = errors()
+    assert plain_r > 3.0 and plain_t > 0.004  # biased by the unseen half
+    for options in (dict(trim_fraction=0.55), dict(kernel=Tukey(0.005))):
+        rot, trans = errors(**options)
+        assert rot < 0.6 and trans < 0.001, options
+
+
+def test_bad_input_gives_a_clear_error_or_status():
+    model, scene, _ = lesson_cube(5.0)
+    with pytest.raises(ValueError, match="empty"):
+        icp(np.zeros((0, 3), np.float32), scene)
+    with pytest.raises(ValueError, match="empty"):
+        icp(model, np.zeros((0, 3), np.float32))
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        icp(model[:, :2], scene)
+    with pytest.raises(ValueError, match="target_normals"):
+        icp(model, scene, method="point_to_plane")
+    with pytest.raises(ValueError, match="at least 3"):
+        icp(model[:2], scene)
+
+    nan_source = np.full_like(model, np.nan)
+    result = icp(nan_source, scene)
+    assert result.status == ICPStatus.too_few_correspondences
+    assert np.all(np.isfinite(result.pose.wxyz_xyz))
+
+    far = icp(model, scene, SE3.from_translation(jnp.array([3.0, 0.0, 0.0])))
+    assert far.status == ICPStatus.too_few_correspondences
+    np.testing.assert_allclose(far.pose.translation(), [3.0, 0.0, 0.0])  # kept, flagged
+
+    holes = model.copy()
+    holes[::3] = np.nan  # depth holes are masked, not propagated
+    ok = icp(holes, scene, max_correspondence_distance=0.02)
+    assert ok.status == ICPStatus.success and np.isfinite(float(ok.inlier_rmse))
+
+    line = np.outer(np.linspace(-0.05, 0.05, 50), [1.0, 0.5, 0.2]).astype(np.float32)
+    degenerate = icp(line, line + 0.001, max_correspondence_distance=0.02)
+    assert degenerate.status == ICPStatus.degenerate
+    assert np.all(np.isfinite(degenerate.pose.wxyz_xyz))
+
+
+def test_start_batch_is_sharded_over_devices():
+    """Two host devices: the start axis is split between them and results agree."""
+    code = (
+        "import numpy as np, jax, jax.numpy as jnp\n"
+        "from jaxlie import SE3, SO3\n"
+        "from jaxreg.icp import multistart_icp\n"
+        "assert len(jax.devices()) == 2\n"
+        "rng = np.random.default_rng(0)\n"
+        "m = rng.uniform(-0.03, 0.03, (300, 3)).astype(np.float32)\n"
+        "s = m + np.float32([0.005, 0, 0])\n"
+        "inits = SE3.from_rotation(SO3.from_z_radians(jnp.linspace(-0.2, 0.2, 6)))\n"
+        "r = multistart_icp(m, s, inits)\n"
+        "assert len(r.pose.wxyz_xyz.sharding.device_set) == 2, r.pose.wxyz_xyz.sharding\n"
+        "np.testing.assert_allclose(r.pose.translation(), [[0.005, 0, 0]] * 6, atol=1e-4)\n"
+        "print('ok')\n"
+    )
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
+               JAX_PLATFORMS="cpu")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0 and "ok" in out.stdout, out.stderr[-2000:]
