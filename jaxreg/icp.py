@@ -51,10 +51,19 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxreg.align import align
 from jaxreg.kernels import L2, AbstractRobustKernel, trim_mask
-from jaxreg import neighbors as nn
-from jaxreg.neighbors import NeighborGrid, build_grid, query_nearest
+from jaxreg.lie import rotation_grid, rotation_grid_around
+from jaxreg.neighbors import NeighborGrid, build_grid, knn, query_nearest
 
-__all__ = ["ICPStatus", "RegistrationResult", "icp", "multistart_icp", "select_best"]
+__all__ = [
+    "ICPStatus",
+    "RegistrationResult",
+    "icp",
+    "multistart_icp",
+    "pca_inits",
+    "perturbed_inits",
+    "rotation_inits",
+    "select_best",
+]
 
 Method = Literal["point_to_point", "point_to_plane"]
 
@@ -162,10 +171,8 @@ def _correspond(problem: _Problem, opts: _Options, pose: SE3, distance: Array) -
     if problem.grid is not None:
         index, d2, found = query_nearest(problem.grid, moved, distance)
     else:
-        index, d2 = nn.knn(moved, problem.target, 1)
-        index, d2 = index[:, 0], d2[:, 0]
-        found = d2 <= distance**2
-        index = jnp.where(found, index, problem.target.shape[0])
+        index, d2, found = knn(moved, problem.target, 1, max_distance=distance)
+        index, d2, found = index[:, 0], d2[:, 0], found[:, 0]
     usable = problem.source_weights > 0
     kept = found & usable
     s = _residual_sq(problem, moved, index, opts.method)
@@ -173,7 +180,7 @@ def _correspond(problem: _Problem, opts: _Options, pose: SE3, distance: Array) -
         kept = trim_mask(s, opts.trim_fraction, kept)
     s_safe = jnp.where(kept, s, 0.0)
     weight = jnp.where(kept, problem.source_weights * opts.kernel.weight(s_safe), 0.0)
-    count = jnp.sum(kept)
+    count = jnp.sum(kept, dtype=jnp.int32)
     d2_kept = jnp.where(kept, d2, 0.0)
     mean_sq = jnp.sum(d2_kept) / jnp.maximum(count, 1)
     rmse = jnp.where(count > 0, jnp.sqrt(jnp.where(count > 0, mean_sq, 1.0)), jnp.inf)
@@ -231,17 +238,20 @@ def _run(problem: _Problem, opts: _Options, init: SE3) -> RegistrationResult:
     tol = opts.tolerance.astype(dtype)
     n = problem.source.shape[0]
 
+    # Derivatives come from _implicit_pose; nothing is differentiated through the loop.
+    frozen, fopts = jax.lax.stop_gradient((problem, opts))
+
     def body(state):
         pose, it = state["pose"], state["iteration"]
-        distance = opts.distances[jnp.minimum(it, opts.max_iterations - 1)]
-        pairs = _correspond(problem, opts, pose, distance)
+        distance = fopts.distances[jnp.minimum(it, opts.max_iterations - 1)]
+        pairs = _correspond(frozen, fopts, pose, distance)
         too_few = pairs.count < 3
         flat_rmse = (jnp.abs(state["pairs"].rmse - pairs.rmse) < tol * pairs.rmse) & (
             pairs.count == state["pairs"].count
         )
         converged = state["small_step"] | flat_rmse
         finish = converged | too_few | (it >= opts.max_iterations)
-        inc, degenerate = _increment(problem, opts, pose, pairs)
+        inc, degenerate = _increment(frozen, fopts, pose, pairs)
         new_pose = inc @ pose
         finite = jnp.all(jnp.isfinite(new_pose.wxyz_xyz))
         take = ~finish & finite
@@ -280,7 +290,7 @@ def _run(problem: _Problem, opts: _Options, init: SE3) -> RegistrationResult:
         status=ICPStatus.success,
         history=jnp.full((opts.max_iterations,), jnp.nan, dtype),
     )
-    state = jax.lax.stop_gradient(jax.lax.while_loop(lambda st: ~st["finished"], body, state))
+    state = jax.lax.while_loop(lambda st: ~st["finished"], body, jax.lax.stop_gradient(state))
     pairs = state["pairs"]
     status = state["status"]
     ok = status == ICPStatus.success
@@ -553,3 +563,85 @@ def select_best(results: RegistrationResult) -> Int[Array, ""]:
     rmse = jnp.where(usable, results.inlier_rmse, jnp.inf)
     order = jnp.lexsort((rmse, -frac))
     return order[0]
+
+
+def _centroid(points: Array) -> Array:
+    ok = jnp.all(jnp.isfinite(points), -1, keepdims=True)
+    return jnp.sum(jnp.where(ok, points, 0.0), 0) / jnp.maximum(jnp.sum(ok), 1)
+
+
+def _principal_axes(points: Array) -> tuple[Array, Array]:
+    """Centroid ``(3,)`` and principal axes as columns ``(3, 3)``, largest variance first."""
+    c = _centroid(points)
+    ok = jnp.all(jnp.isfinite(points), -1, keepdims=True)
+    d = jnp.where(ok, points - c, 0.0)
+    _, vec = jnp.linalg.eigh(d.T @ d)
+    return c, vec[:, ::-1]
+
+
+def pca_inits(source: Float[ArrayLike, "N 3"], target: Float[ArrayLike, "M 3"]) -> SE3:
+    """The four proper poses that align the source's principal axes and centroid with the
+    target's: batch ``(4,)``, one per sign choice of the axes (PCA fixes axes only up to sign).
+
+    ``target`` is typically the segmented object's cloud. Its centroid is biased on partial
+    views (the visible side only), so use these as starts for ICP, not as answers.
+    """
+    src = jnp.asarray(source)
+    tgt = jnp.asarray(target, src.dtype)
+    c_s, v_s = _principal_axes(src)
+    c_t, v_t = _principal_axes(tgt)
+    signs = jnp.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], src.dtype)
+    # det(v_t diag(s) v_s^T) = det(v_t) det(v_s) prod(s): fix the third sign to make it +1.
+    flip = jnp.linalg.det(v_t) * jnp.linalg.det(v_s)
+    signs = signs.at[:, 2].multiply(flip)
+    rotations = jnp.einsum("ij,sj,kj->sik", v_t, signs, v_s)
+    translations = c_t - jnp.einsum("sij,j->si", rotations, c_s)
+    return SE3.from_rotation_and_translation(SO3.from_matrix(rotations), translations)
+
+
+def rotation_inits(
+    source: Float[ArrayLike, "N 3"],
+    target: Float[ArrayLike, "M 3"],
+    n: int,
+    *,
+    around: SE3 | None = None,
+    max_angle: float | None = None,
+) -> SE3:
+    """``n`` starts whose rotations cover SO(3) (or a ball around a prior), batch ``(n,)``.
+
+    Without ``around`` the rotations are :func:`jaxreg.lie.rotation_grid` (near-uniform over
+    SO(3)) applied about the source centroid, which each start places on the target
+    centroid. With ``around`` (a prior pose) and ``max_angle`` (radians) the rotations are
+    :func:`jaxreg.lie.rotation_grid_around` the prior's rotation, again about the source
+    centroid, keeping the prior's placement of that centroid; sample 0 is the prior.
+    """
+    src = jnp.asarray(source)
+    c_s = _centroid(src)
+    if around is None:
+        rotations = rotation_grid(n, dtype=src.dtype)
+        anchor = _centroid(jnp.asarray(target, src.dtype))
+    else:
+        if max_angle is None:
+            raise ValueError("rotation_inits(around=...) needs max_angle (radians)")
+        rotations = rotation_grid_around(around.rotation(), n, max_angle)
+        anchor = around @ c_s
+    translations = anchor - rotations.apply(c_s)
+    return SE3.from_rotation_and_translation(rotations, translations)
+
+
+def perturbed_inits(
+    pose: SE3,
+    key: Array,
+    n: int,
+    *,
+    rotation_sigma: float,
+    translation_sigma: float,
+) -> SE3:
+    """``n`` random right perturbations ``pose @ exp(d)`` of a previous pose, batch ``(n,)``:
+    ``d = (v, w)`` with ``v ~ N(0, translation_sigma^2 I)`` (metres, source frame) and
+    ``w ~ N(0, rotation_sigma^2 I)`` (radians). Sample 0 is ``pose`` itself (tracking)."""
+    dtype = pose.wxyz_xyz.dtype
+    scale = jnp.array([translation_sigma] * 3 + [rotation_sigma] * 3, dtype)
+    delta = jax.random.normal(key, (n, 6), dtype) * scale
+    delta = delta.at[0].set(0.0)
+    return SE3(pose.wxyz_xyz[None]) @ SE3.exp(delta)
