@@ -223,9 +223,10 @@ def build_grid(
     *,
     k: int | None = 1,
     capacity: int | None = None,
-    max_depth: int = 6,
+    max_depth: int | None = None,
     max_cells: int = 1 << 21,
     max_map: int = 1 << 22,
+    max_pairs: int = 1 << 23,
     mask: ArrayLike | None = None,
 ) -> NeighborGrid:
     """Indexes a target cloud for exact neighbour queries within ``max_distance`` (host).
@@ -247,10 +248,13 @@ def build_grid(
             dropped. An explicit value is a hard cap: leaves still above it at the maximum
             depth are truncated (keeping the candidates nearest the leaf's centre) and
             ``overflow`` is set.
-        max_depth: levels of octree refinement below the top-level cells.
+        max_depth: levels of octree refinement below the top-level cells; default 6 for
+            ``k == 1`` and 1 otherwise (kNN and radius lists shrink little when refined, and
+            their pruning sorts, so deeper refinement costs more build time than it saves).
         max_cells: cap on the number of top-level cells; the cell size grows (beyond
             ``max_distance``) to respect it, which bounds memory for tiny radii.
         max_map: cap on the entries of ``leaf_map``; refinement stops before exceeding it.
+        max_pairs: cap on the (node, candidate) pairs of one refinement level (host memory).
         mask: ``(M,)`` optional validity of the target rows.
 
     Returns:
@@ -272,6 +276,8 @@ def build_grid(
         raise ValueError(f"k must be >= 1 or None, got {k}")
     if capacity is not None and capacity < max(1, k or 1):
         raise ValueError(f"capacity must be >= max(1, k), got {capacity} with k={k}")
+    if max_depth is None:
+        max_depth = 6 if k == 1 else 1
     num_points = pts.shape[0]
     valid = np.all(np.isfinite(pts), axis=1)
     if mask is not None:
@@ -332,7 +338,8 @@ def build_grid(
         split = counts > leaf_target
         deeper = np.unique(node_cell[split])
         grow = len(deeper) * (8 ** (level + 1) - 8**level)
-        if level == max_depth or map_size + grow > max_map:
+        child_pairs = 8 * int(counts[split].sum())
+        if level == max_depth or map_size + grow > max_map or child_pairs > max_pairs:
             split[:] = False
         else:
             map_size += grow
@@ -375,7 +382,8 @@ def build_grid(
 
     # Flattened octree: each top-level cell owns a block of (2^d)^3 sub-cell entries.
     used = np.zeros(n_cells, bool)
-    used[np.concatenate([lv[0] for lv in leaves])] = True
+    for lv in leaves:
+        used[lv[0]] = True
     block = np.where(used, 8**cell_depth, 0)
     base = np.where(used, 1 + np.cumsum(block) - block, 0)
     leaf_map = np.zeros(1 + int(block.sum()), np.int64)
@@ -398,9 +406,9 @@ def build_grid(
         cand_node.append(lpair)
         cand_pid.append(lpid)
         cand_key.append(((points[lpid] - centre[lpair - ids[0]]) ** 2).sum(1) if count else [])
-    cand_node = np.concatenate(cand_node).astype(np.int64)
-    cand_pid = np.concatenate(cand_pid).astype(np.int64)
-    cand_key = np.concatenate(cand_key).astype(np.float64)
+    cand_node = np.concatenate([np.zeros(0, np.int64), *cand_node]).astype(np.int64)
+    cand_pid = np.concatenate([np.zeros(0, np.int64), *cand_pid]).astype(np.int64)
+    cand_key = np.concatenate([np.zeros(0), *cand_key]).astype(np.float64)
     counts = np.bincount(cand_node, minlength=n_leaves)
     needed = int(counts.max()) if len(counts) else 0
     cap = capacity if capacity is not None else max(needed, 1)

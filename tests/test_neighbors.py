@@ -1,0 +1,265 @@
+"""Nearest neighbours: the grid is exact within max_distance, brute force matches a kd-tree."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from jaxreg.io import load_points
+from jaxreg.neighbors import (
+    build_grid,
+    knn,
+    query_knn,
+    query_nearest,
+    query_radius,
+    radius_search,
+    voxel_downsample,
+)
+
+
+def brute_nearest(queries, points):
+    """float64 numpy reference: index and squared distance of each query's nearest point."""
+    d2 = ((queries[:, None, :].astype(np.float64) - points[None].astype(np.float64)) ** 2).sum(-1)
+    return d2.argmin(1), d2.min(1)
+
+
+def surface_cloud(rng, n):
+    """Points on two crossing noisy planes and a sphere: edges, gaps, varying density."""
+    a = rng.uniform(-0.1, 0.1, (n // 3, 2))
+    plane1 = np.c_[a, 0.002 * rng.normal(size=n // 3)]
+    plane2 = np.c_[0.002 * rng.normal(size=n // 3), a]
+    s = rng.normal(size=(n - 2 * (n // 3), 3))
+    sphere = 0.05 * s / np.linalg.norm(s, axis=1, keepdims=True) + [0.05, 0.05, 0.08]
+    return np.concatenate([plane1, plane2, sphere]) + [0.1, -0.2, 0.8]
+
+
+def check_exact(grid, queries, points, r, atol):
+    idx, d2, valid = (np.asarray(a) for a in query_nearest(grid, queries))
+    ref_idx, ref_d2 = brute_nearest(queries, points)
+    expected = ref_d2 <= r * r
+    # Queries within rounding of the radius may fall either way.
+    edge = np.abs(np.sqrt(ref_d2) - r) < 1e-5
+    assert np.array_equal(valid[~edge], expected[~edge])
+    np.testing.assert_allclose(d2[valid], ref_d2[valid], rtol=1e-4, atol=atol)
+    assert np.sum(idx[valid] != ref_idx[valid]) <= 0.01 * valid.sum()  # ties aside
+    assert np.all(idx[~valid] == len(points)) and np.all(np.isinf(d2[~valid]))
+    return valid
+
+
+@pytest.mark.parametrize("r", [0.01, 0.03])
+def test_grid_nearest_is_exact_on_surfaces(dtype, r):
+    rng = np.random.default_rng(0)
+    points = surface_cloud(rng, 1500).astype(dtype)
+    queries = (points[rng.integers(0, len(points), 800)] + rng.normal(0, r / 2, (800, 3)))
+    queries = queries.astype(dtype)
+    grid = build_grid(points, r)
+    assert grid.candidate_points.dtype == dtype and not bool(grid.overflow)
+    valid = check_exact(grid, queries, points, r, atol=1e-12 if dtype == np.float64 else 1e-9)
+    assert 0.3 < valid.mean() < 1.0  # both outcomes are exercised
+
+
+@settings(max_examples=5, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), r=st.sampled_from([0.05, 0.15, 0.4]))
+def test_grid_nearest_is_exact_on_random_clouds(seed, r):
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(-1, 1, (4, 3))
+    points = (centres[rng.integers(0, 4, 300)] + rng.normal(0, 0.2, (300, 3))).astype(np.float32)
+    near = points[:128] + rng.normal(0, r / 2, (128, 3))
+    queries = np.concatenate([near, rng.uniform(-1.5, 1.5, (128, 3))]).astype(np.float32)
+    grid = build_grid(points, r, max_depth=3)
+    assert check_exact(grid, queries, points, r, atol=1e-7).any()
+
+
+def test_grid_nearest_on_milk(pcl_dir):
+    points = voxel_downsample(load_points(pcl_dir / "milk.pcd"), 0.004)
+    rng = np.random.default_rng(1)
+    pose_shift = np.array([0.004, -0.003, 0.006], np.float32)  # a nearly aligned ICP source
+    queries = points + pose_shift + rng.normal(0, 0.003, points.shape).astype(np.float32)
+    grid = build_grid(points, 0.02)
+    assert grid.capacity <= 32 and not bool(grid.overflow)
+    valid = check_exact(grid, queries, points, 0.02, atol=1e-9)
+    assert valid.mean() > 0.95
+    # The brute-force engine agrees with the grid.
+    idx, d2, ok = knn(queries, points, 1, max_distance=0.02)
+    gi, gd2, gok = query_nearest(grid, queries)
+    assert np.array_equal(np.asarray(ok[:, 0]), np.asarray(gok))
+    np.testing.assert_allclose(np.asarray(d2[:, 0])[gok], np.asarray(gd2)[gok], rtol=1e-5, atol=1e-10)
+
+
+def test_query_radius_argument_tightens_and_is_clipped():
+    rng = np.random.default_rng(2)
+    points = rng.uniform(0, 1, (400, 3)).astype(np.float32)
+    queries = rng.uniform(0, 1, (300, 3)).astype(np.float32)
+    grid = build_grid(points, 0.1)
+    _, ref_d2 = brute_nearest(queries, points)
+    query = jax.jit(query_nearest)  # the radius is traced: one compilation for both
+    _, d2, valid = query(grid, queries, 0.05)
+    assert np.array_equal(np.asarray(valid), ref_d2 <= 0.05**2)
+    _, _, valid = query(grid, queries, 10.0)  # clipped to the grid's 0.1
+    assert np.array_equal(np.asarray(valid), ref_d2 <= 0.1**2)
+
+
+def test_overflow_flag_when_capacity_too_small():
+    points = surface_cloud(np.random.default_rng(3), 900).astype(np.float32)
+    small = build_grid(points, 0.05, capacity=2, max_depth=0)
+    assert bool(small.overflow) and small.capacity == 2
+    sized = build_grid(points, 0.05, max_depth=0)  # host sizes the capacity: nothing dropped
+    assert not bool(sized.overflow) and sized.capacity > 2
+
+
+def test_out_of_range_and_non_finite_queries_are_invalid():
+    rng = np.random.default_rng(4)
+    points = rng.uniform(0, 1, (200, 3)).astype(np.float32)
+    grid = build_grid(points, 0.1)
+    queries = np.array(
+        [[5.0, 5.0, 5.0], [-3.0, 0.5, 0.5], [0.5, 0.5, 1.2], [np.nan, 0.5, 0.5], [0.5, np.inf, 0]],
+        np.float32,
+    )
+    idx, d2, valid = query_nearest(grid, queries)
+    assert not np.asarray(valid).any()
+    assert np.all(np.asarray(idx) == 200) and np.all(np.isinf(np.asarray(d2)))
+
+
+def test_vmap_over_query_sets_matches_each_set():
+    rng = np.random.default_rng(5)
+    points = surface_cloud(rng, 600).astype(np.float32)
+    sets = (points[None, :256] + rng.normal(0, 0.01, (6, 256, 3))).astype(np.float32)
+    grid = build_grid(points, 0.02)
+    batched = jax.jit(jax.vmap(query_nearest, in_axes=(None, 0)))(grid, sets)
+    for s in range(len(sets)):
+        idx, d2, valid = query_nearest(grid, sets[s])
+        np.testing.assert_array_equal(np.asarray(batched[0][s]), np.asarray(idx))
+        np.testing.assert_allclose(np.asarray(batched[1][s]), np.asarray(d2), rtol=1e-6)
+        np.testing.assert_array_equal(np.asarray(batched[2][s]), np.asarray(valid))
+
+
+def test_masked_and_non_finite_target_rows_are_never_returned():
+    rng = np.random.default_rng(6)
+    points = rng.uniform(0, 1, (300, 3)).astype(np.float32)
+    points[10] = np.nan
+    mask = np.ones(300, bool)
+    mask[::3] = False
+    queries = points[2::3] + 1e-4  # right next to kept rows and beside masked ones
+    grid = build_grid(points, 0.2, mask=mask)
+    idx, _, valid = query_nearest(grid, queries)
+    keep = np.flatnonzero(mask & np.isfinite(points).all(1))
+    ref, _ = brute_nearest(queries, points[keep])
+    assert np.asarray(valid).all()
+    np.testing.assert_array_equal(np.asarray(idx), keep[ref])
+    empty = build_grid(points, 0.2, mask=np.zeros(300, bool))
+    idx, _, valid = query_nearest(empty, queries)
+    assert not np.asarray(valid).any() and np.all(np.asarray(idx) == 300)
+
+
+def test_knn_matches_ckdtree(dtype):
+    spatial = pytest.importorskip("scipy.spatial")
+    rng = np.random.default_rng(7)
+    points = surface_cloud(rng, 900).astype(dtype)
+    queries = (points[:300] + rng.normal(0, 0.005, (300, 3))).astype(dtype)
+    tree = spatial.cKDTree(points.astype(np.float64))
+    for k in (1, 8):
+        idx, d2, valid = jax.jit(knn, static_argnums=2)(queries, points, k)
+        ref_d, ref_i = tree.query(queries.astype(np.float64), k)
+        ref_d, ref_i = ref_d.reshape(300, k), ref_i.reshape(300, k)
+        assert np.asarray(valid).all() and idx.dtype == jnp.int32
+        np.testing.assert_allclose(np.sqrt(np.asarray(d2)), ref_d, rtol=1e-5, atol=1e-9)
+        assert np.mean(np.asarray(idx) == ref_i) > 0.99
+    # Small blocks give the same answer (blocks only bound memory).
+    a = knn(queries, points, 4, block=7)
+    b = knn(queries, points, 4)
+    np.testing.assert_array_equal(np.asarray(a[0]), np.asarray(b[0]))
+
+
+def test_knn_pads_missing_neighbours_with_the_sentinel():
+    points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [9, 9, 9]], np.float32)
+    mask = np.array([True, True, False, True])
+    idx, d2, valid = knn(np.zeros((1, 3), np.float32), points, 6, mask=mask, max_distance=2.0)
+    np.testing.assert_array_equal(np.asarray(idx[0]), [0, 1, 4, 4, 4, 4])
+    np.testing.assert_array_equal(np.asarray(valid[0]), [True, True, False, False, False, False])
+    assert np.all(np.isinf(np.asarray(d2[0, 2:])))
+
+
+def test_grid_knn_matches_ckdtree_within_radius():
+    spatial = pytest.importorskip("scipy.spatial")
+    rng = np.random.default_rng(8)
+    points = surface_cloud(rng, 1500).astype(np.float32)
+    queries = (points[:400] + rng.normal(0, 0.004, (400, 3))).astype(np.float32)
+    grid = build_grid(points, 0.015, k=6)
+    idx, d2, valid = jax.jit(query_knn, static_argnums=2)(grid, queries, 6)
+    ref_d, ref_i = spatial.cKDTree(points).query(queries, 6, distance_upper_bound=0.015)
+    assert np.array_equal(np.asarray(valid), np.isfinite(ref_d))
+    ok = np.isfinite(ref_d)
+    np.testing.assert_allclose(np.sqrt(np.asarray(d2))[ok], ref_d[ok], rtol=1e-5, atol=1e-9)
+    assert (~ok).any() and ok.any()
+    with pytest.raises(ValueError, match="built for k <= 6"):
+        query_knn(grid, queries, 7)
+
+
+@pytest.mark.parametrize("engine", ["brute", "grid"])
+def test_radius_search_matches_ckdtree(engine):
+    spatial = pytest.importorskip("scipy.spatial")
+    rng = np.random.default_rng(9)
+    points = surface_cloud(rng, 1200).astype(np.float32)
+    queries = (points[:300] + rng.normal(0, 0.003, (300, 3))).astype(np.float32)
+    radius, capacity = 0.012, 8
+    if engine == "brute":
+        idx, d2, mask, overflow = radius_search(queries, points, radius, capacity)
+    else:
+        grid = build_grid(points, radius, k=None)
+        idx, d2, mask, overflow = jax.jit(query_radius, static_argnums=2)(grid, queries, capacity)
+    lists = spatial.cKDTree(points).query_ball_point(queries, radius)
+    counts = np.array([len(x) for x in lists])
+    assert (counts > capacity).any() and (counts <= capacity).any()
+    np.testing.assert_array_equal(np.asarray(overflow), counts > capacity)
+    idx, mask, d2 = np.asarray(idx), np.asarray(mask), np.asarray(d2)
+    for i, expected in enumerate(lists):
+        got = idx[i][mask[i]]
+        assert np.all(np.diff(d2[i][mask[i]]) >= 0)  # nearest first
+        if counts[i] <= capacity:
+            assert set(got) == set(expected)
+        else:  # the nearest `capacity` are kept
+            true_d = np.sort(((points[expected] - queries[i]) ** 2).sum(1))[:capacity]
+            np.testing.assert_allclose(np.sort(d2[i]), true_d, rtol=1e-5)
+        assert np.all(idx[i][~mask[i]] == len(points))
+
+
+def test_query_radius_needs_an_unpruned_grid():
+    points = np.random.default_rng(10).uniform(0, 1, (50, 3))
+    with pytest.raises(ValueError, match="k=None"):
+        query_radius(build_grid(points, 0.3), points, 8)
+
+
+def test_build_grid_rejects_bad_input():
+    points = np.zeros((10, 3))
+    with pytest.raises(ValueError, match="max_distance"):
+        build_grid(points, 0.0)
+    with pytest.raises(ValueError, match=r"\(M, 3\)"):
+        build_grid(np.zeros((10, 2)), 0.1)
+    with pytest.raises(ValueError, match="capacity"):
+        build_grid(points, 0.1, k=4, capacity=2)
+    with pytest.raises(ValueError, match="outside jit"):
+        jax.jit(lambda p: build_grid(p, 0.1).origin)(points)
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        query_nearest(build_grid(points, 0.1), np.zeros((2, 5, 3)))
+
+
+def test_voxel_downsample_centroids():
+    points = np.array(
+        [[0.0, 0, 0], [0.2, 0, 0], [1.05, 0, 0], [1.15, 0.1, 0], [np.nan, 0, 0]], np.float32
+    )
+    out = voxel_downsample(points, 0.5)
+    assert out.dtype == np.float32
+    np.testing.assert_allclose(out, [[0.1, 0, 0], [1.1, 0.05, 0]], atol=1e-6)
+
+
+def test_voxel_downsample_matches_open3d(pcl_dir):
+    o3d = pytest.importorskip("open3d")
+    points = load_points(pcl_dir / "milk.pcd")
+    ours = voxel_downsample(points, 0.004)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+    theirs = np.asarray(cloud.voxel_down_sample(0.004).points)
+    assert len(ours) == len(theirs)
+    _, d2, _ = knn(ours, theirs, 1)  # the same centroids, in another order
+    assert float(np.sqrt(np.max(d2))) < 1e-6
