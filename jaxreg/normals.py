@@ -1,0 +1,163 @@
+"""Surface normals and curvature by PCA over each point's nearest neighbours.
+
+For each point, the covariance of its ``k`` nearest neighbours (the point itself included,
+as Open3D does) has eigenvalues ``l0 <= l1 <= l2``. The normal is the eigenvector of ``l0``
+(the direction the neighbourhood varies least along), flipped to face the viewpoint:
+``n . (viewpoint - p) >= 0``, so it points toward the sensor that saw the surface. The
+*surface variation* ``l0 / (l0 + l1 + l2)`` in ``[0, 1/3]`` is reported as curvature (0 on
+a plane; PCL and Open3D use the same quantity).
+
+Every point gets a status; points that are masked or not finite, that have fewer than 3
+valid neighbours, or whose neighbours are collinear or coincident (``l1`` negligible next to
+``l2``: the normal is undefined) get a zero normal and zero curvature, never NaN.
+
+Neighbours come from :func:`jaxreg.neighbors.knn` (blocked brute force: exact and jittable
+with the cloud traced), or are passed in, e.g. from :func:`jaxreg.neighbors.query_knn` on a
+grid built once on the host, which is far faster for large clouds on CPU.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from .neighbors import knn
+
+__all__ = ["NormalEstimate", "NormalStatus", "estimate_normals", "estimate_normals_with_curvature"]
+
+
+class NormalStatus(eqx.Enumeration):
+    """Per-point outcome of normal estimation."""
+
+    successful = "normal estimated"
+    invalid_point = "the point is masked out or not finite"
+    too_few_neighbors = "fewer than 3 valid neighbours: increase k or check the mask"
+    degenerate = "the neighbours are collinear or coincident: the normal is undefined"
+
+
+class NormalEstimate(eqx.Module):
+    """Result of :func:`estimate_normals_with_curvature` for ``N`` points.
+
+    Attributes:
+        normals: ``(N, 3)`` unit normals facing the viewpoint; zero where not ``valid``.
+        curvature: ``(N,)`` surface variation ``l0 / (l0 + l1 + l2)`` in ``[0, 1/3]``;
+            zero where not ``valid``.
+        valid: ``(N,)`` the normal is defined (``status == successful``).
+        status: ``(N,)`` :class:`NormalStatus` of each point.
+        num_neighbors: ``(N,)`` valid neighbours used (the point itself included).
+    """
+
+    normals: Float[Array, "N 3"]
+    curvature: Float[Array, " N"]
+    valid: Bool[Array, " N"]
+    status: NormalStatus
+    num_neighbors: Int[Array, " N"]
+
+
+def _one(point, point_ok, nbrs, nbr_ok, viewpoint):
+    """Normal, curvature and status of one point from its ``(k, 3)`` neighbours."""
+    dtype = nbrs.dtype
+    w = nbr_ok.astype(dtype)
+    count = nbr_ok.sum()
+    # Centre at the point first (no cancellation far from the origin), then at the mean.
+    rel = jnp.where(nbr_ok[:, None], nbrs - point, 0)
+    mean = (w[:, None] * rel).sum(0) / jnp.maximum(w.sum(), 1)
+    dev = jnp.where(nbr_ok[:, None], rel - mean, 0)
+    cov = dev.T @ dev / jnp.maximum(w.sum(), 1)
+    evals, evecs = jnp.linalg.eigh(cov)
+    evals = jnp.maximum(evals, 0)
+    total = evals.sum()
+    enough = count >= 3
+    # Collinear or coincident neighbours: the middle eigenvalue vanishes next to the largest.
+    tol = 100 * jnp.finfo(dtype).eps
+    flat = evals[1] <= tol * evals[2]
+    ok = point_ok & enough & ~flat
+    normal = evecs[:, 0]
+    normal = jnp.where(jnp.dot(normal, viewpoint - point) < 0, -normal, normal)
+    normal = jnp.where(ok, normal, 0)
+    safe_total = jnp.where(ok, total, 1)
+    curvature = jnp.where(ok, evals[0] / safe_total, 0)
+    status = NormalStatus.where(
+        point_ok,
+        NormalStatus.where(
+            enough,
+            NormalStatus.where(flat, NormalStatus.degenerate, NormalStatus.successful),
+            NormalStatus.too_few_neighbors,
+        ),
+        NormalStatus.invalid_point,
+    )
+    return normal, curvature, ok, status, count
+
+
+def estimate_normals_with_curvature(
+    points: ArrayLike,
+    k: int = 20,
+    viewpoint: ArrayLike | None = None,
+    *,
+    mask: ArrayLike | None = None,
+    neighbors: tuple[ArrayLike, ArrayLike] | None = None,
+) -> NormalEstimate:
+    """Normals, curvature and per-point status by PCA over ``k`` nearest neighbours (jittable).
+
+    Args:
+        points: ``(N, 3)`` cloud, in the frame of ``viewpoint`` (e.g. the camera frame).
+        k: static neighbourhood size, the point itself included (Open3D's KNN search).
+        viewpoint: ``(3,)`` sensor position the normals should face; default the origin
+            (the sensor of a camera-frame cloud).
+        mask: ``(N,)`` optional validity; masked and non-finite points are neither given
+            a normal nor used as anyone's neighbour.
+        neighbors: optional precomputed ``(indices (N, K), valid (N, K))`` into ``points``
+            (sentinel ``N`` where invalid), e.g. from ``query_knn`` on a grid of ``points``;
+            ``k`` is then ignored. Default: exact brute-force :func:`~jaxreg.neighbors.knn`.
+
+    Returns:
+        A :class:`NormalEstimate`.
+    """
+    points = jnp.asarray(points)
+    if points.ndim != 2 or points.shape[-1] != 3:
+        raise ValueError(f"points must be (N, 3) (vmap for batches), got {points.shape}")
+    if not jnp.issubdtype(points.dtype, jnp.floating):
+        points = points.astype(jnp.result_type(float))
+    n = points.shape[0]
+    ok = jnp.all(jnp.isfinite(points), axis=-1)
+    if mask is not None:
+        mask = jnp.asarray(mask)
+        if mask.shape != (n,):
+            raise ValueError(f"mask must be ({n},), got {mask.shape}")
+        ok = ok & mask
+    if neighbors is None:
+        if k < 1:
+            raise ValueError(f"k must be positive, got {k}")
+        idx, _, nbr_ok = knn(points, points, k, mask=ok)
+    else:
+        idx, nbr_ok = (jnp.asarray(a) for a in neighbors)
+        if idx.ndim != 2 or idx.shape[0] != n or nbr_ok.shape != idx.shape:
+            raise ValueError(
+                f"neighbors must be (indices, valid) of shape ({n}, K), got "
+                f"{idx.shape} and {nbr_ok.shape}"
+            )
+        nbr_ok = nbr_ok & ok.at[idx].get(mode="fill", fill_value=False)
+    nbrs = points.at[idx].get(mode="fill", fill_value=0)
+    vp = jnp.zeros(3, points.dtype) if viewpoint is None else jnp.asarray(viewpoint, points.dtype)
+    safe = jnp.where(ok[:, None], points, 0)
+    normal, curvature, valid, status, count = jax.vmap(_one, in_axes=(0, 0, 0, 0, None))(
+        safe, ok, nbrs, nbr_ok, vp
+    )
+    return NormalEstimate(normal, curvature, valid, status, count.astype(jnp.int32))
+
+
+def estimate_normals(
+    points: ArrayLike,
+    k: int = 20,
+    viewpoint: ArrayLike | None = None,
+    *,
+    mask: ArrayLike | None = None,
+    neighbors: tuple[ArrayLike, ArrayLike] | None = None,
+) -> Float[Array, "N 3"]:
+    """``(N, 3)`` unit normals facing ``viewpoint`` (zero where undefined); see
+    :func:`estimate_normals_with_curvature` for the arguments, curvature and status."""
+    return estimate_normals_with_curvature(
+        points, k, viewpoint, mask=mask, neighbors=neighbors
+    ).normals
