@@ -52,7 +52,7 @@ def check_exact(grid, queries, points, r, atol):
 def test_grid_nearest_is_exact_on_surfaces(dtype, r):
     rng = np.random.default_rng(0)
     points = surface_cloud(rng, 1500).astype(dtype)
-    queries = (points[rng.integers(0, len(points), 800)] + rng.normal(0, r / 2, (800, 3)))
+    queries = points[rng.integers(0, len(points), 800)] + rng.normal(0, r / 2, (800, 3))
     queries = queries.astype(dtype)
     grid = build_grid(points, r)
     assert grid.candidate_points.dtype == dtype and not bool(grid.overflow)
@@ -82,10 +82,12 @@ def test_grid_nearest_on_milk(pcl_dir):
     valid = check_exact(grid, queries, points, 0.02, atol=1e-9)
     assert valid.mean() > 0.95
     # The brute-force engine agrees with the grid.
-    idx, d2, ok = knn(queries, points, 1, max_distance=0.02)
-    gi, gd2, gok = query_nearest(grid, queries)
+    _, d2, ok = knn(queries, points, 1, max_distance=0.02)
+    _, gd2, gok = query_nearest(grid, queries)
     assert np.array_equal(np.asarray(ok[:, 0]), np.asarray(gok))
-    np.testing.assert_allclose(np.asarray(d2[:, 0])[gok], np.asarray(gd2)[gok], rtol=1e-5, atol=1e-10)
+    np.testing.assert_allclose(
+        np.asarray(d2[:, 0])[gok], np.asarray(gd2)[gok], rtol=1e-5, atol=1e-10
+    )
 
 
 def test_query_radius_argument_tightens_and_is_clipped():
@@ -95,7 +97,7 @@ def test_query_radius_argument_tightens_and_is_clipped():
     grid = build_grid(points, 0.1)
     _, ref_d2 = brute_nearest(queries, points)
     query = jax.jit(query_nearest)  # the radius is traced: one compilation for both
-    _, d2, valid = query(grid, queries, 0.05)
+    _, _, valid = query(grid, queries, 0.05)
     assert np.array_equal(np.asarray(valid), ref_d2 <= 0.05**2)
     _, _, valid = query(grid, queries, 10.0)  # clipped to the grid's 0.1
     assert np.array_equal(np.asarray(valid), ref_d2 <= 0.1**2)
@@ -106,7 +108,15 @@ def test_overflow_flag_when_capacity_too_small():
     small = build_grid(points, 0.05, capacity=2, max_depth=0)
     assert bool(small.overflow) and small.capacity == 2
     sized = build_grid(points, 0.05, max_depth=0)  # host sizes the capacity: nothing dropped
-    assert not bool(sized.overflow) and sized.capacity > 2
+    assert not bool(sized.overflow) and sized.capacity > 48  # the long-list (argmin) path
+    queries = points[::3] + np.random.default_rng(4).normal(0, 0.02, (300, 3)).astype(np.float32)
+    check_exact(sized, queries, points, 0.05, atol=1e-9)
+    # The truncated grid is inexact somewhere (that is what the flag warns about).
+    _, d2, valid = query_nearest(small, queries)
+    _, ref_d2 = brute_nearest(queries, points)
+    assert np.any(~np.asarray(valid) & (ref_d2 <= 0.05**2)) or np.any(
+        np.asarray(d2) > ref_d2 * 1.01
+    )
 
 
 def test_out_of_range_and_non_finite_queries_are_invalid():
@@ -187,8 +197,8 @@ def test_grid_knn_matches_ckdtree_within_radius():
     points = surface_cloud(rng, 1500).astype(np.float32)
     queries = (points[:400] + rng.normal(0, 0.004, (400, 3))).astype(np.float32)
     grid = build_grid(points, 0.015, k=6)
-    idx, d2, valid = jax.jit(query_knn, static_argnums=2)(grid, queries, 6)
-    ref_d, ref_i = spatial.cKDTree(points).query(queries, 6, distance_upper_bound=0.015)
+    _, d2, valid = jax.jit(query_knn, static_argnums=2)(grid, queries, 6)
+    ref_d, _ = spatial.cKDTree(points).query(queries, 6, distance_upper_bound=0.015)
     assert np.array_equal(np.asarray(valid), np.isfinite(ref_d))
     ok = np.isfinite(ref_d)
     np.testing.assert_allclose(np.sqrt(np.asarray(d2))[ok], ref_d[ok], rtol=1e-5, atol=1e-9)
