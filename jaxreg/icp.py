@@ -151,6 +151,12 @@ class _Pairs(eqx.Module):
     fraction: Float[Array, ""]
 
 
+def _apply(pose: SE3, points: Float[Array, "N 3"]) -> Float[Array, "N 3"]:
+    """``pose @ points`` through the rotation matrix: one small matmul, which stays fast
+    under ``vmap`` (jaxlie's quaternion ``apply`` batched over poses is ~30x slower here)."""
+    return points @ pose.rotation().as_matrix().T + pose.translation()
+
+
 def _fill_gather(values: Array, index: Array) -> Array:
     """``values[index]`` with out-of-range (sentinel) rows read as zeros, never a real row."""
     return values.at[index].get(mode="fill", fill_value=0.0)
@@ -167,9 +173,12 @@ def _residual_sq(problem: _Problem, moved: Array, index: Array, method: str) -> 
 
 def _correspond(problem: _Problem, opts: _Options, pose: SE3, distance: Array) -> _Pairs:
     """Nearest-neighbour pairs of the source moved by ``pose``, rejected and weighted."""
-    moved = pose @ problem.source
+    moved = _apply(pose, problem.source)
     if problem.grid is not None:
         index, d2, found = query_nearest(problem.grid, moved, distance)
+        # Materialise the match once: without the barrier XLA fuses the candidate scan into
+        # each consumer and repeats it (4-6x slower under vmap).
+        index, d2, found = jax.lax.optimization_barrier((index, d2, found))
     else:
         index, d2, found = knn(moved, problem.target, 1, max_distance=distance)
         index, d2, found = index[:, 0], d2[:, 0], found[:, 0]
@@ -218,7 +227,7 @@ def _pinv_solve(a: Float[Array, "6 6"], b: Float[Array, " 6"]) -> tuple[Array, A
 
 
 def _increment(problem: _Problem, opts: _Options, pose: SE3, pairs: _Pairs):
-    moved = pose @ problem.source
+    moved = _apply(pose, problem.source)
     if opts.method == "point_to_plane":
         return _plane_step(problem, moved, pairs)
     target = _fill_gather(problem.target, pairs.index)
@@ -321,7 +330,7 @@ def _chart(delta: Float[Array, " 6"]) -> SE3:
 
 def _objective(problem: _Problem, opts: _Options, pose: SE3, pairs: _Pairs) -> Array:
     """Robust ICP objective with the correspondences (and the kept set) frozen."""
-    moved = pose @ problem.source
+    moved = _apply(pose, problem.source)
     s = _residual_sq(problem, moved, pairs.index, opts.method)
     rho = opts.kernel.rho(jnp.where(pairs.kept, s, 0.0))
     return jnp.sum(jnp.where(pairs.kept, problem.source_weights * rho, 0.0))
