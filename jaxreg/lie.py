@@ -29,7 +29,7 @@ from typing import TypeVar
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxlie import SE3 as SE3, SO3 as SO3
+from jaxlie import SE3, SO3
 from jaxlie.utils import get_epsilon
 from jaxtyping import Array, ArrayLike, Float
 
@@ -77,6 +77,7 @@ def _positive_w(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
 # The exponential map of SE(3).
 
 
+@jax.jit
 def se3_exp(tangent: Float[ArrayLike, "... 6"]) -> SE3:
     """`exp` of twists `(vx, vy, vz, wx, wy, wz)` `(..., 6)`: use it instead of `SE3.exp`.
 
@@ -117,12 +118,13 @@ def se3_exp(tangent: Float[ArrayLike, "... 6"]) -> SE3:
 # Angles.
 
 
-def rotation_angle(rotation: SO3) -> Float[Array, "..."]:
+@jax.jit
+def rotation_angle(rotation: SO3) -> Float[Array, ...]:
     """Rotation angle in radians, in `[0, pi]`, of `rotation` (batch `(...)`).
 
     Computed as `2 atan2(|xyz|, |w|)` of the quaternion: accurate near 0 and near pi (where
-    `arccos` of the trace or of `w` loses half the digits), independent of the quaternion's
-    norm and sign. The gradient is finite everywhere: at the identity (a cone point of the
+    `arccos` of the rotation matrix's trace loses half the digits), independent of the
+    quaternion's norm and sign. The gradient is finite everywhere: at the identity (a cone point of the
     angle) it is zero, and at a half turn (a ridge, where `q` and `-q` meet) it is the
     one-sided derivative.
     """
@@ -133,7 +135,8 @@ def rotation_angle(rotation: SO3) -> Float[Array, "..."]:
     return jnp.where(zero, 0.0, 2.0 * jnp.arctan2(xyz_norm, jnp.abs(q[..., 0])))
 
 
-def geodesic_angle(a: SO3, b: SO3) -> Float[Array, "..."]:
+@jax.jit
+def geodesic_angle(a: SO3, b: SO3) -> Float[Array, ...]:
     """Geodesic distance on SO(3): the angle in radians, in `[0, pi]`, of `a^-1 b`.
 
     `a` and `b` broadcast against each other (batches `(...)`). Equals the bi-invariant
@@ -189,6 +192,7 @@ def _procrustes_quaternion_matrix(m: Float[Array, "... 3 3"]) -> Float[Array, ".
     return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
 
 
+@jax.jit
 def so3_from_matrix(matrix: Float[ArrayLike, "... 3 3"]) -> SO3:
     """The rotation nearest to `matrix` in Frobenius norm, as a unit quaternion with `w >= 0`.
 
@@ -211,6 +215,7 @@ def so3_from_matrix(matrix: Float[ArrayLike, "... 3 3"]) -> SO3:
 # Conversions.
 
 
+@jax.jit
 def se3_from_matrix(matrix: Float[ArrayLike, "... 4 4"]) -> SE3:
     """`SE3` from homogeneous matrices `(..., 4, 4)` (`[R t; 0 1]`, mapping source to target).
 
@@ -224,6 +229,7 @@ def se3_from_matrix(matrix: Float[ArrayLike, "... 4 4"]) -> SE3:
     return SE3.from_rotation_and_translation(so3_from_matrix(m[..., :3, :3]), m[..., :3, 3])
 
 
+@jax.jit
 def se3_to_matrix(pose: SE3) -> Float[Array, "... 4 4"]:
     """Homogeneous matrices `(..., 4, 4)` `[R t; 0 1]` of `pose` (batch `(...)`), in the pose's
     dtype (`SE3.as_matrix` builds JAX's default float instead)."""
@@ -278,6 +284,7 @@ def covariance_from_open3d(matrix: Float[ArrayLike, "... 6 6"]) -> Float[Array, 
     return m[..., _OPEN3D_ORDER, :][..., :, _OPEN3D_ORDER]
 
 
+@jax.jit
 def adjoint_transport(pose: SE3, cov: Float[ArrayLike, "... 6 6"]) -> Float[Array, "... 6 6"]:
     """`Ad_T Sigma Ad_T^T`: moves a right-perturbation covariance of `pose` to the left one.
 
@@ -324,7 +331,9 @@ def _averaging_weights(batch: tuple[int, ...], weights, dtype) -> tuple[Array, A
 def _check_averaged_axis(x, name: str) -> tuple[int, ...]:
     batch = x.get_batch_axes()
     if len(batch) == 0:
-        raise ValueError(f"{name} averages over the last batch axis; got an unbatched {type(x).__name__}")
+        raise ValueError(
+            f"{name} averages over the last batch axis; got an unbatched {type(x).__name__}"
+        )
     return batch
 
 
@@ -335,6 +344,7 @@ def _chordal_mean_quaternion(q: Array, w: Array) -> Array:
     return jnp.where(jnp.sum(w, axis=-1, keepdims=True) > 0, mean, jnp.nan)
 
 
+@jax.jit
 def chordal_mean(rotations: SO3, weights: Float[ArrayLike, "... K"] | None = None) -> SO3:
     """Weighted chordal L2 mean of rotations: `argmin_R sum_k w_k ||R - R_k||_F^2`.
 
@@ -383,7 +393,8 @@ def karcher_mean(
     is unique when the data lie within a geodesic ball of radius pi/2.
 
     Differentiable: the gradient is the implicit-function-theorem derivative at the fixed
-    point (no unrolling), finite wherever the mean is locally unique.
+    point (no unrolling), finite wherever the mean is locally unique. Compiled with `jax.jit`
+    (`iterations` is static; `tol` may be an array).
     """
     if not isinstance(x, (SO3, SE3)):
         raise TypeError(f"karcher_mean expects an SO3 or SE3 batch, got {type(x).__name__}")
@@ -395,7 +406,9 @@ def karcher_mean(
     valid, w = _averaging_weights(batch, weights, dtype)
     identity = group.identity().parameters().astype(dtype)
     params = jnp.where(valid[..., None], params, identity)
-    params = params.at[..., :4].set(params[..., :4] / jnp.linalg.norm(params[..., :4], axis=-1, keepdims=True))
+    params = params.at[..., :4].set(
+        params[..., :4] / jnp.linalg.norm(params[..., :4], axis=-1, keepdims=True)
+    )
     tol = 10.0 * float(jnp.finfo(dtype).eps) if tol is None else tol
 
     def mean_step(mean_params, x_params, w):
@@ -408,7 +421,9 @@ def karcher_mean(
         rotation = _chordal_mean_quaternion(x_params[..., :4], w)
         if group is SO3:
             return rotation
-        return jnp.concatenate([rotation, jnp.einsum("...k,...kd->...d", w, x_params[..., 4:])], axis=-1)
+        return jnp.concatenate(
+            [rotation, jnp.einsum("...k,...kd->...d", w, x_params[..., 4:])], axis=-1
+        )
 
     def solve(x_params, w):
         def cond(state):
@@ -450,6 +465,7 @@ def karcher_mean(
 # Sampling.
 
 
+@functools.partial(jax.jit, static_argnames=("shape", "dtype"))
 def random_rotations(key: Array, shape: int | tuple[int, ...] = (), dtype=None) -> SO3:
     """Independent uniform (Haar) random rotations with batch `shape`.
 
@@ -496,7 +512,9 @@ def rotation_grid(n: int, dtype=None) -> SO3:
     r, big_r = np.sqrt(s / n), np.sqrt(1.0 - s / n)
     alpha = 2.0 * np.pi * s / _SUPER_FIBONACCI_PHI
     beta = 2.0 * np.pi * s / _SUPER_FIBONACCI_PSI
-    q = np.stack([r * np.sin(alpha), r * np.cos(alpha), big_r * np.sin(beta), big_r * np.cos(beta)], axis=-1)
+    q = np.stack(
+        [r * np.sin(alpha), r * np.cos(alpha), big_r * np.sin(beta), big_r * np.cos(beta)], axis=-1
+    )
     q = np.where(q[:, :1] < 0, -q, q)
     return SO3(wxyz=jnp.asarray(q, _float_dtype(dtype)))
 
@@ -504,6 +522,7 @@ def rotation_grid(n: int, dtype=None) -> SO3:
 _PLASTIC = 1.324717957244746025960908854  # R2 low-discrepancy sequence (Roberts 2018)
 
 
+@functools.partial(jax.jit, static_argnames=("n",))
 def rotation_grid_around(center: SO3, n: int, max_angle: Float[ArrayLike, ""]) -> SO3:
     """`n` deterministic rotations within `max_angle` radians (at most pi) of `center`.
 

@@ -115,32 +115,51 @@ def test_exp_log_round_trip(dtype, group, seed, shape, regime):
     np.testing.assert_allclose(x.log(), v, atol=tol * max(1.0, float(jnp.abs(v).max())))
     _assert_same(EXP[group](x.log()), x, tol)
     angle = rotation_angle(_rotation(x))
-    np.testing.assert_allclose(angle, np.linalg.norm(np.asarray(v)[..., -3:], axis=-1), rtol=tol, atol=tol)
+    np.testing.assert_allclose(
+        angle, np.linalg.norm(np.asarray(v)[..., -3:], axis=-1), rtol=tol, atol=tol
+    )
+
+
+def _composed_log(v, a, b):
+    return (a @ EXP[type(a)](v) @ b).log()
+
+
+def _angle_to(v, a, b):
+    return geodesic_angle(_rotation(a), _rotation(EXP[type(a)](v) @ b))
+
+
+@jax.jit
+def _jacobians(v, a, b):
+    """Forward- and reverse-mode Jacobians of both test functions, compiled once per group,
+    dtype and shape."""
+    return [(jax.jacfwd(f)(v, a, b), jax.jacrev(f)(v, a, b)) for f in (_composed_log, _angle_to)]
 
 
 @pytest.mark.parametrize("group", [SO3, SE3])
-@pytest.mark.parametrize("regime", REGIMES)
-def test_jacobians_forward_reverse_numerical(dtype, group, regime):
+def test_jacobians_forward_reverse_numerical(dtype, group):
     rng = np.random.default_rng(7)
-    a, b = _element(group, rng, (), dtype), _element(group, rng, (), dtype)
-    v0 = _tangent(group, rng, (), regime, dtype)
-
-    def composed_log(v):
-        return (a @ EXP[group](v) @ b).log()
-
-    def angle_to_a(v):
-        return geodesic_angle(_rotation(a), _rotation(EXP[group](v)))
-
-    for f in (composed_log, angle_to_a):
-        forward, reverse = jax.jacfwd(f)(v0), jax.jacrev(f)(v0)
-        assert np.all(np.isfinite(forward)) and np.all(np.isfinite(reverse))
-        np.testing.assert_allclose(forward, reverse, atol=1e-4 if dtype == np.float32 else 1e-10)
-        if dtype == np.float64 and not (f is angle_to_a and regime == "near_zero"):
-            # Central differences; skipped only where the angle's cone point lies within a step.
-            h = 1e-6
-            eye = np.eye(v0.shape[-1]) * h
-            numerical = np.stack([(f(v0 + e) - f(v0 - e)) / (2 * h) for e in eye], axis=-1)
-            np.testing.assert_allclose(forward, numerical, atol=1e-6)
+    for regime in REGIMES:
+        a, b = _element(group, rng, (), dtype), _element(group, rng, (), dtype)
+        v0 = _tangent(group, rng, (), regime, dtype)
+        # b^-1 puts the angle's argument near the identity in the "near_zero" regime.
+        for f, (forward, reverse) in zip(
+            (_composed_log, _angle_to), _jacobians(v0, a, b.inverse())
+        ):
+            assert np.all(np.isfinite(forward)) and np.all(np.isfinite(reverse))
+            np.testing.assert_allclose(
+                forward, reverse, atol=1e-4 if dtype == np.float32 else 1e-10
+            )
+            if dtype == np.float64 and not (f is _angle_to and regime == "near_zero"):
+                # Central differences; skipped only where the angle's cone point lies within a step.
+                h, eye = 1e-6, np.eye(v0.shape[-1])
+                numerical = np.stack(
+                    [
+                        (f(v0 + h * e, a, b.inverse()) - f(v0 - h * e, a, b.inverse())) / (2 * h)
+                        for e in eye
+                    ],
+                    axis=-1,
+                )
+                np.testing.assert_allclose(forward, numerical, atol=1e-6)
 
 
 def test_angle_nan_regression_at_exactly_pi_and_zero(dtype):
@@ -193,7 +212,10 @@ def test_se3_exp_matches_the_power_series(dtype, angle):
     if dtype == np.float64:
         h = 1e-6
         numerical = np.stack(
-            [(_series_exp(xi + h * e)[:3, 3] - _series_exp(xi - h * e)[:3, 3]) / (2 * h) for e in np.eye(6)],
+            [
+                (_series_exp(xi + h * e)[:3, 3] - _series_exp(xi - h * e)[:3, 3]) / (2 * h)
+                for e in np.eye(6)
+            ],
             axis=-1,
         )
         np.testing.assert_allclose(jacobian, numerical, atol=1e-8)
@@ -207,7 +229,9 @@ def test_geodesic_angle_is_the_log_norm(dtype, seed, regime):
     w = _tangent(SO3, rng, (4,), regime, dtype)
     b = a @ SO3.exp(w)
     tol = 2e-6 if dtype == np.float32 else 1e-12
-    np.testing.assert_allclose(geodesic_angle(a, b), jnp.linalg.norm(w, axis=-1), rtol=tol, atol=tol)
+    np.testing.assert_allclose(
+        geodesic_angle(a, b), jnp.linalg.norm(w, axis=-1), rtol=tol, atol=tol
+    )
     np.testing.assert_allclose(geodesic_angle(b, a), geodesic_angle(a, b), atol=tol)
     # Bi-invariance: d(c a, c b) = d(a c, b c) = d(a, b).
     c = _element(SO3, rng, (), dtype)
@@ -219,24 +243,38 @@ def test_geodesic_angle_is_the_log_norm(dtype, seed, regime):
 # Means.
 
 
-def _symmetric_set(group, rng, center_shape, dtype, spread):
-    """`center @ exp(+-d_k)` for three d_k: a set whose chordal and Karcher means are `center`."""
-    center = _element(group, rng, center_shape, dtype)
-    d = _tangent(group, rng, (*center_shape, 3), "generic", dtype) * spread
+# Every Karcher call below uses batches of shape (2, 6) or (2, 8) so that the compiled mean and
+# its gradient are shared between tests.
+
+
+def _symmetric_set(group, rng, dtype, spread):
+    """`center @ exp(+-d_k)` for three d_k per row: sets whose chordal and Karcher means are
+    `center` (batch (2,); the set has batch (2, 6))."""
+    center = _element(group, rng, (2,), dtype)
+    d = _tangent(group, rng, (2, 3), "generic", dtype) * spread
     d = jnp.concatenate([d, -d], axis=-2)
-    stacked = _batch_of(center, center.parameters()[..., None, :])
-    return center, stacked @ EXP[group](d)
+    return center, _batch_of(center, center.parameters()[:, None, :]) @ EXP[group](d)
+
+
+def _karcher_loss(x, weights, anchor, probe):
+    return jnp.sum(
+        probe * (_batch_of(anchor, anchor.parameters()).inverse() @ karcher_mean(x, weights)).log()
+    )
+
+
+_karcher_loss_grad = jax.jit(jax.grad(_karcher_loss, argnums=(0, 1)))
 
 
 @pytest.mark.parametrize("group", [SO3, SE3])
 @property_test
-@given(seed=seeds, shape=st.sampled_from([(), (2,)]))
-def test_means_recover_the_center_of_a_symmetric_set(dtype, group, seed, shape):
+@given(seed=seeds)
+def test_means_recover_the_center_of_a_symmetric_set(dtype, group, seed):
     rng = np.random.default_rng(seed)
-    center, x = _symmetric_set(group, rng, shape, dtype, spread=0.4)
+    center, x = _symmetric_set(group, rng, dtype, spread=0.4)
+    weights = jnp.ones((2, 6), dtype)
     tol = 5e-6 if dtype == np.float32 else 1e-10
-    mean = karcher_mean(x)
-    assert mean.get_batch_axes() == shape
+    mean = karcher_mean(x, weights)
+    assert mean.get_batch_axes() == (2,)
     _assert_same(mean, center, tol)
     if group is SO3:
         _assert_same(chordal_mean(x), center, tol)
@@ -245,7 +283,7 @@ def test_means_recover_the_center_of_a_symmetric_set(dtype, group, seed, shape):
 @pytest.mark.parametrize("group", [SO3, SE3])
 def test_zero_weight_ignores_an_element_even_nan_padding(dtype, group):
     rng = np.random.default_rng(3)
-    _, x = _symmetric_set(group, rng, (2,), dtype, spread=0.6)
+    _, x = _symmetric_set(group, rng, dtype, spread=0.6)
     weights = jnp.asarray(rng.uniform(0.5, 2.0, size=(2, 6)), dtype)
     padding = jnp.full((2, 2, x.parameters().shape[-1]), jnp.nan, dtype)
     padded = type(x)(jnp.concatenate([x.parameters(), padding], axis=-2))
@@ -254,26 +292,26 @@ def test_zero_weight_ignores_an_element_even_nan_padding(dtype, group):
     _assert_same(karcher_mean(padded, padded_weights), karcher_mean(x, weights), tol)
     if group is SO3:
         _assert_same(chordal_mean(padded, padded_weights), chordal_mean(x, weights), tol)
-
-    def loss(params, weights):
-        return karcher_mean(type(x)(params), weights).log().sum()
-
-    grads = jax.grad(loss, argnums=(0, 1))(padded.parameters(), padded_weights)
-    assert all(np.all(np.isfinite(g)) for g in grads)
-    np.testing.assert_array_equal(grads[0][:, 6:], 0.0)
+    anchor, probe = group.identity((2,)), jnp.ones((2, group.tangent_dim), dtype)
+    grad_x, grad_w = _karcher_loss_grad(padded, padded_weights, anchor, probe)
+    assert np.all(np.isfinite(grad_x.parameters())) and np.all(np.isfinite(grad_w))
+    np.testing.assert_array_equal(grad_x.parameters()[:, 6:], 0.0)
 
 
 @pytest.mark.parametrize("group", [SO3, SE3])
 def test_integer_weights_equal_duplication(dtype, group):
     rng = np.random.default_rng(4)
-    x = _element(group, rng, (4,), dtype, "generic")
-    x = _batch_of(x, (_element(group, rng, (), dtype) @ EXP[group](x.log() * 0.3)).parameters())
-    weights = jnp.array([3.0, 1.0, 2.0, 1.0], dtype)
-    duplicated = type(x)(jnp.repeat(x.parameters(), np.array([3, 1, 2, 1]), axis=0))
+    center = _element(group, rng, (2,), dtype)
+    d = _tangent(group, rng, (2, 6), "generic", dtype) * 0.3
+    x = _batch_of(center, center.parameters()[:, None, :]) @ EXP[group](d)
+    counts = np.array([2, 1, 1, 2, 0, 0])  # expand the first four elements into six
+    duplicated = type(x)(jnp.repeat(x.parameters(), counts, axis=1, total_repeat_length=6))
+    weights = jnp.broadcast_to(jnp.asarray(counts, dtype), (2, 6))
+    ones = jnp.ones((2, 6), dtype)
     tol = 1e-5 if dtype == np.float32 else 1e-10
-    _assert_same(karcher_mean(x, weights), karcher_mean(duplicated), tol)
+    _assert_same(karcher_mean(x, weights), karcher_mean(duplicated, ones), tol)
     if group is SO3:
-        _assert_same(chordal_mean(x, weights), chordal_mean(duplicated), tol)
+        _assert_same(chordal_mean(x, weights), chordal_mean(duplicated, ones), tol)
 
 
 @pytest.mark.parametrize("group", [SO3, SE3])
@@ -282,9 +320,9 @@ def test_integer_weights_equal_duplication(dtype, group):
 def test_karcher_fixed_point_and_bi_invariance(dtype, group, seed):
     rng = np.random.default_rng(seed)
     center = _element(group, rng, (2,), dtype)
-    d = _tangent(group, rng, (2, 7), "generic", dtype) * 0.3
+    d = _tangent(group, rng, (2, 6), "generic", dtype) * 0.3
     x = _batch_of(center, center.parameters()[:, None]) @ EXP[group](d)
-    weights = jnp.asarray(rng.uniform(0.1, 1.0, size=(2, 7)), dtype)
+    weights = jnp.asarray(rng.uniform(0.1, 1.0, size=(2, 6)), dtype)
     mean = karcher_mean(x, weights)
     residual = ((_batch_of(mean, mean.parameters()[:, None])).inverse() @ x).log()
     residual = jnp.einsum("bk,bkd->bd", weights, residual)
@@ -317,26 +355,27 @@ def test_chordal_mean_is_the_projected_matrix_sum(dtype):
     assert np.all(np.asarray(chordal_mean(x, weights).wxyz[..., 0]) >= 0)
 
 
-def test_karcher_gradient_matches_finite_differences(x64):
+@pytest.mark.parametrize("group", [SO3, SE3])
+def test_karcher_gradient_matches_finite_differences(x64, group):
+    """Implicit-function-theorem gradient against central differences, in parameter space
+    (quaternions are normalised inside, so off-manifold directions are fine)."""
     rng = np.random.default_rng(8)
-    for group in (SO3, SE3):
-        center = _element(group, rng, (), np.float64)
-        d0 = _tangent(group, rng, (5,), "generic", np.float64) * 0.3
-        w0 = jnp.asarray(rng.uniform(0.2, 1.0, size=5))
-        probe = jnp.asarray(rng.normal(size=group.tangent_dim))
-
-        def f(d, w):
-            return jnp.dot((center.inverse() @ karcher_mean(center @ EXP[group](d), w)).log(), probe)
-
-        gd, gw = jax.grad(f, argnums=(0, 1))(d0, w0)
-        h = 1e-6
-        for _ in range(3):
-            direction_d = jnp.asarray(rng.normal(size=d0.shape))
-            direction_w = jnp.asarray(rng.normal(size=w0.shape))
-            numerical = (f(d0 + h * direction_d, w0 + h * direction_w) - f(d0 - h * direction_d, w0 - h * direction_w)) / (2 * h)
-            analytic = jnp.sum(gd * direction_d) + jnp.dot(gw, direction_w)
-            np.testing.assert_allclose(analytic, numerical, rtol=1e-6, atol=1e-8)
-        assert np.allclose(jax.jacfwd(f)(d0, w0), gd)
+    center = _element(group, rng, (2,), np.float64)
+    d = _tangent(group, rng, (2, 8), "generic", np.float64) * 0.3
+    x = _batch_of(center, center.parameters()[:, None]) @ EXP[group](d)
+    w = jnp.asarray(rng.uniform(0.2, 1.0, size=(2, 8)))
+    probe = jnp.asarray(rng.normal(size=(2, group.tangent_dim)))
+    grad_x, grad_w = _karcher_loss_grad(x, w, center, probe)
+    h = 1e-6
+    for _ in range(3):
+        dx, dw = (
+            jnp.asarray(rng.normal(size=x.parameters().shape)),
+            jnp.asarray(rng.normal(size=w.shape)),
+        )
+        plus = _karcher_loss(group(x.parameters() + h * dx), w + h * dw, center, probe)
+        minus = _karcher_loss(group(x.parameters() - h * dx), w - h * dw, center, probe)
+        analytic = jnp.sum(grad_x.parameters() * dx) + jnp.sum(grad_w * dw)
+        np.testing.assert_allclose(analytic, (plus - minus) / (2 * h), rtol=1e-6, atol=1e-8)
 
 
 def test_karcher_at_a_half_turn_and_with_zero_spread(dtype):
@@ -345,17 +384,22 @@ def test_karcher_at_a_half_turn_and_with_zero_spread(dtype):
     identical elements (log at its Taylor branch) has finite gradients too."""
     half_turn = jnp.array([0.0, 1.0, 0.0, 0.0], dtype)
     identity = jnp.array([1.0, 0.0, 0.0, 0.0], dtype)
-    x = SO3(jnp.stack([identity, identity, half_turn]))
-    w = jnp.array([1.0, 1.0, 1e-2], dtype)
+    x = SO3(
+        jnp.broadcast_to(jnp.stack([identity, identity, half_turn] + [identity] * 5), (2, 8, 4))
+    )
+    w = jnp.broadcast_to(jnp.array([1.0, 1.0, 1e-2, 0, 0, 0, 0, 0], dtype), (2, 8))
     mean = karcher_mean(x, w)
     np.testing.assert_allclose(rotation_angle(mean), np.pi * 1e-2 / 2.01, rtol=1e-4)
-    np.testing.assert_allclose(jnp.abs(mean.log()[0]), rotation_angle(mean), rtol=1e-5)
-    grads = jax.grad(lambda q, w: karcher_mean(SO3(q), w).log().sum(), argnums=(0, 1))(x.wxyz, w)
-    assert all(np.all(np.isfinite(g)) for g in grads)
-    same = SE3(jnp.broadcast_to(jnp.array([1.0, 0, 0, 0, 0.1, 0.2, 0.3], dtype), (4, 7)))
-    g = jax.grad(lambda p: karcher_mean(SE3(p)).log().sum())(same.parameters())
-    assert np.all(np.isfinite(g))
-    g = jax.grad(lambda q: chordal_mean(SO3(q)).wxyz.sum())(x.wxyz[:2])
+    np.testing.assert_allclose(jnp.abs(mean.log()[:, 0]), rotation_angle(mean), rtol=1e-5)
+    probe = jnp.ones((2, 3), dtype)
+    grads = _karcher_loss_grad(x, w, SO3.identity((2,)), probe)
+    assert np.all(np.isfinite(grads[0].parameters())) and np.all(np.isfinite(grads[1]))
+    same = SE3(jnp.broadcast_to(jnp.array([1.0, 0, 0, 0, 0.1, 0.2, 0.3], dtype), (2, 8, 7)))
+    grads = _karcher_loss_grad(
+        same, jnp.ones((2, 8), dtype), SE3.identity((2,)), jnp.ones((2, 6), dtype)
+    )
+    assert np.all(np.isfinite(grads[0].parameters())) and np.all(np.isfinite(grads[1]))
+    g = jax.grad(lambda q: chordal_mean(SO3(q)).wxyz.sum())(x.wxyz[0, :2])
     assert np.all(np.isfinite(g))
 
 
@@ -390,7 +434,9 @@ def test_random_rotations_are_haar_uniform(dtype):
     wrong = SO3.from_rpy_radians(*np.random.default_rng(0).uniform(-np.pi, np.pi, size=(3, n)))
     theta = np.sort(np.asarray(rotation_angle(wrong), np.float64))
     cdf = (theta - np.sin(theta)) / np.pi
-    assert max(np.max(np.arange(1, n + 1) / n - cdf), np.max(cdf - np.arange(n) / n)) > 1.63 / np.sqrt(n)
+    assert max(
+        np.max(np.arange(1, n + 1) / n - cdf), np.max(cdf - np.arange(n) / n)
+    ) > 1.63 / np.sqrt(n)
     assert random_rotations(jax.random.PRNGKey(1), (2, 3)).get_batch_axes() == (2, 3)
 
 
@@ -400,8 +446,14 @@ def _covering_radius(grid: np.ndarray, probes: np.ndarray) -> float:
     return float(2 * np.arccos(np.clip(closest.min(), -1.0, 1.0)))
 
 
+def _uniform_quaternions(rng, n) -> np.ndarray:
+    q = rng.normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
 def test_rotation_grid_is_unit_distinct_and_covers_better_than_random():
-    probes = np.asarray(random_rotations(jax.random.PRNGKey(42), 20_000).wxyz, np.float64)
+    rng = np.random.default_rng(42)
+    probes = _uniform_quaternions(rng, 20_000)
     for n in (1, 7, 24, 100, 300):
         grid = rotation_grid(n)
         assert grid.wxyz.shape == (n, 4)
@@ -415,8 +467,7 @@ def test_rotation_grid_is_unit_distinct_and_covers_better_than_random():
         if n >= 24:
             grid_radius = _covering_radius(q, probes)
             random_radii = [
-                _covering_radius(np.asarray(random_rotations(jax.random.PRNGKey(s), n).wxyz, np.float64), probes)
-                for s in range(3)
+                _covering_radius(_uniform_quaternions(rng, n), probes) for _ in range(3)
             ]
             assert grid_radius < min(random_radii)
             assert grid_radius < 2.0 * (6 * np.pi / n) ** (1 / 3)  # within 2x of the ideal bound
@@ -427,7 +478,7 @@ def test_rotation_grid_is_unit_distinct_and_covers_better_than_random():
 
 
 def test_rotation_grid_around_a_center(dtype):
-    centers = random_rotations(jax.random.PRNGKey(3), 2, dtype)
+    centers = SO3(jnp.asarray(_uniform_quaternions(np.random.default_rng(3), 2), dtype))
     max_angle = 0.3
     grid = rotation_grid_around(centers, 50, max_angle)
     assert grid.get_batch_axes() == (2, 50)
@@ -435,9 +486,13 @@ def test_rotation_grid_around_a_center(dtype):
     np.testing.assert_array_less(np.asarray(angles), max_angle * (1 + 1e-5))
     np.testing.assert_allclose(angles[:, 0], 0.0, atol=1e-6)
     np.testing.assert_array_equal(grid.wxyz, rotation_grid_around(centers, 50, max_angle).wxyz)
-    pairwise = geodesic_angle(SO3(grid.wxyz[0, :, None]), SO3(grid.wxyz[0, None])) + 10 * jnp.eye(50)
+    pairwise = geodesic_angle(SO3(grid.wxyz[0, :, None]), SO3(grid.wxyz[0, None])) + 10 * jnp.eye(
+        50
+    )
     assert float(pairwise.min()) > 0.02
-    jitted = jax.jit(rotation_grid_around, static_argnums=1)(centers, 50, jnp.asarray(max_angle, dtype))
+    jitted = jax.jit(lambda c, a: rotation_grid_around(c, 50, a))(
+        centers, jnp.asarray(max_angle, dtype)
+    )
     np.testing.assert_allclose(jitted.wxyz, grid.wxyz, atol=1e-6)
 
 
@@ -446,7 +501,7 @@ def test_rotation_grid_around_a_center(dtype):
 
 
 @property_test
-@given(seed=seeds, shape=st.sampled_from(SHAPES), regime=st.sampled_from(REGIMES))
+@given(seed=seeds, shape=st.sampled_from([(), (3, 2)]), regime=st.sampled_from(REGIMES))
 def test_adjoint_moves_a_right_perturbation_to_the_left(dtype, seed, shape, regime):
     rng = np.random.default_rng(seed)
     pose = _element(SE3, rng, shape, dtype)
@@ -460,7 +515,12 @@ def test_adjoint_moves_a_right_perturbation_to_the_left(dtype, seed, shape, regi
     moved = adjoint_transport(pose, cov)
     np.testing.assert_allclose(moved, ad @ cov @ jnp.swapaxes(ad, -1, -2), rtol=1e-5)
     back = adjoint_transport(pose.inverse(), moved)
-    np.testing.assert_allclose(back, cov, rtol=1e-3 if dtype == np.float32 else 1e-9, atol=1e-3 if dtype == np.float32 else 1e-9)
+    np.testing.assert_allclose(
+        back,
+        cov,
+        rtol=1e-3 if dtype == np.float32 else 1e-9,
+        atol=1e-3 if dtype == np.float32 else 1e-9,
+    )
 
 
 def test_adjoint_transport_is_the_linearised_covariance(x64):
@@ -485,7 +545,7 @@ def test_adjoint_transport_is_the_linearised_covariance(x64):
 
 
 @property_test
-@given(seed=seeds, shape=st.sampled_from(SHAPES))
+@given(seed=seeds, shape=st.sampled_from([(), (3, 2)]))
 def test_matrix_round_trips(dtype, seed, shape):
     rng = np.random.default_rng(seed)
     pose = _element(SE3, rng, shape, dtype)
@@ -510,7 +570,9 @@ def test_from_matrix_projects_a_drifted_block_to_the_nearest_rotation(dtype):
     m[0, :3, :3] = np.diag([1.0, 1.0, -1.0]) + 0.01  # a near-reflection: det < 0
     out = se3_from_matrix(jnp.asarray(m, dtype))
     rotation = np.asarray(out.rotation().as_matrix(), np.float64)
-    np.testing.assert_allclose(rotation, np.stack([_nearest_rotation(b) for b in m[:, :3, :3]]), atol=1e-5)
+    np.testing.assert_allclose(
+        rotation, np.stack([_nearest_rotation(b) for b in m[:, :3, :3]]), atol=1e-5
+    )
     np.testing.assert_allclose(np.linalg.det(rotation), 1.0, atol=1e-5)
     np.testing.assert_allclose(out.translation(), m[:, :3, 3], atol=1e-6)
     with pytest.raises(ValueError, match=r"\(\.\.\., 4, 4\)"):
@@ -523,8 +585,11 @@ def test_so3_from_matrix_gradient(dtype):
         assert np.all(np.isfinite(g))
     if dtype == np.float64:
         rng = np.random.default_rng(11)
-        m0 = jnp.asarray(np.asarray(SO3.exp(jnp.asarray(rng.normal(size=3))).as_matrix()) + 0.05 * rng.normal(size=(3, 3)))
-        f = lambda m: so3_from_matrix(m).log()  # noqa: E731
+        m0 = jnp.asarray(
+            np.asarray(SO3.exp(jnp.asarray(rng.normal(size=3))).as_matrix())
+            + 0.05 * rng.normal(size=(3, 3))
+        )
+        f = lambda m: so3_from_matrix(m).log()
         h, e = 1e-6, jnp.asarray(rng.normal(size=(3, 3)))
         numerical = (f(m0 + h * e) - f(m0 - h * e)) / (2 * h)
         np.testing.assert_allclose(jax.jvp(f, (m0,), (e,))[1], numerical, atol=1e-8)
@@ -553,10 +618,10 @@ def test_open3d_information_matrix_order_and_side(x64):
     rng = np.random.default_rng(13)
     source = rng.uniform(-0.1, 0.1, size=(60, 3))
     pose = se3_exp(jnp.asarray([0.3, -0.2, 0.5, 0.4, -0.7, 0.9]))
-    target = np.asarray(pose @ jnp.asarray(source))
-    cloud = lambda p: o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))  # noqa: E731
+    target = np.array(pose @ jnp.asarray(source))
+    cloud = lambda p: o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
     info_o3d = o3d.pipelines.registration.get_information_matrix_from_point_clouds(
-        cloud(source), cloud(target), 1e-3, np.asarray(se3_to_matrix(pose))
+        cloud(source), cloud(target), 1e-3, np.array(se3_to_matrix(pose))
     )
     src = jnp.asarray(source)
 
@@ -575,4 +640,6 @@ def test_open3d_information_matrix_order_and_side(x64):
     np.testing.assert_allclose(j_right.T @ j_right, ad.T @ info_left @ ad, rtol=1e-9, atol=1e-9)
     # As covariances: inverse information on the right, transported, is the left one.
     cov_right = jnp.linalg.inv(j_right.T @ j_right)
-    np.testing.assert_allclose(adjoint_transport(pose, cov_right), jnp.linalg.inv(info_left), rtol=1e-6)
+    np.testing.assert_allclose(
+        adjoint_transport(pose, cov_right), jnp.linalg.inv(info_left), rtol=1e-6
+    )
