@@ -19,7 +19,9 @@ Conventions:
 
 * ``inlier_rmse`` is the RMS of the full 3D distance over the pairs kept in the last
   correspondence pass (for both methods, like Open3D), and ``inlier_fraction`` is the number
-  of kept pairs over the number of valid source points (Open3D's ``fitness``).
+  of source points with a match within the correspondence distance over the number of valid
+  source points (Open3D's ``fitness``), counted before trimming so that it stays a quality
+  signal when ``trim_fraction`` fixes how many pairs are used.
 * Convergence: the increment's translation norm and rotation angle both fall below
   ``tolerance`` (metres, radians), or the inlier RMSE changes by less than
   ``tolerance`` relative to itself while the inlier count is unchanged.
@@ -93,8 +95,9 @@ class RegistrationResult(eqx.Module):
     Attributes:
         pose: ``SE3`` source -> target.
         inlier_rmse: ``()`` RMS 3D distance of the kept pairs at the final pose (metres).
-        inlier_fraction: ``()`` kept pairs / valid source points at the final pose.
-        num_inliers: ``()`` kept pairs at the final pose.
+        inlier_fraction: ``()`` valid source points with a match within the correspondence
+            distance at the final pose, over all valid source points (before trimming).
+        num_inliers: ``()`` pairs kept (after rejection and trimming) at the final pose.
         iterations: ``()`` increments taken.
         converged: ``()`` the tolerance test passed.
         status: :class:`ICPStatus` member.
@@ -193,7 +196,8 @@ def _correspond(problem: _Problem, opts: _Options, pose: SE3, distance: Array) -
     d2_kept = jnp.where(kept, d2, 0.0)
     mean_sq = jnp.sum(d2_kept) / jnp.maximum(count, 1)
     rmse = jnp.where(count > 0, jnp.sqrt(jnp.where(count > 0, mean_sq, 1.0)), jnp.inf)
-    fraction = count / jnp.maximum(jnp.sum(usable), 1)
+    within = jnp.sum(found & usable, dtype=jnp.int32)
+    fraction = within / jnp.maximum(jnp.sum(usable), 1)
     return _Pairs(index, weight, kept, count, rmse, fraction)
 
 
