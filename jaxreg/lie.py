@@ -247,18 +247,20 @@ _OPEN3D_ORDER = np.array([3, 4, 5, 0, 1, 2])
 def tangent_to_open3d(tangent: Float[ArrayLike, "... 6"]) -> Float[Array, "... 6"]:
     """Reorders a jaxlie twist `(vx, vy, vz, wx, wy, wz)` into Open3D's `(wx, wy, wz, tx, ty, tz)`.
 
-    Open3D's registration pipeline (`TransformationEstimationPointToPlane`,
-    `get_information_matrix_from_point_clouds`, the colored-ICP and odometry Jacobians) orders
-    6-vectors rotation first: `xi = (alpha, beta, gamma, a, b, c)`, turned into a pose by
-    `TransformVector6dToMatrix4d` as `R = Rz(gamma) Ry(beta) Rx(alpha)`, `t = (a, b, c)`.
-    To first order around zero that is `SE3.exp` of the jaxlie twist `(a, b, c, alpha, beta,
-    gamma)`, so for the small increments and the linearisations where Open3D uses it the two
-    differ by this permutation only.
+    Open3D's registration pipeline (the Jacobian rows `(p x n, n)` of
+    `TransformationEstimationPointToPlane` and of colored ICP, and the rows and columns of
+    `get_information_matrix_from_point_clouds`) orders 6-vectors rotation first:
+    `xi = (alpha, beta, gamma, a, b, c)`, turned into a pose by `TransformVector6dToMatrix4d`
+    as `R = Rz(gamma) Ry(beta) Rx(alpha)`, `t = (a, b, c)`. To first order around zero that is
+    the exponential of the jaxlie twist `(a, b, c, alpha, beta, gamma)`, so for the small
+    increments and the linearisations where Open3D uses it the two differ by this permutation
+    only.
 
     This is a permutation and nothing else. Open3D's increments are *left* perturbations
-    expressed in the target frame (ICP updates `T <- exp(xi) T`, and its information matrix is
-    `J^T J` of point-to-point residuals with respect to such an `xi`), while jaxreg's are right
-    perturbations (`T exp(delta)`): move between the two with `adjoint_transport`.
+    expressed in the target frame (ICP updates `T <- M(xi) T` with `M` the matrix above, and
+    its information matrix is `J^T J` of point-to-point residuals with respect to such an
+    `xi`), while jaxreg's are right perturbations (`T exp(delta)`): move between the two with
+    `adjoint_transport`.
     """
     return jnp.asarray(tangent)[..., _OPEN3D_ORDER]
 
@@ -494,13 +496,13 @@ def rotation_grid(n: int, dtype=None) -> SO3:
     random probes) is about
 
     ======  =========  ==========================  ==========================
-    n       grid       random set of n (3 draws)   lower bound (6 pi / n)^1/3
+    n       grid       random set of n (3 draws)   bound ~(6 pi / n)^1/3
     ======  =========  ==========================  ==========================
     24      84 deg     100 - 122 deg               53 deg
     100     51 deg     66 - 83 deg                 33 deg
     300     35 deg     47 - 49 deg                 23 deg
     1000    22 deg     34 - 38 deg                 15 deg
-    4000    13.5 deg   22 deg                      9.7 deg
+    4000    13.5 deg   22 deg                      9.6 deg
     ======  =========  ==========================  ==========================
 
     Use it for multi-start registration: with a convergence basin of radius `b`, a grid whose
