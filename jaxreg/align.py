@@ -19,7 +19,7 @@ is the same optimum as the SVD form (Kabsch/Umeyama), but
   which is zero exactly when the optimal rotation is not unique. The SVD gradient instead
   divides by ``s_i^2 - s_j^2`` and is infinite on planar or symmetric clouds whose singular
   values repeat although the rotation is perfectly determined. A custom JVP rule
-  differentiates the top eigenvector alone, so the gradient is finite (and exact) whenever
+  (:func:`jaxreg.lie.top_eigenpair`) differentiates the top eigenvector alone, so the gradient is finite (and exact) whenever
   the solution is unique, and is set to zero with ``degenerate`` raised when it is not.
 
 Batching: every array may carry leading batch axes ``(...)``; points are ``(..., N, 3)``
@@ -31,10 +31,11 @@ zero-weight (depth holes are masked, never propagated).
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxlie import SE3, SO3
 from jaxtyping import Array, ArrayLike, Bool, Float
+
+from jaxreg.lie import procrustes_quaternion_matrix, top_eigenpair
 
 __all__ = ["Alignment", "align", "kabsch", "umeyama"]
 
@@ -74,48 +75,6 @@ class Alignment(eqx.Module):
 
 def _eps(dtype) -> float:
     return float(jnp.finfo(dtype).eps)
-
-
-@jax.custom_jvp
-def _top_eigenpair(n: Float[Array, "... 4 4"]) -> tuple[Array, Array]:
-    """Eigenvalues ``(..., 4)`` ascending and the top eigenvector ``(..., 4)`` of ``n``."""
-    w, v = jnp.linalg.eigh(n)
-    return w, v[..., -1]
-
-
-@_top_eigenpair.defjvp
-def _top_eigenpair_jvp(primals, tangents):
-    (n,), (dn,) = primals, tangents
-    w, v = jnp.linalg.eigh(n)
-    top = v[..., -1]
-    # v_j^T dn v_top for every eigenvector j, and the eigenvalue tangents v_j^T dn v_j.
-    vt_dn = jnp.einsum("...ji,...jk->...ik", v, dn)
-    proj = jnp.einsum("...ik,...k->...i", vt_dn, top)
-    dw = jnp.einsum("...ik,...ki->...i", vt_dn, v)
-    gap = w[..., -1:] - w
-    tiny = 64 * _eps(n.dtype) * (jnp.abs(w[..., -1:]) + jnp.abs(w[..., :1]))
-    ok = (gap > tiny) & (jnp.arange(4) < 3)
-    coeff = jnp.where(ok, proj / jnp.where(ok, gap, 1.0), 0.0)
-    dtop = jnp.einsum("...ij,...j->...i", v, coeff)
-    return (w, top), (dw, dtop)
-
-
-def _horn_matrix(h: Float[Array, "... 3 3"]) -> Float[Array, "... 4 4"]:
-    """Horn's symmetric 4x4 matrix for ``H[a, b] = sum_i w_i src_a dst_b``.
-
-    For a unit quaternion ``q = (w, x, y, z)``, ``q^T N q = tr(R(q) H)``, the quantity the
-    optimal rotation maximises.
-    """
-    sxx, sxy, sxz = h[..., 0, 0], h[..., 0, 1], h[..., 0, 2]
-    syx, syy, syz = h[..., 1, 0], h[..., 1, 1], h[..., 1, 2]
-    szx, szy, szz = h[..., 2, 0], h[..., 2, 1], h[..., 2, 2]
-    rows = [
-        [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
-        [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
-        [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
-        [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
-    ]
-    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
 
 
 def _shape_invariants(c: Float[Array, "... 3 3"]) -> tuple[Array, Array, Array]:
@@ -190,9 +149,11 @@ def align(
     moments = jnp.einsum("...ni,...nj->...ij", wn[..., None] * ab, ab)
     h, cov_src, cov_dst = moments[..., :3, 3:], moments[..., :3, :3], moments[..., 3:, 3:]
 
-    eig, q = _top_eigenpair(_horn_matrix(h))
+    # q^T K(H^T) q = tr(R(q)^T H^T) = tr(R H): Horn's matrix is K of the transpose.
+    horn = procrustes_quaternion_matrix(jnp.swapaxes(h, -1, -2))
+    eig, q = top_eigenpair(horn)
     rotation = SO3(wxyz=q)
-    top = jnp.einsum("...i,...ij,...j->...", q, _horn_matrix(h), q)  # = tr(R H)
+    top = jnp.einsum("...i,...ij,...j->...", q, horn, q)  # = tr(R H)
     var_src = jnp.trace(cov_src, axis1=-2, axis2=-1)
     if with_scale:
         scale = top / jnp.where(var_src > 0, var_src, 1.0)

@@ -156,28 +156,37 @@ def _gap_tolerance(eigenvalues: Float[Array, "... 4"]) -> Float[Array, "... 1"]:
 
 
 @jax.custom_jvp
-def _top_eigenvector(a: Float[Array, "... 4 4"]) -> Float[Array, "... 4"]:
-    """Unit eigenvector of the largest eigenvalue of the symmetric `a`."""
-    return jnp.linalg.eigh(a)[1][..., :, -1]
+def top_eigenpair(a: Float[Array, "... 4 4"]) -> tuple[Array, Array]:
+    """Eigenvalues ``(..., 4)`` (ascending) and the unit top eigenvector ``(..., 4)`` of the
+    symmetric ``a``, with a derivative that stays finite where lower eigenvalues repeat.
+
+    The quaternion eigenproblems of rotation averaging and of Kabsch/Horn alignment share it.
+    """
+    eigenvalues, vectors = jnp.linalg.eigh(a)
+    return eigenvalues, vectors[..., :, -1]
 
 
-@_top_eigenvector.defjvp
-def _top_eigenvector_jvp(primals, tangents):
+@top_eigenpair.defjvp
+def _top_eigenpair_jvp(primals, tangents):
     # d v = sum_{j != top} v_j (v_j^T da v) / (lambda_top - lambda_j). Only gaps to the top
     # eigenvalue appear: repeated lower eigenvalues (e.g. -1, -1, -1 for an exact rotation) are
     # harmless. A (numerically) repeated top eigenvalue means the answer is not unique; its
     # derivative along that direction is set to zero instead of infinity.
+    # Eigenvalue tangents are v_j^T da v_j.
     (a,), (da,) = primals, tangents
     eigenvalues, vectors = jnp.linalg.eigh(a)
     top = vectors[..., :, -1]
     gap = eigenvalues[..., -1:] - eigenvalues
     live = (gap > _gap_tolerance(eigenvalues)) & (jnp.arange(4) < 3)
     inverse_gap = jnp.where(live, 1.0 / jnp.where(live, gap, 1.0), 0.0)
-    projected = jnp.einsum("...ji,...jk,...k->...i", vectors, da, top)
-    return top, jnp.einsum("...ij,...j->...i", vectors, inverse_gap * projected)
+    vt_da = jnp.einsum("...ji,...jk->...ik", vectors, da)
+    projected = jnp.einsum("...ik,...k->...i", vt_da, top)
+    d_eigenvalues = jnp.einsum("...ik,...ki->...i", vt_da, vectors)
+    d_top = jnp.einsum("...ij,...j->...i", vectors, inverse_gap * projected)
+    return (eigenvalues, top), (d_eigenvalues, d_top)
 
 
-def _procrustes_quaternion_matrix(m: Float[Array, "... 3 3"]) -> Float[Array, "... 4 4"]:
+def procrustes_quaternion_matrix(m: Float[Array, "... 3 3"]) -> Float[Array, "... 4 4"]:
     """Symmetric `K(M)` with `q^T K q = tr(R(q)^T M)` for unit `q = (w, x, y, z)`
     (Bar-Itzhack 2000)."""
     m00, m01, m02 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
@@ -208,7 +217,7 @@ def so3_from_matrix(matrix: Float[ArrayLike, "... 3 3"]) -> SO3:
     m = _as_float(matrix)
     if m.shape[-2:] != (3, 3):
         raise ValueError(f"so3_from_matrix expects (..., 3, 3), got {m.shape}")
-    return SO3(wxyz=_positive_w(_top_eigenvector(_procrustes_quaternion_matrix(m))))
+    return SO3(wxyz=_positive_w(top_eigenpair(procrustes_quaternion_matrix(m))[1]))
 
 
 # --------------------------------------------------------------------------------------------
@@ -342,7 +351,7 @@ def _check_averaged_axis(x, name: str) -> tuple[int, ...]:
 def _chordal_mean_quaternion(q: Array, w: Array) -> Array:
     """Top eigenvector of `sum_k w_k q_k q_k^T` (sign-free in each `q_k`), NaN for an empty set."""
     a = jnp.einsum("...k,...ki,...kj->...ij", w, q, q)
-    mean = _positive_w(_top_eigenvector(a))
+    mean = _positive_w(top_eigenpair(a)[1])
     return jnp.where(jnp.sum(w, axis=-1, keepdims=True) > 0, mean, jnp.nan)
 
 
