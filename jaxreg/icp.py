@@ -14,7 +14,8 @@ Conventions:
     its matches; residual ``r = |T p - q|``.
   - point-to-plane: one Gauss-Newton step on the residual ``r = n_q . (T p - q)`` with the
     small-angle linearisation ``exp(d) p ~ p + w x p + v`` about the weighted centroid of
-    the moved source, then the exact update ``T <- exp(d) T``. Tangent order is jaxlie's
+    the moved source, then the exact update ``T <- exp(d) T`` (:func:`jaxreg.lie.se3_exp`:
+    jaxlie 1.5's ``SE3.exp`` is inaccurate for small rotations). Tangent order is jaxlie's
     ``(vx, vy, vz, wx, wy, wz)`` (Open3D's twist is ``(w, t)``: see :mod:`jaxreg.lie`).
 
 * ``inlier_rmse`` is the RMS of the full 3D distance over the pairs kept in the last
@@ -53,7 +54,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxreg.align import align
 from jaxreg.kernels import L2, AbstractRobustKernel, trim_mask
-from jaxreg.lie import rotation_grid, rotation_grid_around
+from jaxreg.lie import rotation_grid, rotation_grid_around, se3_exp
 from jaxreg.neighbors import NeighborGrid, build_grid, knn, query_nearest
 
 __all__ = [
@@ -218,7 +219,7 @@ def _plane_step(problem: _Problem, moved: Array, pairs: _Pairs) -> tuple[SE3, Ar
     delta, degenerate = _pinv_solve(a, b)
     delta = delta.at[3:].divide(radius)
     to_centroid = SE3.from_translation(centroid)
-    return to_centroid @ SE3.exp(delta) @ to_centroid.inverse(), degenerate
+    return to_centroid @ se3_exp(delta) @ to_centroid.inverse(), degenerate
 
 
 def _pinv_solve(a: Float[Array, "6 6"], b: Float[Array, " 6"]) -> tuple[Array, Array]:
@@ -657,4 +658,4 @@ def perturbed_inits(
     scale = jnp.array([translation_sigma] * 3 + [rotation_sigma] * 3, dtype)
     delta = jax.random.normal(key, (n, 6), dtype) * scale
     delta = delta.at[0].set(0.0)
-    return SE3(pose.wxyz_xyz[None]) @ SE3.exp(delta)
+    return SE3(pose.wxyz_xyz[None]) @ se3_exp(delta)
