@@ -106,7 +106,8 @@ def test_multistart_escapes_the_wrong_basin_and_keeps_per_start_status():
     best_pose = SE3(results.pose.wxyz_xyz[best])
     assert rotation_error_deg(best_pose, r) < 1.0
     single = icp(model, scene, SE3(inits.wxyz_xyz[2]), max_correspondence_distance=0.02)
-    np.testing.assert_allclose(results.pose.wxyz_xyz[2], single.pose.wxyz_xyz, atol=1e-5)
+    np.testing.assert_allclose(SE3(results.pose.wxyz_xyz[2]).as_matrix(), single.pose.as_matrix(),
+                               atol=1e-5)
 
 
 def test_init_as_matrix_and_distance_schedule():
