@@ -14,9 +14,9 @@ import platform
 
 import jax
 import numpy as np
+from _timing import median_seconds, print_table
 
 import jaxreg as jr
-from _timing import median_seconds, print_table
 
 
 def numpy_kabsch(src, dst, w):
@@ -44,8 +44,12 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--problems", type=int, default=10_000)
     parser.add_argument("--points", type=int, default=1_000)
-    parser.add_argument("--loop-problems", type=int, default=1_000,
-                        help="problems timed in the per-problem Python loops (then scaled)")
+    parser.add_argument(
+        "--loop-problems",
+        type=int,
+        default=1_000,
+        help="problems timed in the per-problem Python loops (then scaled)",
+    )
     args = parser.parse_args()
     b, n = args.problems, args.points
 
@@ -64,8 +68,11 @@ def main():
     t_jax = median_seconds(lambda: solve(src_d, dst_d, w_d).block_until_ready())
 
     m = min(args.loop_problems, b)
-    t_loop = median_seconds(lambda: [numpy_kabsch(src[i], dst[i], w[i]) for i in range(m)],
-                            repeats=3) * b / m
+    t_loop = (
+        median_seconds(lambda: [numpy_kabsch(src[i], dst[i], w[i]) for i in range(m)], repeats=3)
+        * b
+        / m
+    )
     r_loop = np.stack([numpy_kabsch(src[i], dst[i], w[i]) for i in range(m)])
     t_np = median_seconds(lambda: numpy_batched_kabsch(src, dst, w), repeats=3)
     r_np = numpy_batched_kabsch(src, dst, w)
@@ -77,8 +84,9 @@ def main():
         return np.degrees(np.arccos(np.clip(cos, -1, 1))).max()
 
     def row(name, t, r):
-        rows.append([name, f"{t * 1e3:.1f}", f"{b / t:,.0f}", f"{t / t_jax:.1f}x",
-                     f"{err(r, r_true):.4f}"])
+        rows.append(
+            [name, f"{t * 1e3:.1f}", f"{b / t:,.0f}", f"{t / t_jax:.1f}x", f"{err(r, r_true):.4f}"]
+        )
 
     row("jaxreg.kabsch (jit, batched)", t_jax, r_jax)
     row(f"numpy SVD loop (timed on {m}, scaled)", t_loop, r_loop)
@@ -87,8 +95,10 @@ def main():
         from scipy.spatial.transform import Rotation
 
         def scipy_loop():
-            return [Rotation.align_vectors(dst[i] - dst[i].mean(0), src[i] - src[i].mean(0))[0]
-                    for i in range(m)]
+            return [
+                Rotation.align_vectors(dst[i] - dst[i].mean(0), src[i] - src[i].mean(0))[0]
+                for i in range(m)
+            ]
 
         t_sp = median_seconds(scipy_loop, repeats=3) * b / m
         r_sp = np.stack([r.as_matrix() for r in scipy_loop()])

@@ -19,8 +19,9 @@ is the same optimum as the SVD form (Kabsch/Umeyama), but
   which is zero exactly when the optimal rotation is not unique. The SVD gradient instead
   divides by ``s_i^2 - s_j^2`` and is infinite on planar or symmetric clouds whose singular
   values repeat although the rotation is perfectly determined. A custom JVP rule
-  (:func:`jaxreg.lie.top_eigenpair`) differentiates the top eigenvector alone, so the gradient is finite (and exact) whenever
-  the solution is unique, and is set to zero with ``degenerate`` raised when it is not.
+  (:func:`jaxreg.lie.top_eigenpair`) differentiates the top eigenvector alone, so the
+  gradient is finite (and exact) whenever the solution is unique, and is set to zero with
+  ``degenerate`` raised when it is not.
 
 Batching: every array may carry leading batch axes ``(...)``; points are ``(..., N, 3)``
 and weights ``(..., N)``. Rows with zero weight are padding: they take no part, whatever
@@ -94,9 +95,7 @@ def _check_shapes(src, dst, weights):
             f"src and dst must be matched row for row: got {src.shape} and {dst.shape}"
         )
     if src.shape[-2] < 3:
-        raise ValueError(
-            f"a rigid alignment needs at least 3 correspondences, got {src.shape[-2]}"
-        )
+        raise ValueError(f"a rigid alignment needs at least 3 correspondences, got {src.shape[-2]}")
     dtype = jnp.result_type(src.dtype, dst.dtype, float)
     src, dst = src.astype(dtype), dst.astype(dtype)
     if weights is None:

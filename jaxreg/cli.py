@@ -119,9 +119,10 @@ def _print_report(report: dict) -> None:
     print(f"jaxreg demo — {PENDING}.")
     print("Scene: a 9 x 6 x 4 cm box, half visible, 1 mm noise, 10% clutter, rotated 50 deg.")
     print(
-        f"  one ICP start (centroids aligned, no rotation): {single['rotation_error_deg']:.1f} deg and "
-        f"{single['translation_error_mm']:.1f} mm wrong at a {single['inlier_rmse_mm']:.1f} mm "
-        "residual (outside the basin: a confident wrong answer)"
+        "  one ICP start (centroids aligned, no rotation): "
+        f"{single['rotation_error_deg']:.1f} deg and {single['translation_error_mm']:.1f} mm "
+        f"wrong at a {single['inlier_rmse_mm']:.1f} mm residual (outside the basin: a "
+        "confident wrong answer)"
     )
     print(
         f"  {reg['starts']} starts in one call ({reg['ms']:.0f} ms incl. compile): best start "

@@ -382,8 +382,18 @@ def _is_concrete(x) -> bool:
 
 
 def _prepare(
-    source, target, *, method, target_normals, source_weights, max_correspondence_distance,
-    max_iterations, tolerance, kernel, trim_fraction, neighbors,
+    source,
+    target,
+    *,
+    method,
+    target_normals,
+    source_weights,
+    max_correspondence_distance,
+    max_iterations,
+    tolerance,
+    kernel,
+    trim_fraction,
+    neighbors,
 ) -> tuple[_Problem, _Options]:
     """Host-side checks and set-up shared by :func:`icp` and :func:`multistart_icp`."""
     if method not in ("point_to_point", "point_to_plane"):
@@ -397,7 +407,9 @@ def _prepare(
             raise ValueError(f"{name} must have shape (N, 3), got {cloud.shape}")
         if cloud.shape[0] == 0:
             raise ValueError(f"{name} is empty: ICP needs points in both clouds")
-    n, m = source.shape[0], target.shape[0]
+    n = source.shape[0]
+    if n < 3:
+        raise ValueError(f"ICP needs at least 3 source points, got {n}")
     if method == "point_to_plane":
         if target_normals is None:
             raise ValueError(
@@ -502,10 +514,17 @@ def icp(
         :class:`RegistrationResult`.
     """
     problem, opts = _prepare(
-        source, target, method=method, target_normals=target_normals,
-        source_weights=source_weights, max_correspondence_distance=max_correspondence_distance,
-        max_iterations=max_iterations, tolerance=tolerance, kernel=kernel,
-        trim_fraction=trim_fraction, neighbors=neighbors,
+        source,
+        target,
+        method=method,
+        target_normals=target_normals,
+        source_weights=source_weights,
+        max_correspondence_distance=max_correspondence_distance,
+        max_iterations=max_iterations,
+        tolerance=tolerance,
+        kernel=kernel,
+        trim_fraction=trim_fraction,
+        neighbors=neighbors,
     )
     return _run_jit(problem, opts, _as_pose(init, (), problem.source.dtype))
 
@@ -554,9 +573,15 @@ def _shard_starts(starts: SE3) -> SE3:
 
 def _icp_options(options: dict) -> dict:
     defaults = dict(
-        method="point_to_point", target_normals=None, source_weights=None,
-        max_correspondence_distance=0.02, max_iterations=40, tolerance=1e-6, kernel=None,
-        trim_fraction=None, neighbors=None,
+        method="point_to_point",
+        target_normals=None,
+        source_weights=None,
+        max_correspondence_distance=0.02,
+        max_iterations=40,
+        tolerance=1e-6,
+        kernel=None,
+        trim_fraction=None,
+        neighbors=None,
     )
     unknown = set(options) - set(defaults)
     if unknown:

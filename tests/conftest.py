@@ -23,7 +23,9 @@ def pcl_dir() -> Path:
     """`<data>/pcl`, or skip with the reason when the shared data is not present."""
     root = data_root()
     if root is None or not (root / "pcl").is_dir():
-        pytest.skip("real point clouds not found: set JAXREG_DATA or place ../shared/data beside the repo")
+        pytest.skip(
+            "real point clouds not found: set JAXREG_DATA or place ../shared/data beside the repo"
+        )
     return root / "pcl"
 
 

@@ -8,9 +8,18 @@ from jaxreg.cli import main
 def test_demo_json_report(capsys, tmp_path):
     assert main(["demo", "--json", "--out", str(tmp_path)]) == 0
     report = json.loads(capsys.readouterr().out)
-    for key in ("pose", "failed_stage", "reason", "stages", "inlier_rmse_mm", "inlier_fraction",
-                "predicted_grasp_success", "translation_error_mm", "rotation_error_deg",
-                "add_s_mm"):
+    for key in (
+        "pose",
+        "failed_stage",
+        "reason",
+        "stages",
+        "inlier_rmse_mm",
+        "inlier_fraction",
+        "predicted_grasp_success",
+        "translation_error_mm",
+        "rotation_error_deg",
+        "add_s_mm",
+    ):
         assert key in report
     pose = np.array(report["pose"])
     assert pose.shape == (4, 4) and np.allclose(pose[3], [0, 0, 0, 1])

@@ -60,14 +60,18 @@ def o3d_cloud(points):
 def test_reproduces_pcl_icp_unit_test(pcl_dir):
     source = load_points(pcl_dir / "bun0.pcd")
     target = load_points(pcl_dir / "bun4.pcd")
-    result = icp(source, target, max_correspondence_distance=0.05, max_iterations=50,
-                 tolerance=1e-8)
+    result = icp(
+        source, target, max_correspondence_distance=0.05, max_iterations=50, tolerance=1e-8
+    )
     matrix = np.asarray(result.pose.as_matrix())
     np.testing.assert_allclose(matrix[:3], PCL_BUNNY_TRANSFORM, atol=1e-3)
     assert bool(result.converged) and result.status == ICPStatus.success
     if o3d is not None:
         ref = o3d.pipelines.registration.registration_icp(
-            o3d_cloud(source), o3d_cloud(target), 0.05, np.eye(4),
+            o3d_cloud(source),
+            o3d_cloud(target),
+            0.05,
+            np.eye(4),
             o3d.pipelines.registration.TransformationEstimationPointToPoint(),
             o3d.pipelines.registration.ICPConvergenceCriteria(1e-8, 1e-8, 50),
         )
@@ -106,15 +110,15 @@ def test_multistart_escapes_the_wrong_basin_and_keeps_per_start_status():
     best_pose = SE3(results.pose.wxyz_xyz[best])
     assert rotation_error_deg(best_pose, r) < 1.0
     single = icp(model, scene, SE3(inits.wxyz_xyz[2]), max_correspondence_distance=0.02)
-    np.testing.assert_allclose(SE3(results.pose.wxyz_xyz[2]).as_matrix(), single.pose.as_matrix(),
-                               atol=1e-5)
+    np.testing.assert_allclose(
+        SE3(results.pose.wxyz_xyz[2]).as_matrix(), single.pose.as_matrix(), atol=1e-5
+    )
 
 
 def test_init_as_matrix_and_distance_schedule():
     model, scene, r = lesson_cube(15.0)
     schedule = np.geomspace(0.05, 0.01, 30)
-    result = icp(model, scene, np.eye(4), max_correspondence_distance=schedule,
-                 max_iterations=30)
+    result = icp(model, scene, np.eye(4), max_correspondence_distance=schedule, max_iterations=30)
     assert rotation_error_deg(result.pose, r) < 0.5
     with pytest.raises(ValueError, match="one distance per iteration"):
         icp(model, scene, max_correspondence_distance=schedule[:5], max_iterations=30)
@@ -137,8 +141,9 @@ def test_partial_view_needs_trimming_or_a_robust_kernel():
     init = SE3.from_translation(jnp.asarray(t, jnp.float32))
 
     def errors(**options):
-        res = icp(model, scene.astype(np.float32), init, max_correspondence_distance=0.02,
-                  **options)
+        res = icp(
+            model, scene.astype(np.float32), init, max_correspondence_distance=0.02, **options
+        )
         assert res.status == ICPStatus.success
         t_err = np.linalg.norm(np.asarray(res.pose.translation()) - t)
         return rotation_error_deg(res.pose, r), t_err
@@ -199,10 +204,12 @@ def test_start_batch_is_sharded_over_devices():
         "np.testing.assert_allclose(r.pose.translation(), [[0.005, 0, 0]] * 6, atol=1e-4)\n"
         "print('ok')\n"
     )
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
-               JAX_PLATFORMS="cpu")
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
-                         text=True, timeout=300)
+    env = dict(
+        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300
+    )
     assert out.returncode == 0 and "ok" in out.stdout, out.stderr[-2000:]
 
 
@@ -221,8 +228,14 @@ def test_point_to_plane_on_a_cluttered_real_scan_matches_open3d(pcl_dir):
     r_true = np.asarray(truth.rotation().as_matrix())
     t_true = np.asarray(truth.translation())
 
-    result = icp(model, scene, method="point_to_plane", target_normals=normals,
-                 max_correspondence_distance=0.02, max_iterations=60)
+    result = icp(
+        model,
+        scene,
+        method="point_to_plane",
+        target_normals=normals,
+        max_correspondence_distance=0.02,
+        max_iterations=60,
+    )
     assert result.status == ICPStatus.success
     rot_err = rotation_error_deg(result.pose, r_true)
     trans_err = np.linalg.norm(np.asarray(result.pose.translation()) - t_true)
@@ -232,7 +245,10 @@ def test_point_to_plane_on_a_cluttered_real_scan_matches_open3d(pcl_dir):
     target = o3d_cloud(scene)
     target.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
     ref = o3d.pipelines.registration.registration_icp(
-        o3d_cloud(model), target, 0.02, np.eye(4),
+        o3d_cloud(model),
+        target,
+        0.02,
+        np.eye(4),
         o3d.pipelines.registration.TransformationEstimationPointToPlane(),
         o3d.pipelines.registration.ICPConvergenceCriteria(1e-6, 1e-6, 60),
     ).transformation
@@ -246,8 +262,12 @@ def test_point_to_plane_on_a_plane_is_degenerate():
     rng = np.random.default_rng(0)
     plane = np.c_[rng.uniform(-0.05, 0.05, (400, 2)), np.zeros(400)].astype(np.float32)
     normals = np.tile(np.float32([0, 0, 1]), (400, 1))
-    result = icp(plane, plane + np.float32([0.002, 0.001, 0.003]), method="point_to_plane",
-                 target_normals=normals)
+    result = icp(
+        plane,
+        plane + np.float32([0.002, 0.001, 0.003]),
+        method="point_to_plane",
+        target_normals=normals,
+    )
     assert result.status == ICPStatus.degenerate
     np.testing.assert_allclose(result.pose.translation()[2], 0.003, atol=1e-5)  # observable
 
@@ -261,9 +281,13 @@ def test_initial_pose_generators():
     scene = np.asarray(truth @ box)
     starts = pca_inits(box, scene)
     assert starts.get_batch_axes() == (4,)
-    np.testing.assert_allclose(np.linalg.det(np.asarray(starts.rotation().as_matrix())), 1, atol=1e-5)
-    errors = [rotation_error_deg(SE3(p), np.asarray(truth.rotation().as_matrix()))
-              for p in np.asarray(starts.wxyz_xyz)]
+    np.testing.assert_allclose(
+        np.linalg.det(np.asarray(starts.rotation().as_matrix())), 1, atol=1e-5
+    )
+    errors = [
+        rotation_error_deg(SE3(p), np.asarray(truth.rotation().as_matrix()))
+        for p in np.asarray(starts.wxyz_xyz)
+    ]
     assert min(errors) < 2.0  # one sign choice is the truth (up to sampling noise)
 
     grid = rotation_inits(box, scene, 50)
@@ -272,11 +296,14 @@ def test_initial_pose_generators():
 
     around = rotation_inits(box, scene, 10, around=truth, max_angle=0.2)
     np.testing.assert_allclose(around.wxyz_xyz[0], truth.wxyz_xyz, atol=1e-6)
-    angles = np.asarray(jnp.linalg.norm((truth.rotation().inverse() @ around.rotation()).log(), axis=-1))
+    angles = np.asarray(
+        jnp.linalg.norm((truth.rotation().inverse() @ around.rotation()).log(), axis=-1)
+    )
     assert np.all(angles <= 0.2 + 1e-5)
 
-    jitter = perturbed_inits(truth, jax.random.key(0), 8, rotation_sigma=0.05,
-                             translation_sigma=0.01)
+    jitter = perturbed_inits(
+        truth, jax.random.key(0), 8, rotation_sigma=0.05, translation_sigma=0.01
+    )
     assert jitter.get_batch_axes() == (8,)
     np.testing.assert_allclose(jitter.wxyz_xyz[0], truth.wxyz_xyz, atol=1e-6)
     assert np.all(np.linalg.norm(np.asarray((truth.inverse() @ jitter).log())[1:], axis=-1) > 0)
@@ -297,9 +324,15 @@ def test_implicit_gradient_matches_finite_differences(method, x64):
     normals = np.asarray(estimate_normals(scene, k=12)) if method == "point_to_plane" else None
 
     def solve(src):
-        return icp(src, scene, method=method, target_normals=normals,
-                   max_correspondence_distance=0.03, max_iterations=200,
-                   tolerance=1e-13).pose.log()
+        return icp(
+            src,
+            scene,
+            method=method,
+            target_normals=normals,
+            max_correspondence_distance=0.03,
+            max_iterations=200,
+            tolerance=1e-13,
+        ).pose.log()
 
     jac = np.asarray(jax.jacrev(solve)(jnp.asarray(model)))
     assert np.all(np.isfinite(jac))

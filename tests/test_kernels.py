@@ -55,4 +55,6 @@ def test_trim_mask_keeps_the_best_fraction_with_static_shapes():
     np.testing.assert_array_equal(keep_all, valid)
     batched = jax.vmap(trim_mask, in_axes=(0, None))(jnp.stack([s, -s]), 0.25)
     assert batched.shape == (2, 8) and np.all(batched.sum(1) == 2)
-    np.testing.assert_array_equal(trim_mask(jnp.array([1.0, jnp.nan, 0.0]), 1.0), [True, False, True])
+    np.testing.assert_array_equal(
+        trim_mask(jnp.array([1.0, jnp.nan, 0.0]), 1.0), [True, False, True]
+    )
