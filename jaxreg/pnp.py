@@ -6,7 +6,7 @@ Frames and conventions
   `X_cam = R @ X_obj + t`. The camera looks down +z, x right, y down (OpenCV).
 * Pixels: `[u, v, 1] = K @ [x'', y'', 1]` where `(x'', y'')` are the (optionally distorted)
   normalised coordinates `(x/z, y/z)`; pixel centres sit at integer coordinates (OpenCV).
-  `K[2]` must be `(0, 0, 1)`; skew `K[0, 1]` is honoured.
+  `K[2]` must be `(0, 0, 1)`; skew `K[0, 1]` is honoured (OpenCV's model has none).
 * Distortion: Brown-Conrady in OpenCV order `(k1, k2, p1, p2[, k3])`, radial terms
   `1 + k1 r^2 + k2 r^4 + k3 r^6` plus tangential `p1, p2`, exactly as `cv2.projectPoints`.
 * Tangent vectors are jaxlie's `(vx, vy, vz, wx, wy, wz)`; covariances are of the *right*
@@ -72,6 +72,9 @@ import numpy as np
 import optimistix as optx
 from jaxlie import SE3, SO3
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from jaxreg.align import kabsch
+from jaxreg.lie import geodesic_angle, se3_exp
 
 __all__ = [
     "PnPStatus",
@@ -277,7 +280,7 @@ def pose_jacobian(
     delta0 = jnp.zeros((*camera_T_object.get_batch_axes(), 6), camera_T_object.wxyz_xyz.dtype)
 
     def pixels(delta):
-        return project(_transform(camera_T_object @ SE3.exp(delta), object_points), K, dist_coeffs)
+        return project(_transform(camera_T_object @ se3_exp(delta), object_points), K, dist_coeffs)
 
     return _batch_jacobian(pixels, delta0, 6)
 
@@ -364,26 +367,12 @@ def _null_space_rows(A: Array, count: int) -> Array:
     return vh[::-1][:count]
 
 
-def _kabsch(src: Array, dst: Array, w: Array) -> SE3:
-    """Weighted least-squares rigid transform with `pose @ src ~= dst` (no scale)."""
-    wsum = jnp.maximum(jnp.sum(w), jnp.finfo(src.dtype).tiny)
-    mu_s = jnp.sum(w[:, None] * src, axis=0) / wsum
-    mu_d = jnp.sum(w[:, None] * dst, axis=0) / wsum
-    cov = (w[:, None] * (dst - mu_d)).T @ (src - mu_s)
-    u, _, vh = jnp.linalg.svd(cov)
-    sign = jnp.sign(jnp.linalg.det(u @ vh))
-    sign = jnp.where(sign == 0, 1.0, sign)
-    R = u @ jnp.diag(jnp.array([1.0, 1.0, 1.0], src.dtype).at[2].set(sign)) @ vh
-    return SE3.from_rotation_and_translation(SO3.from_matrix(R), mu_d - R @ mu_s)
-
-
 def _normalised_rmse(pose: SE3, X: Array, m: Array, w: Array) -> Array:
-    """RMS reprojection error in normalised (K^-1, undistorted) coordinates; inf when invalid."""
+    """RMS reprojection error in normalised (K^-1, undistorted) coordinates; inf if not finite."""
     Xc = pose @ X
     err = jnp.sum((Xc[:, :2] / Xc[:, 2:3] - m) ** 2, axis=-1)
-    behind = jnp.any((Xc[:, 2] <= 0) & (w > 0))
     rmse = jnp.sqrt(jnp.sum(w * err) / jnp.maximum(jnp.sum(w), jnp.finfo(err.dtype).tiny))
-    return jnp.where(jnp.isfinite(rmse) & ~behind, rmse, jnp.inf)
+    return jnp.where(jnp.isfinite(rmse), rmse, jnp.inf)
 
 
 def _translation_given_rotation(R: Array, X: Array, m: Array, w: Array) -> Array:
@@ -561,7 +550,7 @@ def _epnp(X: Array, m: Array, w: Array) -> SE3:
         ctrl_c = jnp.einsum("k,kci->ci", beta, kernel)
         Xc = alphas @ ctrl_c
         Xc = jnp.where(jnp.sum(w * Xc[:, 2]) < 0, -Xc, Xc)
-        return _kabsch(X, Xc, w)
+        return kabsch(X, Xc, w)
 
     return jax.vmap(lambda b: pose_from_beta(gauss_newton(b)))(inits)
 
@@ -783,9 +772,9 @@ def _general_core(X, uv, K, dist, w, sigma_px, *, max_steps: int) -> PnPResult:
     poses, steps, converged = jax.vmap(
         lambda T0: _refine(T0, X, uv, K, dist, w, active, max_steps=max_steps)
     )(starts)
+    # The best fit wins even with points behind the camera: its status then says so.
     errs = jax.vmap(lambda T: _pixel_rmse(T, X, uv, K, dist, w))(poses)
-    in_front = jax.vmap(lambda T: jnp.all(((T @ X)[:, 2] > 0) | (w <= 0)))(poses)
-    best = jnp.argmin(jnp.where(in_front & jnp.isfinite(errs), errs, jnp.inf))
+    best = jnp.argmin(jnp.where(jnp.isfinite(errs), errs, jnp.inf))
     pose, steps, converged = jax.tree.map(lambda leaf: leaf[best], (poses, steps, converged))
     return _finish(pose, X, uv, K, dist, w, sigma_px, steps, converged, status)
 
@@ -810,8 +799,7 @@ def _planar_core(X, uv, K, dist, w, sigma_px, *, max_steps: int, refine: bool):
     rmse = both.reprojection_rmse_px
     ratio = rmse[1] / jnp.maximum(rmse[0], jnp.finfo(rmse.dtype).tiny)
     rotations = both.pose.rotation()
-    relative = SO3(rotations.wxyz[0]).inverse() @ SO3(rotations.wxyz[1])
-    separation = jnp.rad2deg(jnp.linalg.norm(relative.log()))
+    separation = jnp.rad2deg(geodesic_angle(SO3(rotations.wxyz[0]), SO3(rotations.wxyz[1])))
     return PlanarPnPResult(candidates=both, ambiguity_ratio=ratio, separation_deg=separation)
 
 
@@ -844,9 +832,8 @@ def _prepare(name, object_points, image_points, K, dist_coeffs, weights):
     if weights.ndim < 1 or weights.shape[-1] != n:
         raise ValueError(f"{name}: weights must be (..., {n}), got {weights.shape}")
     arrays = [object_points, image_points, K, dist_coeffs, weights]
-    dtype = jnp.result_type(*(a for a in arrays if a is not None), jnp.float32)
-    if not jnp.issubdtype(dtype, jnp.floating):
-        dtype = jnp.result_type(float)
+    dtype = np.result_type(*(a.dtype for a in arrays if a is not None), np.float32)
+    dtype = jax.dtypes.canonicalize_dtype(dtype if np.issubdtype(dtype, np.floating) else float)
     arrays = [None if a is None else a.astype(dtype) for a in arrays]
     core_ndims = _CORE_NDIMS
     try:
