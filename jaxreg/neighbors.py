@@ -90,33 +90,34 @@ _OCTANTS = np.array(list(itertools.product((0, 1), repeat=3)), dtype=np.int64)
 _STENCIL = np.array(list(itertools.product((-1, 0, 1), repeat=3)), dtype=np.int64)
 # Candidate lists this short or shorter are scanned by an unrolled loop (fast on CPU);
 # longer ones by a reduction over the candidate axis (bounded compile time).
-_UNROLL_LIMIT = 48
+_UNROLL_LIMIT = 64
 
 
 class NeighborGrid(eqx.Module):
     """A target cloud indexed for static-shape neighbour queries (see the module docstring).
 
-    Built by :func:`build_grid`; a pytree whose arrays are leaves and whose sizes are static,
-    so it can be closed over or passed into ``jit`` and shared across ``vmap`` lanes.
+    Built by :func:`build_grid`; a pytree of arrays (only ``k`` is static) whose shapes are
+    rounded up to powers of two, so targets of similar size and extent give grids of the
+    same structure and shapes: a jitted function taking the grid compiles once for them.
 
     Attributes:
         origin: ``(3,)`` corner of the top-level grid, in target coordinates.
         cell_size: ``()`` edge of a top-level cell (``>= max_distance``).
         max_distance: ``()`` the radius within which queries are exact.
-        cells: ``(prod(dims), 2)`` per top-level cell (x-major order): the offset of its
+        dims: ``(3,)`` top-level cells per axis.
+        cells: ``(>= prod(dims), 2)`` per top-level cell (x-major order): the offset of its
             block in ``leaf_map`` and its refinement depth ``d``; the block holds the leaf
-            of each of its ``(2^d)^3`` sub-cells.
-        leaf_map: ``(n_map,)`` leaf row of every sub-cell; row 0 is the empty leaf.
-        candidate_index: ``(n_leaves, capacity)`` target row of each candidate, padded with
+            row of each of its ``(2^d)^3`` sub-cells. Rows past ``prod(dims)`` are padding.
+        leaf_map: ``(entries,)`` leaf row of every sub-cell; entry 0 and padding hold row 0,
+            the empty leaf.
+        candidate_index: ``(leaves, capacity)`` target row of each candidate, padded with
             the sentinel ``num_points``.
-        candidate_points: ``(3, n_leaves, capacity)`` candidate coordinates, one plane per
+        candidate_points: ``(3, leaves, capacity)`` candidate coordinates, one plane per
             axis (``inf`` in padding slots), so a query reads them without a second gather.
+        num_points: ``()`` ``M``, the number of target rows (masked rows included): the
+            sentinel index.
         overflow: ``()`` True when some leaf had more candidates than ``capacity`` at the
             maximum depth and was truncated: queries may then be inexact.
-        dims: static ``(nx, ny, nz)`` top-level cells per axis.
-        capacity: static candidate slots per leaf.
-        num_points: static ``M``, the number of target rows (masked rows included); the
-            sentinel index.
         k: static: the grid answers kNN queries for up to ``k`` neighbours; ``None`` keeps
             every point within ``max_distance`` (needed by :func:`query_radius`).
     """
@@ -124,19 +125,23 @@ class NeighborGrid(eqx.Module):
     origin: Float[Array, "3"]
     cell_size: Float[Array, ""]
     max_distance: Float[Array, ""]
+    dims: Int[Array, "3"]
     cells: Int[Array, "cells 2"]
     leaf_map: Int[Array, " entries"]
     candidate_index: Int[Array, "leaves capacity"]
     candidate_points: Float[Array, "3 leaves capacity"]
+    num_points: Int[Array, ""]
     overflow: Bool[Array, ""]
-    dims: tuple[int, int, int] = eqx.field(static=True)
-    capacity: int = eqx.field(static=True)
-    num_points: int = eqx.field(static=True)
     k: int | None = eqx.field(static=True)
 
     @property
+    def capacity(self) -> int:
+        """Candidate slots per leaf (static: the candidate table's width)."""
+        return self.candidate_index.shape[1]
+
+    @property
     def num_leaves(self) -> int:
-        """Number of leaves (candidate lists), the empty leaf included."""
+        """Rows of the candidate table, the empty leaf and padding included."""
         return self.candidate_index.shape[0]
 
     @property
@@ -152,79 +157,368 @@ class NeighborGrid(eqx.Module):
 
 # --------------------------------------------------------------------------------------------
 # Host-side construction.
+#
+# numpy on the host, vectorised over all nodes of a level at once (no Python loop over cells,
+# nodes or points), in float32. Every box is grown by ``margin`` before it is tested, so
+# float32 rounding (of the build, and of the query's choice of leaf) can only keep a candidate
+# that exact arithmetic would drop, never drop one it would keep.
+
+_OCT32 = _OCTANTS.astype(np.int32)
+_OCT_F = _OCTANTS.astype(np.float32)
+_STENCIL32 = _STENCIL.astype(np.int32)
+_PAIR = np.arange(2, dtype=np.int32)
+_NEAR = 12  # near points per target point whose bisectors prune 1-NN candidate lists
+# Default refinement target of 1-NN leaves. Measured on milk.pcd (bench_neighbors.py): 48
+# builds 1.3-1.6x faster than 32 for 40 queries costing 1.1-1.2x more.
+_LEAF_TARGET = 48
 
 
-def _runs(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For a sorted key array: start offset of each run of equal keys, and each entry's run."""
-    new = np.r_[True, keys[1:] != keys[:-1]] if len(keys) else np.zeros(0, bool)
-    return np.flatnonzero(new), np.cumsum(new) - 1
+def _bucket(n: int, log_step: int = 1) -> int:
+    """Table length for ``n`` rows: the next power of ``2^log_step`` (at least 64), so that
+    similar targets give identically shaped grids and a jitted caller does not recompile.
+    Small tables (cells, leaf map) use steps of 4: their sizes follow the target's extent
+    and octree depth, which vary more between similar scenes than the number of leaves."""
+    bits = max(6, max(0, int(n) - 1).bit_length())
+    return 1 << (-(-bits // log_step) * log_step)
 
 
-def _prune(
-    node: np.ndarray,
-    pid: np.ndarray,
-    lo: np.ndarray,
-    size: float,
-    points: np.ndarray,
-    r2: float,
-    k: int | None,
-) -> np.ndarray:
-    """Keep-mask over the candidate pairs ``(node, pid)`` (sorted by node) of one level.
+def _sq_dist(a: list[np.ndarray], b: list[np.ndarray]) -> np.ndarray:
+    """Squared distances from per-axis coordinate arrays (broadcasting); numpy reduces a
+    trailing axis of length 3 slowly, so axes are summed explicitly."""
+    d = [ai - bi for ai, bi in zip(a, b, strict=True)]
+    return d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
 
-    ``lo (nodes, 3)`` are the lower corners and ``size`` the common edge of the nodes' boxes,
-    already grown by the margin. Works on one array per axis (numpy is slow at reductions
-    over a short trailing axis) and in box-local coordinates (no cancellation).
+
+def _near_points(x: np.ndarray, count: int) -> np.ndarray:
+    """``(n, count)`` indices of points near each point of ``x`` (itself where it has fewer).
+
+    Hashes the points into cells of about 1.5 median nearest-neighbour spacings, takes one
+    point of each of the 27 cells around each point's own (two of its own), and keeps the
+    ``count`` nearest of those. Any points are valid pruning witnesses; near ones prune most.
     """
-    # b = lo - p per axis: p sits at -b in the box's frame, the box spans [0, size]^3.
-    b = [lo[:, i][node] - points[:, i][pid] for i in range(3)]
-    gap = [np.maximum(np.maximum(bi, -bi - size), 0.0) for bi in b]
-    dmin2 = gap[0] * gap[0] + gap[1] * gap[1] + gap[2] * gap[2]
-    keep = dmin2 <= r2
-    if k is None or not keep.any():
-        return keep
-    idx = np.flatnonzero(keep)
-    node, dmin2 = node[idx], dmin2[idx]
-    b = [bi[idx] for bi in b]
-    n = len(idx)
-    starts, group = _runs(node)
-    # Squared distances to the eight corners (octant order): lower face b^2, upper (b+size)^2.
-    faces = [(bi * bi, (bi + size) * (bi + size)) for bi in b]
-    corner = np.empty((8, n))
-    for o, (i, j, l) in enumerate(_OCTANTS):
-        np.add(faces[0][i], faces[1][j], out=corner[o])
-        corner[o] += faces[2][l]
-    dmax2 = np.maximum.reduce(corner, axis=0)
-    if k != 1:
-        # k points lie within the k-th smallest farthest-corner distance of every query in
-        # the box, so a point farther than that from the box is never among its k nearest.
-        # (groups, longest) table padded with inf; a partition finds each row's k-th value.
-        slot = np.arange(n) - starts[group]
-        table = np.full((len(starts), int(slot.max()) + 1), np.inf)
-        table[group, slot] = dmax2
-        if table.shape[1] < k:
-            return keep
-        bound = np.partition(table, k - 1, axis=1)[:, k - 1]
-        keep[idx] = dmin2 <= bound[group]
-        return keep
-    # Dominance: p never wins in the box if a witness w is strictly closer to every point of
-    # it. |x-p|^2 - |x-w|^2 is affine in x, so its minimum over the box is at a corner:
-    # with p - lo = -b_p, w - lo = -b_w:  2 size sum_i min(b_p,i - b_w,i, 0) + |b_p|^2 - |b_w|^2.
-    # Witnesses: the candidate whose farthest corner is closest (it also removes every p
-    # farther from the box than that corner), then each corner's closest candidate.
-    bb = b[0] * b[0] + b[1] * b[1] + b[2] * b[2]
-    alive = np.ones(n, dtype=bool)
-    for col in (dmax2, *corner):
-        best = np.minimum.reduceat(col, starts)
-        hit = np.flatnonzero(col == best[group])
-        witness = np.empty(len(starts), dtype=np.int64)
-        witness[group[hit]] = hit
-        w = witness[group]
-        m = np.minimum(b[0] - b[0][w], 0.0)
-        m += np.minimum(b[1] - b[1][w], 0.0)
-        m += np.minimum(b[2] - b[2][w], 0.0)
-        alive &= 2 * size * m + bb - bb[w] <= 0
-    keep[idx] = alive
+    n = len(x)
+    rows = np.arange(n, dtype=np.int32)
+    xs = [np.ascontiguousarray(x[:, i]) for i in range(3)]
+    sample = np.linspace(0, n - 1, min(n, 16)).astype(np.intp)
+    d2 = _sq_dist([xi[sample, None] for xi in xs], [xi[None] for xi in xs])
+    d2[d2 == 0] = np.inf  # the sample point itself and exact duplicates
+    spacing = np.sqrt(np.min(d2, axis=1))
+    extent = (x.max(0) - x.min(0)).astype(np.float64)
+    if not extent.max() > 0:
+        return np.repeat(rows[:, None], count, axis=1)
+    size = max(1.5 * float(np.median(spacing)), float(extent.max()) / (1 << 20))
+    while np.prod(np.floor(extent / size) + 3) > 1 << 21:  # bounded hash table
+        size *= 2
+    c = ((x - x.min(0)) / np.float32(size)).astype(np.int64) + 1
+    span = c.max(0) + 2
+    key = (c[:, 0] * span[1] + c[:, 1]) * span[2] + c[:, 2]
+    # Empty cells read point 0: a far, weak but valid witness, rarely among the nearest.
+    last = np.zeros(int(np.prod(span)), np.int32)
+    last[key] = rows  # some point of each cell (the last written)
+    first = last.copy()
+    first[key[::-1]] = rows[::-1]  # usually another one
+    reps = np.empty((len(_STENCIL) + 1, n), np.int32)
+    for j, o in enumerate(_STENCIL):
+        reps[j] = last[key + int((o[0] * span[1] + o[1]) * span[2] + o[2])]
+    reps[-1] = first[key]
+    d2 = _sq_dist([xi[reps] for xi in xs], xs)  # (28, n)
+    d2[reps == rows] = np.inf
+    count = min(count, len(reps))
+    best = np.argpartition(d2, count - 1, axis=0)[:count]
+    near = np.take_along_axis(reps, best, axis=0)
+    return np.where(np.isfinite(np.take_along_axis(d2, best, axis=0)), near, rows).T
+
+
+class _Bisectors:
+    """Half-spaces that prune 1-NN candidates: each point against its near points.
+
+    Point ``p`` is never the nearest neighbour of a query in a box if another point ``q`` is
+    strictly closer to all of it: ``min_{x in box} x . d > mid . d`` with ``d = q - p``,
+    ``mid = (p + q) / 2``. For the grown box ``[lo - m, lo + a + m]^3`` that reads
+    ``lo . d > mid . d + m sum(d) - (a + 2 m) sum(min(d, 0))``. Arrays are ``(K, n)``.
+    """
+
+    def __init__(self, x: np.ndarray, margin: float):
+        d = x[_near_points(x, _NEAR)].transpose(1, 2, 0) - x.T[None]  # (K, 3, n)
+        self.d = [np.ascontiguousarray(d[:, i]) for i in range(3)]
+        mid = x.T[None] + np.float32(0.5) * d
+        self.rhs0 = (mid * d).sum(1) + np.float32(margin) * d.sum(1)
+        self.neg = np.minimum(d, np.float32(0)).sum(1)
+        self.margin = margin
+
+    def rhs(self, edge: float) -> np.ndarray:
+        """``(K, n)`` right-hand side for boxes of (ungrown) edge ``edge``."""
+        return self.rhs0 - np.float32(edge + 2 * self.margin) * self.neg
+
+
+def _gap_sq(x: np.ndarray, index: np.ndarray, edge: float, margin: float) -> np.ndarray:
+    """Squared distance along one axis from ``x`` to the grown boxes
+    ``[index edge - margin, (index + 1) edge + margin]`` (broadcasting)."""
+    lower = index.astype(np.float32) * np.float32(edge) - np.float32(margin)
+    g = np.maximum(lower - x, x - (lower + np.float32(edge + 2 * margin)))
+    g = np.maximum(g, np.float32(0))
+    return g * g
+
+
+def _outer3(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """``a[..., i] + b[..., j] + c[..., l]`` flattened over ``(i, j, l)`` (x-major)."""
+    s = a[..., :, None, None] + b[..., None, :, None] + c[..., None, None, :]
+    return s.reshape(*s.shape[:-3], -1)
+
+
+def _levels_nearest(x, cell, dims, h, margin, r2, leaf_target, max_depth, max_map, max_pairs):
+    """Leaf nodes and candidate pairs for ``k == 1`` (see :func:`build_grid`).
+
+    Pairs (node, point) are kept in point-major order, so that per-point data (its bisector
+    half-spaces) reaches them by ``np.repeat`` rather than by a gather. Returns
+    ``(levels, cell_depth)``, with per level ``(node_top, node_sub, node, pid)``: the top-level
+    cell and sub-cell coordinates of each node, and the pairs of its leaf nodes.
+    """
+    n = len(x)
+    half_spaces = _Bisectors(x, margin)
+    n_cells = math.prod(dims)
+    # Level 0: every point against the 27 top-level cells around its own, all at once.
+    gaps, lows = [], []
+    for i in range(3):
+        idx = cell[:, i : i + 1] + np.arange(-1, 2, dtype=np.int32)  # (n, 3)
+        g = _gap_sq(x[:, i : i + 1], idx, h, margin)
+        g[(idx < 0) | (idx >= dims[i])] = np.inf
+        gaps.append(g)
+        lows.append(idx.astype(np.float32) * np.float32(h))
+    ok = _outer3(*gaps) <= r2
+    rhs = half_spaces.rhs(h)
+    for j in range(len(rhs)):
+        lod = _outer3(*(lows[i] * half_spaces.d[i][j][:, None] for i in range(3)))
+        ok &= lod <= rhs[j][:, None]
+    flat = np.flatnonzero(ok)
+    pid = (flat // 27).astype(np.int32)
+    box = cell[pid] + _STENCIL32[flat % 27]
+    top = (box[:, 0].astype(np.int64) * dims[1] + box[:, 1]) * dims[2] + box[:, 2]
+    used = np.zeros(n_cells, bool)
+    used[top] = True
+    node_top = np.flatnonzero(used)
+    node = (np.cumsum(used, dtype=np.int64) - 1)[top]
+    node_sub = np.zeros((len(node_top), 3), np.int32)
+
+    cell_depth = np.zeros(n_cells, np.int32)
+    levels = []
+    map_size = len(node_top)
+    level = 0
+    while True:
+        counts = np.bincount(node, minlength=len(node_top))
+        split = counts > leaf_target
+        stop = level == max_depth or not split.any()
+        if not stop:
+            deeper = np.unique(node_top[split])
+            grow = len(deeper) * 7 * 8**level
+            stop = map_size + grow > max_map or 8 * int(counts[split].sum()) > max_pairs
+        if stop:
+            levels.append((node_top, node_sub, node, pid))
+            return levels, cell_depth
+        map_size += grow
+        cell_depth[deeper] = level + 1
+        on_split = split[node]
+        keep = np.flatnonzero(~on_split)
+        levels.append((node_top, node_sub, node[keep], pid[keep]))
+        # Children: each pair of a split node against its 8 sub-boxes at once.
+        sel = np.flatnonzero(on_split)
+        spid, sbox = pid[sel], box[sel]
+        srank = (np.cumsum(split) - 1)[node[sel]]
+        level += 1
+        edge = h / 2**level
+        gaps = [
+            _gap_sq(x[spid, i : i + 1], 2 * sbox[:, i : i + 1] + _PAIR, edge, margin)
+            for i in range(3)
+        ]
+        ok = (_outer3(*gaps) <= r2).T  # (8, P)
+        runs = np.bincount(spid, minlength=n)  # point-major: repeat, not gather
+        lo = [sbox[:, i].astype(np.float32) * np.float32(2 * edge) for i in range(3)]
+        rhs = half_spaces.rhs(edge)
+        worst = np.full((8, len(sel)), -np.inf, np.float32)
+        for j in range(len(rhs)):
+            d = [np.repeat(half_spaces.d[i][j], runs) for i in range(3)]
+            # corner term of child o: lo . d + edge (o . d) - rhs, for the 8 octants
+            base = lo[0] * d[0] + lo[1] * d[1] + lo[2] * d[2] - np.repeat(rhs[j], runs)
+            step = [np.float32(edge) * di for di in d]
+            x1 = base + step[0]
+            for q, v in enumerate((base, base + step[1], x1, x1 + step[1])):  # q = 2 ox + oy
+                np.maximum(worst[2 * q], v, out=worst[2 * q])
+                np.maximum(worst[2 * q + 1], v + step[2], out=worst[2 * q + 1])
+        ok &= worst <= 0
+        flat = np.flatnonzero(ok.T)
+        parent, octant = flat // 8, flat % 8
+        pid = spid[parent]
+        box = 2 * sbox[parent] + _OCT32[octant]
+        node = srank[parent] * 8 + octant
+        node_top = np.repeat(node_top[split], 8)
+        node_sub = (2 * node_sub[split][:, None, :] + _OCT32[None]).reshape(-1, 3)
+
+
+def _kth_smallest(values: np.ndarray, lens: np.ndarray, k: int) -> np.ndarray:
+    """Per run of ``values`` (runs of lengths ``lens >= 1``): its ``k``-th smallest, ``inf``
+    for runs shorter than ``k``."""
+    starts = np.cumsum(lens) - lens
+    width = int(lens.max())
+    if width < k:
+        return np.full(len(lens), np.inf, values.dtype)
+    run = np.repeat(np.arange(len(lens)), lens)
+    table = np.full((len(lens), width), np.inf, values.dtype)
+    table[run, np.arange(len(values)) - starts[run]] = values
+    return np.partition(table, k - 1, axis=1)[:, k - 1]
+
+
+def _prune_kth(b: list[np.ndarray], lens: np.ndarray, size, r2, k: int | None) -> np.ndarray:
+    """Keep-mask of node-major pairs (runs ``lens``) with box-local coordinates ``b`` in grown
+    boxes of edge ``size``: within ``max_distance`` of the box and, for ``k``, within the
+    ``k``-th smallest farthest-corner distance of the node's points (``k`` points are then
+    closer to every query in the box)."""
+    g = [np.maximum(np.maximum(-bi, bi - size), np.float32(0)) for bi in b]
+    keep = g[0] * g[0] + g[1] * g[1] + g[2] * g[2]
+    if k is not None and len(lens):
+        f = [np.maximum(bi, size - bi) for bi in b]
+        bound = _kth_smallest(f[0] * f[0] + f[1] * f[1] + f[2] * f[2], lens, k)
+        keep = keep <= np.minimum(np.repeat(bound, lens), r2)
+    else:
+        keep = keep <= r2
     return keep
+
+
+def _levels_general(x, cell, dims, h, margin, r2, k, leaf_target, max_depth, max_map, max_pairs):
+    """Leaf nodes and candidate pairs for ``k > 1`` or radius grids (``k=None``), in node-major
+    order built from a cell-sorted copy of the points (no pair sort). Same output as
+    :func:`_levels_nearest`."""
+    n_cells = math.prod(dims)
+    lin = (cell[:, 0].astype(np.int64) * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    order = np.argsort(lin, kind="stable")
+    count = np.bincount(lin, minlength=n_cells)
+    start = np.cumsum(count) - count
+    # Nodes: every cell within the 27-cell stencil of an occupied one.
+    pad = tuple(d + 2 for d in dims)
+    occupied = np.stack(np.unravel_index(np.flatnonzero(count), dims), axis=1)
+    mark = np.zeros(pad, bool)
+    for o in _STENCIL:
+        mark[tuple(occupied[:, i] + 1 + o[i] for i in range(3))] = True
+    node_top = np.flatnonzero(mark[1:-1, 1:-1, 1:-1].ravel())
+    coords = np.stack(np.unravel_index(node_top, dims), axis=1)
+    cpad, spad = np.zeros(pad, np.int64), np.zeros(pad, np.int64)
+    cpad[1:-1, 1:-1, 1:-1] = count.reshape(dims)
+    spad[1:-1, 1:-1, 1:-1] = start.reshape(dims)
+    around = tuple(coords[:, i : i + 1] + 1 + _STENCIL[:, i] for i in range(3))
+    lens27, starts27 = cpad[around].ravel(), spad[around].ravel()
+    offsets = np.cumsum(lens27) - lens27
+    pid = order[np.arange(int(lens27.sum())) + np.repeat(starts27 - offsets, lens27)]
+    pid = pid.astype(np.int32)
+    lens = lens27.reshape(-1, 27).sum(1)
+    lo = coords.astype(np.float32) * np.float32(h) - np.float32(margin)
+    b = [x[pid, i] - np.repeat(lo[:, i], lens) for i in range(3)]
+    size = np.float32(h + 2 * margin)
+    node_sub = np.zeros((len(node_top), 3), np.int32)
+    cell_depth = np.zeros(n_cells, np.int32)
+    levels = []
+    map_size = len(node_top)
+    level = 0
+    while True:
+        keep = np.flatnonzero(_prune_kth(b, lens, size, r2, k))
+        node = np.repeat(np.arange(len(lens)), lens)[keep]
+        pid, b = pid[keep], [bi[keep] for bi in b]
+        counts = np.bincount(node, minlength=len(lens))
+        split = counts > leaf_target
+        stop = level == max_depth or not split.any()
+        if not stop:
+            deeper = np.unique(node_top[split])
+            grow = len(deeper) * 7 * 8**level
+            stop = map_size + grow > max_map or 8 * int(counts[split].sum()) > max_pairs
+        if stop:
+            levels.append((node_top, node_sub, node, pid))
+            return levels, cell_depth
+        map_size += grow
+        cell_depth[deeper] = level + 1
+        on_split = split[node]
+        leaf = np.flatnonzero(~on_split)
+        levels.append((node_top, node_sub, node[leaf], pid[leaf]))
+        # Children, octant-major: runs (octant, parent) stay contiguous, in parent order.
+        sel = np.flatnonzero(on_split)
+        level += 1
+        edge = np.float32(h / 2**level)
+        size = np.float32(h / 2**level + 2 * margin)
+        b = [(bi[sel][None, :] - edge * _OCT_F[:, i : i + 1]).reshape(-1) for i, bi in enumerate(b)]
+        pid = np.tile(pid[sel], 8)
+        lens = np.tile(counts[split], 8)
+        node_top = np.tile(node_top[split], 8)
+        node_sub = (2 * node_sub[split][None] + _OCT32[:, None, :]).reshape(-1, 3)
+
+
+def _group_order(keys: np.ndarray, n_keys: int) -> np.ndarray:
+    """Stable order sorting integer ``0 <= keys < n_keys < 2^32``: LSD radix on 16-bit digits
+    (numpy's stable sort of uint16 is a counting sort, far faster than a comparison sort)."""
+    if n_keys <= 1 << 16:
+        return np.argsort(keys.astype(np.uint16), kind="stable")
+    low = np.argsort((keys & 0xFFFF).astype(np.uint16), kind="stable")
+    return low[np.argsort((keys[low] >> 16).astype(np.uint16), kind="stable")]
+
+
+def _assemble(levels, cell_depth, dims, h, x, capacity):
+    """Flattened octree tables from the leaf pairs of every level (see :class:`NeighborGrid`).
+
+    Returns ``(cells, leaf_map, rows, slots, pids, cap, overflow, n_rows)``: the table
+    position ``(rows, slots)`` of each kept candidate ``pids`` (row 0 is the empty leaf).
+    """
+    n_cells = math.prod(dims)
+    row_parts, pid_parts, leaf_info = [], [], []
+    n_rows = 1
+    for level, (node_top, node_sub, node, pid) in enumerate(levels):
+        present = np.bincount(node, minlength=len(node_top)) > 0
+        ids = np.flatnonzero(present)
+        row_of = np.zeros(len(node_top), np.int64)
+        row_of[ids] = n_rows + np.arange(len(ids))
+        n_rows += len(ids)
+        row_parts.append(row_of[node])
+        pid_parts.append(pid)
+        leaf_info.append((level, node_top[ids], node_sub[ids], row_of[ids]))
+    rows = np.concatenate([np.zeros(0, np.int64), *row_parts])
+    pids = np.concatenate([np.zeros(0, np.int32), *pid_parts])
+    counts = np.bincount(rows, minlength=n_rows)
+    needed = int(counts.max()) if len(rows) else 0
+    cap = capacity if capacity is not None else max(16, -(-needed // 16) * 16)
+    overflow = needed > cap
+    if overflow:
+        # Truncation keeps each leaf's candidates nearest its centre.
+        centre = np.zeros((n_rows, 3), np.float32)
+        for level, top, sub, row in leaf_info:
+            corner = np.stack(np.unravel_index(top, dims), axis=1) * 2**level + sub
+            centre[row] = (corner + 0.5) * np.float32(h / 2**level)
+        dist = ((x[pids] - centre[rows]) ** 2).sum(1)
+        order = np.lexsort((dist, rows))
+    else:
+        order = _group_order(rows, n_rows)
+    rows, pids = rows[order], pids[order]
+    starts = np.cumsum(counts) - counts
+    slots = np.arange(len(rows)) - starts[rows]
+    fits = slots < cap
+    rows, pids, slots = rows[fits], pids[fits], slots[fits]
+
+    # Each top-level cell with leaves owns a dense block of (2^depth)^3 entries.
+    used = np.zeros(n_cells, bool)
+    for _, top, _, _ in leaf_info:
+        used[top] = True
+    depth = np.where(used, cell_depth, 0)
+    block = np.where(used, 8 ** depth.astype(np.int64), 0)
+    base = np.where(used, 1 + np.cumsum(block) - block, 0)
+    leaf_map = np.zeros(1 + int(block.sum()), np.int32)
+    for level, top, sub, row in leaf_info:
+        extra = depth[top] - level  # the leaf spans 2^extra sub-cells per axis
+        for e in np.unique(extra):
+            sel = np.flatnonzero(extra == e)
+            side = 1 << int(e)
+            span = np.stack(np.unravel_index(np.arange(side**3), (side,) * 3), axis=1)
+            full = (1 << depth[top[sel]].astype(np.int64))[:, None]
+            s = sub[sel][:, None, :].astype(np.int64) * side + span[None]
+            entry = base[top[sel]][:, None] + (s[..., 0] * full + s[..., 1]) * full + s[..., 2]
+            leaf_map[entry] = row[sel][:, None]
+    cells = np.zeros((_bucket(n_cells, 2), 2), np.int32)
+    cells[:n_cells, 0] = base
+    cells[:n_cells, 1] = depth
+    return cells, leaf_map, rows, slots, pids, cap, overflow, n_rows
 
 
 def build_grid(
@@ -253,11 +547,13 @@ def build_grid(
         k: the largest ``k`` that :func:`query_knn` will ask for (1 for ICP, the default);
             ``None`` keeps every point within ``max_distance`` of a leaf, as
             :func:`query_radius` needs.
-        capacity: candidate slots per leaf. ``None``: refine leaves to at most
-            ``max(32, 2 k)`` candidates and size the capacity on the host so nothing is
-            dropped. An explicit value is a hard cap: leaves still above it at the maximum
-            depth are truncated (keeping the candidates nearest the leaf's centre) and
-            ``overflow`` is set.
+        capacity: candidate slots per leaf. ``None``: refine leaves to at most 48
+            candidates for ``k == 1`` (``max(32, 2 k)`` otherwise) and size the capacity on
+            the host (the longest list rounded up to a multiple of 16) so nothing is
+            dropped. An explicit value is also the refinement target and a hard cap:
+            leaves still above it at the maximum depth are truncated (keeping the
+            candidates nearest the leaf's centre) and ``overflow`` is set. Query time
+            grows with the capacity, build time falls.
         max_depth: levels of octree refinement below the top-level cells; default 6 for
             ``k == 1`` and 0 otherwise (kNN and radius lists shrink little when refined:
             measured, the build time it costs exceeds the query time it saves).
@@ -302,8 +598,9 @@ def build_grid(
     rows = np.flatnonzero(valid)
     points = pts[rows]
 
-    # Boxes are grown by a margin far above float32 rounding of the query's sub-cell, so a
-    # query assigned to a neighbouring sub-cell by rounding still finds its neighbours.
+    # Boxes are grown by a margin far above float32 rounding of the query's sub-cell (and of
+    # the build's own float32 arithmetic), so a query assigned to a neighbouring sub-cell by
+    # rounding still finds its neighbours.
     margin = 1e-5 * (float(np.abs(points).max()) + r) if len(points) else 0.0
     if len(points):
         lo = points.min(0) - r - margin
@@ -318,135 +615,42 @@ def build_grid(
             h *= 1.05
     else:
         lo, h, dims = np.zeros(3), r, (1, 1, 1)
-    n_cells = math.prod(dims)
-    leaf_target = capacity if capacity is not None else max(32, 2 * (k or 16))
-    r2 = (r + margin) ** 2
-
-    # Level 0: pairs (top-level cell, point) from the 27-cell stencil around each point.
-    cell = np.minimum(np.floor((points - lo) / h).astype(np.int64), np.array(dims) - 1)
-    cells = (cell[:, None, :] + _STENCIL[None]).reshape(-1, 3)
-    pid = np.repeat(np.arange(len(points)), len(_STENCIL))
-    inside = np.all((cells >= 0) & (cells < np.array(dims)), axis=1)
-    cid = np.ravel_multi_index(cells[inside].T, dims)
-    pid = pid[inside]
-    order = np.argsort(cid, kind="stable")
-    cid, pid = cid[order], pid[order]
-    node_cell, node = np.unique(cid, return_inverse=True)
-    node_sub = np.zeros((len(node_cell), 3), np.int64)
-    node_lo = lo + np.stack(np.unravel_index(node_cell, dims), axis=1) * h
-
-    cell_depth = np.zeros(n_cells, np.int64)
-    leaves: list[tuple] = []  # per level: (cell, sub, level, box lo, size, pair leaf, pid)
-    n_leaves = 1  # row 0: the empty leaf
-    map_size = 1 + len(node_cell)  # entry 0 holds the empty leaf
-    level = 0
-    while len(node_cell):
-        size = h / 2**level
-        keep = _prune(node, pid, node_lo - margin, size + 2 * margin, points, r2, k)
-        node, pid = node[keep], pid[keep]
-        counts = np.bincount(node, minlength=len(node_cell))
-        split = counts > leaf_target
-        deeper = np.unique(node_cell[split])
-        grow = len(deeper) * (8 ** (level + 1) - 8**level)
-        child_pairs = 8 * int(counts[split].sum())
-        if level == max_depth or map_size + grow > max_map or child_pairs > max_pairs:
-            split[:] = False
-        else:
-            map_size += grow
-            cell_depth[deeper] = level + 1
-        is_leaf = ~split
-        leaf_id = np.full(len(node_cell), -1, np.int64)
-        leaf_id[is_leaf] = n_leaves + np.arange(int(is_leaf.sum()))
-        n_leaves += int(is_leaf.sum())
-        on_leaf = is_leaf[node]
-        leaves.append(
-            (
-                node_cell[is_leaf],
-                node_sub[is_leaf],
-                level,
-                node_lo[is_leaf],
-                size,
-                leaf_id[node[on_leaf]],
-                pid[on_leaf],
-            )
-        )
-        if not split.any():
-            break
-        # Children of the split nodes, octant-major within each parent.
-        rank = np.cumsum(split) - 1
-        half = size / 2
-        node_cell = np.repeat(node_cell[split], 8)
-        node_sub = (2 * node_sub[split][:, None, :] + _OCTANTS[None]).reshape(-1, 3)
-        node_lo = (node_lo[split][:, None, :] + _OCTANTS[None] * half).reshape(-1, 3)
-        # Each parent's run of pairs is repeated once per octant, keeping the pairs sorted.
-        parent, ppid = node[~on_leaf], pid[~on_leaf]
-        starts, run = _runs(parent)
-        length = np.diff(np.r_[starts, len(parent)])
-        offset = np.arange(len(parent)) - starts[run]
-        slots = (8 * starts[run] + offset)[:, None] + np.arange(8) * length[run][:, None]
-        node = np.empty(8 * len(parent), np.int64)
-        pid = np.empty(8 * len(parent), np.int64)
-        node[slots] = (8 * rank[parent])[:, None] + np.arange(8)
-        pid[slots] = ppid[:, None]
-        level += 1
-
-    # Flattened octree: each top-level cell owns a block of (2^d)^3 sub-cell entries.
-    used = np.zeros(n_cells, bool)
-    for lv in leaves:
-        used[lv[0]] = True
-    block = np.where(used, 8**cell_depth, 0)
-    base = np.where(used, 1 + np.cumsum(block) - block, 0)
-    leaf_map = np.zeros(1 + int(block.sum()), np.int64)
-    cand_node, cand_pid, cand_key = [], [], []
-    first_leaf = 1
-    for lcell, lsub, llevel, llo, lsize, lpair, lpid in leaves:
-        count = len(lcell)
-        ids = first_leaf + np.arange(count)
-        first_leaf += count
-        extra = cell_depth[lcell] - llevel  # the leaf spans 2^extra sub-cells per axis
-        for e in np.unique(extra):
-            sel = extra == e
-            side = 2 ** int(e)
-            t = np.stack(np.unravel_index(np.arange(side**3), (side,) * 3), axis=1)
-            sub = lsub[sel][:, None, :] * side + t[None]  # (leaves, side^3, 3)
-            full = (2 ** cell_depth[lcell[sel]])[:, None]
-            flat = (sub[..., 0] * full + sub[..., 1]) * full + sub[..., 2]
-            leaf_map[base[lcell[sel]][:, None] + flat] = ids[sel][:, None]
-        centre = llo + lsize / 2
-        cand_node.append(lpair)
-        cand_pid.append(lpid)
-        cand_key.append(((points[lpid] - centre[lpair - ids[0]]) ** 2).sum(1) if count else [])
-    cand_node = np.concatenate([np.zeros(0, np.int64), *cand_node]).astype(np.int64)
-    cand_pid = np.concatenate([np.zeros(0, np.int64), *cand_pid]).astype(np.int64)
-    cand_key = np.concatenate([np.zeros(0), *cand_key]).astype(np.float64)
-    counts = np.bincount(cand_node, minlength=n_leaves)
-    needed = int(counts.max()) if len(counts) else 0
-    cap = capacity if capacity is not None else max(needed, 1)
-    overflow = needed > cap
-    # Candidates come sorted by leaf. Truncation keeps those nearest the leaf's centre.
-    if overflow:
-        order = np.lexsort((cand_key, cand_node))
-        cand_node, cand_pid = cand_node[order], cand_pid[order]
-    starts, group = _runs(cand_node)
-    slot = np.arange(len(cand_node)) - starts[group]
-    fits = slot < cap
-    cand_node, cand_pid, slot = cand_node[fits], cand_pid[fits], slot[fits]
-    cand_index = np.full((n_leaves, cap), num_points, np.int64)
-    cand_index[cand_node, slot] = rows[cand_pid]
-    cand_points = np.full((3, n_leaves, cap), np.inf)
-    cand_points[:, cand_node, slot] = points[cand_pid].T
+    if capacity is not None:
+        leaf_target = capacity
+    else:
+        leaf_target = _LEAF_TARGET if k == 1 else max(32, 2 * (k or 16))
+    r2 = np.float32((r + margin) ** 2)
+    x = (points - lo).astype(np.float32)
+    cell = np.minimum(np.floor(x / np.float32(h)), np.array(dims) - 1).astype(np.int32)
+    budget = (leaf_target, max_depth, max_map, max_pairs)
+    if not len(points):
+        levels, cell_depth = [], np.zeros(math.prod(dims), np.int32)
+    elif k == 1:
+        levels, cell_depth = _levels_nearest(x, cell, dims, h, margin, r2, *budget)
+    else:
+        levels, cell_depth = _levels_general(x, cell, dims, h, margin, r2, k, *budget)
+    cells, leaf_map, slot_rows, slots, pids, cap, overflow, n_rows = _assemble(
+        levels, cell_depth, dims, h, x, capacity
+    )
+    # Padded sizes: the map to 8 entries per table row unless it needs more (it depends on
+    # how many cells refine one level deeper, a threshold effect between similar scenes).
+    n_table = _bucket(n_rows)
+    leaf_map = np.pad(leaf_map, (0, max(_bucket(len(leaf_map)), 8 * n_table) - len(leaf_map)))
+    cand_index = np.full((n_table, cap), num_points, np.int32)
+    cand_index[slot_rows, slots] = rows[pids]
+    cand_points = np.full((3, n_table, cap), np.inf, dtype)
+    cand_points[:, slot_rows, slots] = points[pids].T
     return NeighborGrid(
         origin=jnp.asarray(lo, dtype),
         cell_size=jnp.asarray(h, dtype),
         max_distance=jnp.asarray(r, dtype),
-        cells=jnp.asarray(np.stack([base, cell_depth], axis=1), jnp.int32),
-        leaf_map=jnp.asarray(leaf_map, jnp.int32),
-        candidate_index=jnp.asarray(cand_index, jnp.int32),
-        candidate_points=jnp.asarray(cand_points, dtype),
+        dims=jnp.asarray(dims, jnp.int32),
+        cells=jnp.asarray(cells),
+        leaf_map=jnp.asarray(leaf_map),
+        candidate_index=jnp.asarray(cand_index),
+        candidate_points=jnp.asarray(cand_points),
+        num_points=jnp.asarray(num_points, jnp.int32),
         overflow=jnp.asarray(overflow),
-        dims=dims,
-        capacity=cap,
-        num_points=num_points,
         k=k,
     )
 
