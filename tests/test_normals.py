@@ -103,6 +103,21 @@ def test_grid_neighbours_give_the_same_normals():
         normals_of(points, neighbors=(idx[:5], ok[:5]))
 
 
+def test_concrete_clouds_use_host_knn_with_the_same_result():
+    rng = np.random.default_rng(5)
+    d = rng.normal(size=(800, 3))
+    points = np.array([0.0, 0.1, 0.6]) + 0.08 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    points = points.astype(np.float32)
+    points[7] = np.nan
+    mask = np.ones(800, bool)
+    mask[[3, 4]] = False
+    eager = estimate_normals_with_curvature(points, 12, mask=mask)  # host kNN
+    traced = estimate(points, 12, mask=mask)  # brute force under jit
+    for a, b in zip(jax.tree.leaves(eager), jax.tree.leaves(traced), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-5)
+    assert not np.asarray(eager.valid)[[3, 4, 7]].any()
+
+
 def test_vmap_over_clouds():
     rng = np.random.default_rng(4)
     clouds = np.stack([plane_cloud(rng, 200)[0] for _ in range(3)]).astype(np.float32)
