@@ -437,6 +437,16 @@ def _prepare(
         target_normals = jnp.where(target_ok[:, None], target_normals, 0.0)
     far = jnp.asarray(jnp.finfo(dtype).max / 4, dtype)  # never within any distance
     target = jnp.where(target_ok[:, None], target, far)
+    # Pad both clouds to bucketed sizes so that clouds of similar size share one compiled
+    # loop: zero-weight source rows, far-away target rows.
+    m = target.shape[0]
+    n_pad, m_pad = _bucket(n) - n, _bucket(m) - m
+    source = jnp.pad(source, ((0, n_pad), (0, 0)))
+    source_weights = jnp.pad(source_weights, (0, n_pad))
+    target = jnp.pad(target, ((0, m_pad), (0, 0)), constant_values=far)
+    target_ok = jnp.pad(target_ok, (0, m_pad))
+    if target_normals is not None:
+        target_normals = jnp.pad(target_normals, ((0, m_pad), (0, 0)))
 
     distances = jnp.asarray(max_correspondence_distance, dtype)
     if distances.ndim == 0:
@@ -463,7 +473,27 @@ def _prepare(
         kernel=L2() if kernel is None else kernel,
         trim_fraction=None if trim_fraction is None else jnp.asarray(trim_fraction, dtype),
     )
-    return problem, opts
+    return problem, opts, (n, m)
+
+
+def _bucket(rows: int) -> int:
+    """``rows`` rounded up to a multiple of a quarter of its leading power of two (at most
+    25% padding, and at least 32 rows)."""
+    if rows <= 32:
+        return 32
+    step = 1 << (rows.bit_length() - 3)
+    return -(-rows // step) * step
+
+
+def _unpad(result: RegistrationResult, n: int, m: int) -> RegistrationResult:
+    """Drops the padding rows of :func:`_prepare` from a (possibly batched) result; the
+    no-match sentinel becomes ``m``, the caller's target size."""
+    index = result.correspondences[..., :n]
+    return eqx.tree_at(
+        lambda r: (r.correspondences, r.weights),
+        result,
+        (jnp.where(index >= m, m, index), result.weights[..., :n]),
+    )
 
 
 _run_jit = eqx.filter_jit(_run)
@@ -513,7 +543,7 @@ def icp(
     Returns:
         :class:`RegistrationResult`.
     """
-    problem, opts = _prepare(
+    problem, opts, (n, m) = _prepare(
         source,
         target,
         method=method,
@@ -526,7 +556,8 @@ def icp(
         trim_fraction=trim_fraction,
         neighbors=neighbors,
     )
-    return _run_jit(problem, opts, _as_pose(init, (), problem.source.dtype))
+    result = _run_jit(problem, opts, _as_pose(init, (), problem.source.dtype))
+    return _unpad(result, n, m)
 
 
 def multistart_icp(
@@ -543,7 +574,7 @@ def multistart_icp(
     one device in ``jax.devices()`` the starts are sharded over them (the problem is
     replicated). Options are those of :func:`icp`. Use :func:`select_best` to pick a start.
     """
-    problem, opts = _prepare(source, target, **_icp_options(options))
+    problem, opts, (n, m) = _prepare(source, target, **_icp_options(options))
     dtype = problem.source.dtype
     starts = _as_pose(inits, (), dtype)
     if len(starts.get_batch_axes()) != 1:
@@ -554,7 +585,7 @@ def multistart_icp(
     results = _run_many(problem, opts, _shard_starts(starts))
     if results.pose.wxyz_xyz.shape[0] != count:
         results = jax.tree.map(lambda leaf: leaf[:count], results)
-    return results
+    return _unpad(results, n, m)
 
 
 def _shard_starts(starts: SE3) -> SE3:
