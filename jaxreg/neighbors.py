@@ -77,7 +77,6 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 __all__ = [
     "NeighborGrid",
     "build_grid",
-    "host_knn",
     "knn",
     "query_knn",
     "query_nearest",
@@ -976,117 +975,6 @@ def radius_search(
 
 # --------------------------------------------------------------------------------------------
 # Host helpers.
-
-
-def _k_smallest(
-    xs: list[np.ndarray], queries: np.ndarray, cells: np.ndarray, hashed, k: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(indices, sq_dists)`` ``(Q, k)`` (unsorted) of the ``k`` nearest points of
-    ``xs`` to each point ``queries`` among the points of its ``cells`` ``(Q, C)``;
-    ``hashed = (order, start, count)`` lists the points of each cell."""
-    order, start, count = hashed
-    lens = count[cells]
-    per_query = lens.sum(1)
-    offsets = np.cumsum(lens.ravel()) - lens.ravel()
-    cand = order[
-        np.arange(int(per_query.sum())) + np.repeat(start[cells].ravel() - offsets, lens.ravel())
-    ]
-    owner = np.repeat(np.arange(len(queries)), per_query)
-    slot = np.arange(len(cand)) - np.repeat(np.cumsum(per_query) - per_query, per_query)
-    width = max(int(per_query.max()), k)
-    dist = np.full((len(queries), width), np.inf, np.float32)
-    dist[owner, slot] = _sq_dist([xi[cand] for xi in xs], [xi[queries[owner]] for xi in xs])
-    ids = np.zeros((len(queries), width), np.intp)
-    ids[owner, slot] = cand
-    best = np.argpartition(dist, k - 1, axis=1)[:, :k]
-    return np.take_along_axis(ids, best, axis=1), np.take_along_axis(dist, best, axis=1)
-
-
-def host_knn(
-    points: ArrayLike, k: int, *, mask: ArrayLike | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The ``k`` nearest points of every point of a cloud, exactly, on the host (numpy).
-
-    The kNN that normal estimation needs (each point's neighbourhood in its own cloud, the
-    point itself included, as in Open3D), with nothing to compile: points are hashed into
-    cells of about the typical ``k``-th neighbour distance ``c``, and each point scans the
-    27 cells around its own, which hold every point within ``c`` of it. Points whose
-    ``k``-th candidate lies farther than ``c`` (sparse regions) are searched again with
-    ``c`` doubled, so the result is exact (ties of equal distance broken arbitrarily).
-
-    Args:
-        points: ``(N, 3)`` concrete cloud (not a tracer).
-        k: neighbours per point (``>= 1``).
-        mask: ``(N,)`` optional validity; masked and non-finite points are neither queried
-            nor returned.
-
-    Returns:
-        ``indices (N, k)`` int32, ``sq_dists (N, k)`` float32 and ``valid (N, k)``, nearest
-        first; missing neighbours (fewer than ``k`` valid points, invalid rows) have the
-        sentinel index ``N`` and ``inf`` distance.
-
-    Raises:
-        ValueError: ``points`` is a tracer or not ``(N, 3)``, or ``k < 1``.
-    """
-    if isinstance(points, jax.core.Tracer):
-        raise ValueError("host_knn runs on the host: use knn under jit")
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"points must be (N, 3), got shape {pts.shape}")
-    if k < 1:
-        raise ValueError(f"k must be >= 1, got {k}")
-    n = pts.shape[0]
-    valid = np.all(np.isfinite(pts), axis=1)
-    if mask is not None:
-        m = np.asarray(mask, dtype=bool)
-        if m.shape != (n,):
-            raise ValueError(f"mask must be ({n},), got shape {m.shape}")
-        valid &= m
-    rows = np.flatnonzero(valid)
-    index = np.full((n, k), n, np.int32)
-    sq = np.full((n, k), np.inf, np.float32)
-    kk = min(k, len(rows))
-    if kk == 0:
-        return index, sq, np.zeros((n, k), bool)
-    x = (pts[rows] - pts[rows].min(0)).astype(np.float32)
-    xs = [np.ascontiguousarray(x[:, i]) for i in range(3)]
-    extent = x.max(0).astype(np.float64)
-    sample = np.linspace(0, len(x) - 1, min(len(x), 32)).astype(np.intp)
-    d2 = _sq_dist([xi[sample, None] for xi in xs], [xi[None] for xi in xs])
-    size = float(np.sqrt(np.median(np.partition(d2, kk - 1, axis=1)[:, kk - 1])))
-    size = max(size, float(extent.max()) / (1 << 20), 1e-30)
-    found_i = np.empty((len(x), kk), np.intp)
-    found_d = np.empty((len(x), kk), np.float32)
-    pending = np.arange(len(x))
-    while len(pending):
-        while np.prod(np.floor(extent / size) + 3) > 1 << 22:  # bounded hash table
-            size *= 2
-        c = (x / np.float32(size)).astype(np.int64) + 1
-        span = c.max(0) + 2
-        key = (c[:, 0] * span[1] + c[:, 1]) * span[2] + c[:, 2]
-        count = np.bincount(key, minlength=int(np.prod(span)))
-        hashed = (np.argsort(key, kind="stable"), np.cumsum(count) - count, count)
-        stencil = (_STENCIL[:, 0] * span[1] + _STENCIL[:, 1]) * span[2] + _STENCIL[:, 2]
-        cells = key[pending][:, None] + stencil  # hold every point within `size`
-        per_query = count[cells].sum(1)
-        # Exact once the k-th candidate is within `size` (shrunk for float32 rounding of
-        # the cell index), or once every point is a candidate.
-        reach = np.float32(size * (1 - 1e-5)) ** 2
-        done = np.zeros(len(pending), bool)
-        step = max(1, (1 << 22) // int(per_query.max()))  # bounds the (query, candidate) table
-        for lo in range(0, len(pending), step):
-            part = slice(lo, lo + step)
-            ids, dist = _k_smallest(xs, pending[part], cells[part], hashed, kk)
-            ok = (dist.max(1) <= reach) | (per_query[part] == len(x))
-            found_i[pending[part][ok]] = ids[ok]
-            found_d[pending[part][ok]] = dist[ok]
-            done[part] = ok
-        pending = pending[~done]
-        size *= 2
-    nearest_first = np.argsort(found_d, axis=1, kind="stable")
-    index[rows, :kk] = rows[np.take_along_axis(found_i, nearest_first, axis=1)]
-    sq[rows, :kk] = np.take_along_axis(found_d, nearest_first, axis=1)
-    return index, sq, index < n
 
 
 def voxel_downsample(points: ArrayLike, voxel_size: float) -> np.ndarray:

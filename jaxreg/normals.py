@@ -11,12 +11,11 @@ Every point gets a status; points that are masked or not finite, that have fewer
 valid neighbours, or whose neighbours are collinear or coincident (``l1`` negligible next to
 ``l2``: the normal is undefined) get a zero normal and zero curvature, never NaN.
 
-Neighbours are the exact ``k`` nearest: from :func:`jaxreg.neighbors.host_knn` (a cell hash
-in numpy, nothing to compile) when the cloud is a concrete array, from blocked brute force
-:func:`jaxreg.neighbors.knn` when it is traced (under ``jit``, ``vmap`` or ``grad``), or
-passed in. Measured on milk.pcd (``benchmarks/bench_neighbors.py``, 2 shared CPU cores), the
-host path is ~5-10x faster than brute force for 3.7k-13.7k points, and still ~2-5x slower
-than Open3D's C++ kd-tree ``estimate_normals``. The PCA itself is one compiled function.
+Neighbours are the exact ``k`` nearest: from a ``k``-NN :class:`~jaxreg.neighbors.NeighborGrid`
+built on the host when the cloud is a concrete array (points whose ``k``-th neighbour lies
+beyond its radius, a fraction of a percent, by brute force on the host), from blocked brute
+force :func:`jaxreg.neighbors.knn` when it is traced (under ``jit``, ``vmap`` or ``grad``),
+or passed in. The PCA is one compiled function. Timings: see :mod:`jaxreg.neighbors`.
 """
 
 from __future__ import annotations
@@ -24,9 +23,10 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .neighbors import host_knn, knn
+from .neighbors import build_grid, knn, query_knn
 
 __all__ = ["NormalEstimate", "NormalStatus", "estimate_normals", "estimate_normals_with_curvature"]
 
@@ -112,6 +112,44 @@ def _is_concrete(*arrays) -> bool:
     return not any(isinstance(a, jax.core.Tracer) for a in arrays)
 
 
+_query_knn = jax.jit(query_knn, static_argnums=2)
+
+
+def _grid_knn(points: np.ndarray, ok: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Exact ``k`` nearest valid points of every valid point, on a concrete cloud.
+
+    A ``k``-NN grid (:func:`~jaxreg.neighbors.build_grid`) with a radius of twice the median
+    ``k``-th neighbour distance of a sample answers most points exactly; the few whose
+    ``k``-th neighbour lies beyond it (sparse regions, outliers) are found by brute force on
+    the host. Returns ``(indices (N, k), valid (N, k))``, sentinel ``N``.
+    """
+    n = len(points)
+    rows = np.flatnonzero(ok)
+    kk = min(k, len(rows))
+    if kk == 0:
+        return np.full((n, k), n, np.int32), np.zeros((n, k), bool)
+    x = points[rows].astype(np.float64)
+    sample = x[np.linspace(0, len(x) - 1, min(len(x), 32)).astype(np.intp)]
+    d2 = ((sample[:, None, :] - x[None]) ** 2).sum(-1)
+    radius = 2 * float(np.sqrt(np.median(np.partition(d2, kk - 1, axis=1)[:, kk - 1])))
+    extent = float(np.ptp(x, axis=0).max())
+    radius = radius if radius > 0 else max(extent, 1.0)  # coincident points
+    grid = build_grid(points, radius, k=k, mask=ok)
+    idx, _, valid = (np.array(a) for a in _query_knn(grid, points, k))
+    valid &= ok[:, None]
+    idx[~valid] = n
+    short = np.flatnonzero(ok & (valid.sum(1) < kk))
+    step = max(1, (1 << 22) // len(x))
+    for lo in range(0, len(short), step):  # brute force for the few short rows
+        q = points[short[lo : lo + step]].astype(np.float64)
+        d2 = ((q[:, None, :] - x[None]) ** 2).sum(-1)
+        best = np.argpartition(d2, kk - 1, axis=1)[:, :kk]
+        best = np.take_along_axis(best, np.argsort(np.take_along_axis(d2, best, 1), 1), 1)
+        idx[short[lo : lo + step], :kk] = rows[best]
+        valid[short[lo : lo + step], :kk] = True
+    return idx, valid
+
+
 def estimate_normals_with_curvature(
     points: ArrayLike,
     k: int = 20,
@@ -131,10 +169,10 @@ def estimate_normals_with_curvature(
             a normal nor used as anyone's neighbour.
         neighbors: optional precomputed ``(indices (N, K), valid (N, K))`` into ``points``
             (sentinel ``N`` where invalid), e.g. from ``query_knn`` on a grid of ``points``;
-            ``k`` is then ignored. Default: the exact ``k`` nearest, from
-            :func:`~jaxreg.neighbors.host_knn` when ``points`` (and ``mask``) are concrete
-            arrays, from blocked brute force :func:`~jaxreg.neighbors.knn` when traced
-            (under ``jit``, ``vmap`` or ``grad``).
+            ``k`` is then ignored. Default: the exact ``k`` nearest, from a ``k``-NN grid
+            built on the host when ``points`` (and ``mask``) are concrete arrays, from
+            blocked brute force :func:`~jaxreg.neighbors.knn` when traced (under ``jit``,
+            ``vmap`` or ``grad``).
 
     Returns:
         A :class:`NormalEstimate`.
@@ -156,7 +194,7 @@ def estimate_normals_with_curvature(
         if k < 1:
             raise ValueError(f"k must be positive, got {k}")
         if concrete:
-            idx, _, nbr_ok = host_knn(points, k, mask=mask)
+            idx, nbr_ok = _grid_knn(np.asarray(points), np.asarray(ok), k)
         else:
             idx, _, nbr_ok = knn(points, points, k, mask=ok)
     else:

@@ -9,7 +9,6 @@ from hypothesis import given, settings, strategies as st
 from jaxreg.io import load_points
 from jaxreg.neighbors import (
     build_grid,
-    host_knn,
     knn,
     query_knn,
     query_nearest,
@@ -223,31 +222,6 @@ def test_knn_matches_ckdtree(dtype):
     a = knn(queries, points, 4, block=7)
     b = knn(queries, points, 4)
     np.testing.assert_array_equal(np.asarray(a[0]), np.asarray(b[0]))
-
-
-def test_host_knn_matches_ckdtree():
-    spatial = pytest.importorskip("scipy.spatial")
-    rng = np.random.default_rng(12)
-    points = surface_cloud(rng, 1500)
-    # Far outliers (their neighbours lie beyond the first cell size: searched again), a
-    # masked row and a non-finite row.
-    points = np.concatenate([points, [[3.0, 3.0, 3.0], [3.2, 3.0, 3.0], [np.nan, 0, 0]]])
-    mask = np.ones(len(points), bool)
-    mask[5] = False
-    keep = np.flatnonzero(mask & np.isfinite(points).all(1))
-    idx, d2, valid = host_knn(points, 10, mask=mask)
-    assert idx.dtype == np.int32 and idx.shape == (len(points), 10)
-    ref_d, ref_i = spatial.cKDTree(points[keep]).query(points[keep], 10)
-    np.testing.assert_allclose(np.sqrt(d2[keep]), ref_d, rtol=1e-5, atol=1e-7)
-    assert np.mean(idx[keep] == keep[ref_i]) > 0.99  # ties aside
-    assert valid[keep].all() and not valid[[5, len(points) - 1]].any()
-    assert np.all(idx[5] == len(points)) and np.all(np.isinf(d2[5]))
-    # More neighbours asked for than valid points: the rest is padding.
-    idx, d2, valid = host_knn(points[:4], 6)
-    np.testing.assert_array_equal(valid.sum(1), 4)
-    assert np.all(idx[:, 4:] == 4) and np.all(np.isinf(d2[:, 4:]))
-    with pytest.raises(ValueError, match="host"):
-        jax.jit(lambda p: host_knn(p, 3)[0])(points[:10])
 
 
 def test_knn_pads_missing_neighbours_with_the_sentinel():
