@@ -8,30 +8,49 @@ fixed capacities chosen on the host; overflow reported, never silently dropped):
   then passed as a pytree into ``jit`` / ``vmap``: the structure ICP queries every iteration
   while the source moves. A uniform grid of cells no smaller than ``max_distance`` covers the
   target's bounding box grown by ``max_distance``; each cell is refined as an octree until
-  every leaf's *candidate list* fits ``capacity``. A leaf lists only the target points that
-  can be a query's nearest neighbour (or one of its ``k`` nearest) for some query inside the
-  leaf within ``max_distance``; a point is dropped from a leaf's list when
+  every leaf's *candidate list* fits the leaf target (48 for ``k == 1``). A leaf lists only
+  the target points that can be a query's nearest neighbour (or one of its ``k`` nearest)
+  for some query inside the leaf within ``max_distance``; a point is dropped from a leaf's
+  list when
 
   - it is farther than ``max_distance`` from the leaf's box, or
-  - it is farther from the box than the ``k``-th smallest farthest-corner distance of the
-    other points (``k`` points are then closer to every query in the box), or
-  - (``k == 1``) another point is strictly closer to all eight corners of the box, hence to
-    every query in it (the bisecting half-space contains the box).
+  - (``k == 1``) one of the point's near points (about its 12 nearest, found by hashing
+    the cloud into cells of ~1.5 point spacings) is strictly closer to every point of the
+    box: the box lies beyond their bisecting plane, so no query in it has this point as
+    its nearest. The near points' bisectors bound the point's Voronoi cell, so a leaf keeps
+    roughly the points whose Voronoi cells cross it; or
+  - (``k > 1``) it is farther from the box than the ``k``-th smallest farthest-corner
+    distance of the leaf's candidates (``k`` points are then closer to every query in it).
 
-  The octree is stored flattened: each top-level cell owns a dense block of sub-cells at its
-  deepest level, so a query finds its leaf with two integer gathers (cell, then sub-cell),
-  reads the leaf's ``capacity`` candidates as contiguous rows, and takes a running minimum:
-  O(capacity) per query, independent of the target's size and of the octree's depth.
+  The build is vectorised over all nodes of a level (no Python loop over cells or points)
+  in float32: every point is tested against the 27 top-level cells around its own, then
+  every (node, point) pair of a node to split against the node's 8 children at once; for
+  ``k == 1`` pairs stay in point-major order so each point's half-spaces reach its pairs by
+  ``np.repeat``, not by gathers. The octree is stored flattened: each top-level cell owns a
+  dense block of sub-cells at its deepest level, so a query finds its leaf with two integer
+  gathers (cell, then sub-cell), reads the leaf's ``capacity`` candidates as contiguous
+  rows, and takes a running minimum: O(capacity) per query, independent of the target's
+  size and of the octree's depth.
 
   **Exactness.** For a query whose true nearest neighbour (for kNN: each of its true ``k``
   nearest) lies within ``max_distance``, that point is among its leaf's candidates, so the
   answer is exact up to ties of equal distance (broken arbitrarily) and float rounding;
   neighbours beyond ``max_distance`` are reported invalid (sentinel index, ``inf``
-  distance). Boxes are grown by a relative margin so that float32 rounding of the query's
-  leaf never breaks this. The only way to lose exactness is an explicit ``capacity`` that a
-  leaf still exceeds at the maximum depth: the leaf keeps the candidates nearest its centre
-  and ``grid.overflow`` is set (the jax-md contract: rebuild with a larger capacity). With
-  ``capacity=None`` the host sizes it so this never happens.
+  distance). Boxes are grown by a relative margin before every test, so that float32
+  rounding of the build and of the query's leaf never breaks this. The only way to lose
+  exactness is an explicit ``capacity`` that a leaf still exceeds at the maximum depth: the
+  leaf keeps the candidates nearest its centre and ``grid.overflow`` is set (the jax-md
+  contract: rebuild with a larger capacity). With ``capacity=None`` the host sizes it so
+  this never happens.
+
+  **Shapes.** Only ``k`` is static: origin, cell size, ``dims`` and ``num_points`` are
+  array leaves; the candidate table's rows are padded to a power of two, the cell table to
+  the cells of the cube around the target's bounding sphere (which holds every rotation of
+  it), the leaf map to eight entries per table row, and the capacity is rounded up to a
+  multiple of 16. Targets of similar size and extent (a scene re-captured, the
+  same cloud rotated) give grids of identical structure and shapes, so a jitted function
+  taking the grid as an argument compiles once for all of them (tested on milk.pcd against
+  itself rotated by 30 degrees with 5% of its points dropped).
 
 * Blocked brute force (:func:`knn`, :func:`radius_search`): exact, jittable with the target
   traced (no host step), memory bounded by mapping ``lax.map`` over query blocks of ``block``
@@ -39,24 +58,33 @@ fixed capacities chosen on the host; overflow reported, never silently dropped):
   on clouds centred at the target's mean, and the kept ones recomputed exactly.
 
 When each is used (``benchmarks/bench_neighbors.py`` on milk.pcd, 13.7k points, and its
-4 mm voxel downsample, 3.7k points, on this 2-core CPU shared with other jobs, so timings
-vary 2-4x between runs):
+4 mm voxel downsample, 3.7k points, radius 2 cm, on a 2-core CPU shared with other jobs, so
+absolute timings vary ~2x between runs; Open3D timed in the same runs):
 
 * ICP correspondences (1-NN within ``max_correspondence_distance``, the same target for
-  every iteration and every start): the grid. For 3.7k x 3.7k at 2 cm it builds in
-  ~0.1-0.4 s (capacity 32, 4 MB), then a query takes ~0.3 ms, 40 dependent queries in one
-  jit ~7-17 ms, 64 vmapped query sets ~14-27 ms. Blocked brute force takes ~25-180 ms per
-  query (one 3.7k x 3.7k distance matrix), so it is the reference, the engine under ``jit``
-  with a traced target, and the choice on GPUs, where that matrix product is cheap.
-* kNN for normals (one pass, ``k`` ~ 20): blocked brute force is the default of
-  :func:`jaxreg.normals.estimate_normals` because it is exact kNN (Open3D's semantics) and
-  jittable; it costs ~0.1-0.2 s at 3.7k points and ~0.7-1.4 s at 13.7k. A ``k=20`` grid
-  (radius ~6 point spacings, no refinement) builds and queries in ~0.05-0.07 s and
-  ~0.2-0.7 s; pass its neighbours to ``estimate_normals(neighbors=...)`` for large clouds.
+  every iteration and every start): the grid. At 3.7k points it builds in ~25-50 ms
+  (capacity 48, depth 2, 3 MB; the previous witness-octree build took ~140-380 ms), a query
+  takes ~0.4 ms, 40 dependent queries in one jit ~8-12 ms: build + 40 queries ~40-60 ms,
+  where Open3D's whole 40-iteration ``registration_icp`` takes ~20-60 ms (its kd-tree
+  builds in 0.3 ms and it runs on both cores: the fast end is an idle machine). At 13.7k:
+  build ~120-250 ms (previously ~0.6-1.6 s), 40 queries ~13-40 ms, together ~180-290 ms
+  against ~100-270 ms for Open3D. The build is the cost: reuse a grid across calls on the
+  same target (``icp(..., neighbors=grid)``, :func:`jaxreg.icp.multistart_icp`). 64
+  vmapped query sets cost ~40-60 ms (3.7k) and ~80-190 ms (13.7k). Blocked brute force
+  takes ~45-180 ms per 3.7k query (one 3.7k x 3.7k distance matrix), so it is the
+  reference, the engine under ``jit`` with a traced target, and the choice on GPUs, where
+  that matrix product is cheap.
+* kNN for normals (one pass, ``k`` ~ 20, exact kNN as Open3D): on a concrete cloud
+  :func:`jaxreg.normals.estimate_normals` builds a ``k``-NN grid of radius twice the
+  sampled ``k``-th neighbour distance (no refinement, capacity ~300) and queries it
+  (~20-30 ms for grid and query at 3.7k, ~80-110 ms at 13.7k; the few points with fewer
+  than ``k`` neighbours in the radius are done by brute force on the host); the whole
+  estimate costs ~30-55 ms and ~130-200 ms, against ~80-120 ms and ~0.7-0.9 s with the
+  blocked brute force that it uses when the cloud is traced, and ~4-11 ms and ~25-45 ms for
+  Open3D's C++ kd-tree ``estimate_normals``.
 * A kd-tree in JAX was not written: its traversal is a data-dependent loop per query,
   which under ``vmap`` runs every lane to the slowest lane's depth, and its leaf scans are
-  the same gathers the grid does after O(1) instead of O(log M) steps. scipy's and Open3D's
-  C++ kd-trees remain faster at one-off kNN on the host (~20-40 ms for the 13.7k normals).
+  the same gathers the grid does after O(1) instead of O(log M) steps.
 
 Shapes: targets are ``(M, 3)``, queries ``(N, 3)``; write queries unbatched and ``vmap`` over
 query sets (the grid is shared: ``in_axes=None``). Frames: queries and target must be in the
@@ -173,13 +201,10 @@ _NEAR = 12  # near points per target point whose bisectors prune 1-NN candidate 
 _LEAF_TARGET = 48
 
 
-def _bucket(n: int, log_step: int = 1) -> int:
-    """Table length for ``n`` rows: the next power of ``2^log_step`` (at least 64), so that
-    similar targets give identically shaped grids and a jitted caller does not recompile.
-    Small tables (cells, leaf map) use steps of 4: their sizes follow the target's extent
-    and octree depth, which vary more between similar scenes than the number of leaves."""
-    bits = max(6, max(0, int(n) - 1).bit_length())
-    return 1 << (-(-bits // log_step) * log_step)
+def _bucket(n: int) -> int:
+    """Table length for ``n`` rows: the next power of two (at least 64), so that similar
+    targets give identically shaped grids and a jitted caller does not recompile."""
+    return 1 << max(6, max(0, int(n) - 1).bit_length())
 
 
 def _sq_dist(a: list[np.ndarray], b: list[np.ndarray]) -> np.ndarray:
@@ -515,9 +540,7 @@ def _assemble(levels, cell_depth, dims, h, x, capacity):
             s = sub[sel][:, None, :].astype(np.int64) * side + span[None]
             entry = base[top[sel]][:, None] + (s[..., 0] * full + s[..., 1]) * full + s[..., 2]
             leaf_map[entry] = row[sel][:, None]
-    cells = np.zeros((_bucket(n_cells, 2), 2), np.int32)
-    cells[:n_cells, 0] = base
-    cells[:n_cells, 1] = depth
+    cells = np.stack([base, depth], axis=1).astype(np.int32)
     return cells, leaf_map, rows, slots, pids, cap, overflow, n_rows
 
 
@@ -632,9 +655,16 @@ def build_grid(
     cells, leaf_map, slot_rows, slots, pids, cap, overflow, n_rows = _assemble(
         levels, cell_depth, dims, h, x, capacity
     )
-    # Padded sizes: the map to 8 entries per table row unless it needs more (it depends on
-    # how many cells refine one level deeper, a threshold effect between similar scenes).
+    # Padded sizes. The cell table to the cells of the cube around the bounding sphere (any
+    # rotation of the target fits in it); the map to 8 entries per table row unless it needs
+    # more (it depends on how many cells refine one level deeper, a threshold effect).
     n_table = _bucket(n_rows)
+    if len(points):
+        radius = float(np.sqrt(((points - points.mean(0)) ** 2).sum(1).max()))
+        sphere = min(math.ceil((2 * (radius + r + margin)) / h + 1) ** 3, max_cells)
+    else:
+        sphere = 1
+    cells = np.pad(cells, ((0, _bucket(max(len(cells), sphere)) - len(cells)), (0, 0)))
     leaf_map = np.pad(leaf_map, (0, max(_bucket(len(leaf_map)), 8 * n_table) - len(leaf_map)))
     cand_index = np.full((n_table, cap), num_points, np.int32)
     cand_index[slot_rows, slots] = rows[pids]
