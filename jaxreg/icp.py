@@ -133,6 +133,7 @@ class _Problem(eqx.Module):
     source: Float[Array, "N 3"]
     source_weights: Float[Array, " N"]
     target: Float[Array, "M 3"]
+    target_valid: Bool[Array, " M"]  # False for NaN input and padding rows
     target_normals: Float[Array, "M 3"] | None
     grid: NeighborGrid | None
 
@@ -184,7 +185,9 @@ def _correspond(problem: _Problem, opts: _Options, pose: SE3, distance: Array) -
         # each consumer and repeats it (4-6x slower under vmap).
         index, d2, found = jax.lax.optimization_barrier((index, d2, found))
     else:
-        index, d2, found = knn(moved, problem.target, 1, max_distance=distance)
+        index, d2, found = knn(
+            moved, problem.target, 1, max_distance=distance, mask=problem.target_valid
+        )
         index, d2, found = index[:, 0], d2[:, 0], found[:, 0]
     usable = problem.source_weights > 0
     kept = found & usable
@@ -394,8 +397,13 @@ def _prepare(
     kernel,
     trim_fraction,
     neighbors,
-) -> tuple[_Problem, _Options]:
-    """Host-side checks and set-up shared by :func:`icp` and :func:`multistart_icp`."""
+    grid_capacity=None,
+) -> tuple[_Problem, _Options, tuple[int, int]]:
+    """Host-side checks and set-up shared by :func:`icp` and :func:`multistart_icp`.
+
+    Returns the problem (clouds padded to bucketed sizes), the options, and the caller's
+    ``(N, M)``. ``grid_capacity`` asks for shorter candidate lists (cheaper queries, slower
+    build), falling back to the default when a leaf cannot fit them."""
     if method not in ("point_to_point", "point_to_plane"):
         raise ValueError(f"method must be 'point_to_point' or 'point_to_plane', got {method!r}")
     source = jnp.asarray(source)
@@ -461,10 +469,11 @@ def _prepare(
         if not ok.any():
             neighbors = None  # nothing to index: every query is invalid below
         else:
-            neighbors = build_grid(
-                np.asarray(target), float(np.max(np.asarray(distances))), mask=ok
-            )
-    problem = _Problem(source, source_weights, target, target_normals, neighbors)
+            radius = float(np.max(np.asarray(distances)))
+            neighbors = build_grid(np.asarray(target), radius, mask=ok, capacity=grid_capacity)
+            if grid_capacity is not None and bool(neighbors.overflow):
+                neighbors = build_grid(np.asarray(target), radius, mask=ok)
+    problem = _Problem(source, source_weights, target, target_ok, target_normals, neighbors)
     opts = _Options(
         method=method,
         max_iterations=int(max_iterations),
@@ -574,7 +583,8 @@ def multistart_icp(
     one device in ``jax.devices()`` the starts are sharded over them (the problem is
     replicated). Options are those of :func:`icp`. Use :func:`select_best` to pick a start.
     """
-    problem, opts, (n, m) = _prepare(source, target, **_icp_options(options))
+    # Many starts query the grid many times: shorter candidate lists pay for a longer build.
+    problem, opts, (n, m) = _prepare(source, target, **_icp_options(options), grid_capacity=32)
     dtype = problem.source.dtype
     starts = _as_pose(inits, (), dtype)
     if len(starts.get_batch_axes()) != 1:

@@ -340,3 +340,22 @@ def test_implicit_gradient_matches_finite_differences(method, x64):
         fd = _central_difference(solve, model, index)
         err = np.abs(fd - jac[(slice(None),) + index]).max()
         assert err <= 1e-3 * np.abs(jac[(slice(None),) + index]).max() + 1e-9
+
+
+def test_results_are_unpadded_and_similar_clouds_share_one_compilation():
+    from jaxreg.icp import _icp_options, _prepare
+
+    model, scene, _ = lesson_cube(5.0)
+    result = icp(model[:787], scene, max_correspondence_distance=0.02)
+    assert result.correspondences.shape == (787,) and result.weights.shape == (787,)
+    assert int(result.correspondences.max()) < len(scene)
+    far = icp(model[:787], scene, SE3.from_translation(jnp.array([3.0, 0.0, 0.0])))
+    np.testing.assert_array_equal(far.correspondences, len(scene))  # the sentinel is M
+
+    def signature(source, target):
+        problem, opts, _ = _prepare(source, target, **_icp_options({}))
+        leaves = jax.tree.leaves((problem, opts))
+        return jax.tree.structure((problem, opts)), [(x.shape, x.dtype) for x in leaves]
+
+    rotated = np.asarray(SO3.from_z_radians(0.5) @ jnp.asarray(scene[:770]))
+    assert signature(model[:800], scene) == signature(model[:790], rotated)
