@@ -584,7 +584,7 @@ def multistart_icp(
     replicated). Options are those of :func:`icp`. Use :func:`select_best` to pick a start.
     """
     # Many starts query the grid many times: shorter candidate lists pay for a longer build.
-    problem, opts, (n, m) = _prepare(source, target, **_icp_options(options), grid_capacity=32)
+    problem, opts, (n, m) = _prepare(source, target, **_icp_options(options), grid_capacity=24)
     dtype = problem.source.dtype
     starts = _as_pose(inits, (), dtype)
     if len(starts.get_batch_axes()) != 1:
