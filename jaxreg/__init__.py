@@ -12,6 +12,8 @@ from jaxreg import (
     lie as lie,
     neighbors as neighbors,
     normals as normals,
+    pnp as pnp,
+    uncertainty as uncertainty,
 )
 from jaxreg.align import Alignment as Alignment, kabsch as kabsch, umeyama as umeyama
 from jaxreg.icp import (
@@ -41,6 +43,24 @@ from jaxreg.lie import (
     karcher_mean as karcher_mean,
     random_rotations as random_rotations,
     rotation_grid as rotation_grid,
+    rotation_grid_around as rotation_grid_around,
+    se3_exp as se3_exp,
 )
 from jaxreg.neighbors import voxel_downsample as voxel_downsample
 from jaxreg.normals import estimate_normals as estimate_normals
+from jaxreg.pnp import (
+    PnPStatus as PnPStatus,
+    project as project,
+    reprojection_error as reprojection_error,
+    solve_pnp as solve_pnp,
+    solve_pnp_planar as solve_pnp_planar,
+)
+from jaxreg.uncertainty import (
+    DepthNoise as DepthNoise,
+    IsotropicNoise as IsotropicNoise,
+    error_budget as error_budget,
+    grasp_margin as grasp_margin,
+    grasp_success_probability as grasp_success_probability,
+    icp_covariance as icp_covariance,
+    pose_statistics as pose_statistics,
+)
