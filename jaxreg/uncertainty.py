@@ -149,9 +149,9 @@ class DepthNoise(AbstractPointNoise):
         self.base_T_camera = SE3.identity() if base_T_camera is None else base_T_camera
         self.pixel_sigma = jnp.asarray(pixel_sigma)
         if focal_length is None:
-            if not (isinstance(pixel_sigma, (int, float)) and pixel_sigma == 0):
+            if isinstance(pixel_sigma, jax.core.Tracer) or np.any(np.asarray(pixel_sigma) != 0):
                 raise ValueError("DepthNoise with pixel_sigma needs focal_length=(fx, fy)")
-            focal_length = (1.0, 1.0)
+            focal_length = (1.0, 1.0)  # multiplies a zero pixel noise
         self.focal_length = jnp.broadcast_to(jnp.asarray(focal_length), (2,))
 
     def axial_sigma(self, depth: Float[ArrayLike, "..."]) -> Float[Array, "..."]:

@@ -444,7 +444,7 @@ def test_symmetric_object_hopping_between_branches():
 
 
 def test_viewpoint_groups_expose_a_hand_eye_bias():
-    """Three viewpoints: tight clusters (sigmas 0.5-2 mm) offset by 3 mm from each other are
+    """Three viewpoints: tight clusters (sigmas 0.5-2 mm) offset by 2-6 mm from each other are
     flagged; the same poses without the offsets are not."""
     labels = np.repeat(np.arange(3), 60)
     offsets = np.array([[0.0, 0.0, 0.0], [6e-3, 0.0, 0.0], [0.0, -6e-3, 2e-3]])[labels]
