@@ -73,7 +73,6 @@ import optimistix as optx
 from jaxlie import SE3, SO3
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg.align import kabsch
 from jaxreg.lie import geodesic_angle, se3_exp
 
 __all__ = [
@@ -344,17 +343,42 @@ def undistort_points(
 
 # --------------------------------------------------------------------------------------------
 # Small linear-algebra helpers (single problem; vmapped by the callers)
+#
+# jaxlib 0.10's CPU LAPACK kernels split a large batch over XLA's intra-op thread pool and block
+# a pool thread until the pieces finish; two such calls running at once on a 2-thread pool
+# wait for each other forever (observed here: eigh and LU side by side, from ~5000 tags up).
+# So the solvers make at most one LAPACK call at a time: 2x2 and 3x3 systems are closed form,
+# calls that would be independent are batched into one, and `_after` orders the rest.
 # --------------------------------------------------------------------------------------------
 
 
-def _weighted_pca(points: Array, w: Array):
-    """Weighted centroid, eigenvalues (ascending) and eigenvectors (columns) of the scatter."""
-    wsum = jnp.maximum(jnp.sum(w), jnp.finfo(points.dtype).tiny)
-    centroid = jnp.sum(w[:, None] * points, axis=0) / wsum
-    centred = points - centroid
-    scatter = (w[:, None] * centred).T @ centred / wsum
+def _after(x, *deps):
+    """`x`, available only once `deps` are computed (a data dependency XLA cannot drop)."""
+    return jax.lax.optimization_barrier((x, deps))[0]
+
+
+def _det3(M: Array) -> Array:
+    return jnp.dot(M[0], jnp.cross(M[1], M[2]))
+
+
+def _inv3(M: Array) -> Array:
+    """Inverse of a 3x3 matrix by its adjugate (rows r_i: columns r1 x r2, r2 x r0, r0 x r1)."""
+    adj = jnp.stack([jnp.cross(M[1], M[2]), jnp.cross(M[2], M[0]), jnp.cross(M[0], M[1])], -1)
+    return adj / _det3(M)
+
+
+def _weighted_pcas(X: Array, m: Array, w: Array):
+    """Weighted PCA of the object points and of the normalised image points (as z = 0 points)
+    in one batched eigh: for each, centroid (3,), eigenvalues (3,) ascending, eigenvectors (3, 3)
+    as columns."""
+    points = jnp.stack([X, jnp.concatenate([m, jnp.zeros_like(m[:, :1])], axis=-1)])
+    wsum = jnp.maximum(jnp.sum(w), jnp.finfo(X.dtype).tiny)
+    centroids = jnp.einsum("n,kni->ki", w, points) / wsum
+    centred = points - centroids[:, None]
+    scatter = jnp.einsum("n,kni,knj->kij", w, centred, centred) / wsum
     evals, evecs = jnp.linalg.eigh(scatter)
-    return centroid, jnp.maximum(evals, 0.0), evecs
+    evals = jnp.maximum(evals, 0.0)
+    return (centroids[0], evals[0], evecs[0]), (centroids[1], evals[1], evecs[1])
 
 
 def _null_space_rows(A: Array, count: int) -> Array:
@@ -388,7 +412,7 @@ def _translation_given_rotation(R: Array, X: Array, m: Array, w: Array) -> Array
     rhs = -jnp.einsum("nij,nj->ni", rows, rx)  # (N, 2)
     normal = jnp.einsum("n,nki,nkj->ij", w, rows, rows)
     b = jnp.einsum("n,nki,nk->i", w, rows, rhs)
-    return jnp.linalg.solve(normal, b)
+    return _inv3(normal) @ b
 
 
 # --------------------------------------------------------------------------------------------
@@ -404,19 +428,32 @@ def _homography(xy: Array, m: Array, w: Array) -> Array:
         mu = jnp.sum(w[:, None] * p, axis=0) / wsum
         spread = jnp.sum(w * jnp.linalg.norm(p - mu, axis=-1)) / wsum
         s = jnp.sqrt(2.0) / jnp.maximum(spread, jnp.finfo(p.dtype).tiny)
-        T = jnp.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], p.dtype)
-        T = T.at[0, 0].set(s).at[1, 1].set(s).at[0, 2].set(-s * mu[0]).at[1, 2].set(-s * mu[1])
-        return T, (p - mu) * s
+        one, zero = jnp.ones_like(s), jnp.zeros_like(s)
+        T = jnp.stack(
+            [
+                jnp.stack([s, zero, -s * mu[0]]),
+                jnp.stack([zero, s, -s * mu[1]]),
+                jnp.stack([zero, zero, one]),
+            ]
+        )
+        T_inv = jnp.stack(
+            [
+                jnp.stack([1 / s, zero, mu[0]]),
+                jnp.stack([zero, 1 / s, mu[1]]),
+                jnp.stack([zero, zero, one]),
+            ]
+        )
+        return T, T_inv, (p - mu) * s
 
-    T_src, a = similarity(xy)
-    T_dst, b = similarity(m)
+    T_src, _, a = similarity(xy)
+    _, T_dst_inv, b = similarity(m)
     one, zero = jnp.ones_like(a[:, :1]), jnp.zeros_like(a[:, :1])
     row_u = jnp.concatenate([a, one, zero, zero, zero, -b[:, :1] * a, -b[:, :1]], axis=-1)
     row_v = jnp.concatenate([zero, zero, zero, a, one, -b[:, 1:] * a, -b[:, 1:]], axis=-1)
     sw = jnp.sqrt(w)[:, None]
     A = jnp.concatenate([row_u * sw, row_v * sw], axis=0)
     Hn = _null_space_rows(A, 1)[0].reshape(3, 3)
-    H = jnp.linalg.solve(T_dst, Hn @ T_src)
+    H = T_dst_inv @ Hn @ T_src
     return H / jnp.where(H[2, 2] < 0, -1.0, 1.0)
 
 
@@ -433,7 +470,10 @@ def _ippe_rotations(H: Array) -> tuple[Array, Array]:
     Rv = jnp.eye(3, dtype=H.dtype) + ux + ux @ ux / (1.0 + v[2])
     # [I2 | -(p, q)] Rv = [B | 0], so J = B R'[:2, :2] / depth with R = Rv R'.
     B = Rv[:2, :2] - jnp.outer(jnp.stack([p, q]), Rv[2, :2])
-    A = jnp.linalg.solve(B, J)
+    B_inv = jnp.array([[B[1, 1], -B[0, 1]], [-B[1, 0], B[0, 0]]]) / (
+        B[0, 0] * B[1, 1] - B[0, 1] * B[1, 0]
+    )
+    A = B_inv @ J
     # The 2x2 top-left block of a rotation has largest singular value 1: gamma = 1 / depth.
     ata = A.T @ A
     gamma = jnp.sqrt(
@@ -453,37 +493,46 @@ def _ippe_rotations(H: Array) -> tuple[Array, Array]:
     return complete(1.0), complete(-1.0)
 
 
-def _plane_frame(X: Array, w: Array):
-    """plane_T_object (origin at the weighted centroid, z along the smallest principal axis) and
-    the principal standard deviations (descending)."""
-    centroid, evals, evecs = _weighted_pca(X, w)
+def _plane_frame(centroid: Array, evecs: Array) -> SE3:
+    """plane_T_object from the object points' PCA: origin at the weighted centroid, z along the
+    smallest principal axis."""
     normal, e1 = evecs[:, 0], evecs[:, 2]
     e2 = jnp.cross(normal, e1)
     R = jnp.stack([e1, e2, normal], axis=0)  # rows: plane axes in object coordinates
-    plane_T_object = SE3.from_rotation_and_translation(SO3.from_matrix(R), -R @ centroid)
-    return plane_T_object, jnp.sqrt(evals[::-1])
+    return SE3.from_rotation_and_translation(SO3.from_matrix(R), -R @ centroid)
 
 
-def _ippe_candidates(X: Array, m: Array, w: Array) -> SE3:
+def _ippe_candidates(X: Array, m: Array, w: Array, object_pca) -> SE3:
     """The two IPPE poses camera_T_object, stacked as an SE3 of batch (2,)."""
-    plane_T_object, _ = _plane_frame(X, w)
+    centroid, _, evecs = object_pca
+    plane_T_object = _plane_frame(centroid, evecs)
     P = plane_T_object @ X
     H = _homography(P[:, :2], m, w)
-    Ra, Rb = _ippe_rotations(H)
     flat = P.at[:, 2].set(0.0)
 
     def pose(R):
         t = _translation_given_rotation(R, flat, m, w)
         return SE3.from_rotation_and_translation(SO3.from_matrix(R), t) @ plane_T_object
 
-    return jax.tree.map(lambda a, b: jnp.stack([a, b]), pose(Ra), pose(Rb))
+    return jax.vmap(pose)(jnp.stack(_ippe_rotations(H)))
 
 
-def _epnp(X: Array, m: Array, w: Array) -> SE3:
+def _rigid_fit(src: Array, dst: Array, w: Array) -> SE3:
+    """Weighted least-squares rotation and translation with `pose @ src ~= dst` (one SVD)."""
+    wsum = jnp.maximum(jnp.sum(w), jnp.finfo(src.dtype).tiny)
+    mu_s = jnp.sum(w[:, None] * src, axis=0) / wsum
+    mu_d = jnp.sum(w[:, None] * dst, axis=0) / wsum
+    u, _, vh = jnp.linalg.svd((w[:, None] * (dst - mu_d)).T @ (src - mu_s))
+    flip = jnp.where(_det3(u) * _det3(vh) < 0, -1.0, 1.0)
+    R = (u * jnp.stack([jnp.ones_like(flip), jnp.ones_like(flip), flip])) @ vh
+    return SE3.from_rotation_and_translation(SO3.from_matrix(R), mu_d - R @ mu_s)
+
+
+def _epnp(X: Array, m: Array, w: Array, object_pca) -> SE3:
     """EPnP's three starts camera_T_object (an SE3 of batch (3,)) for n >= 4 non-coplanar
     points, from normalised image coordinates m."""
     dtype = X.dtype
-    centroid, evals, evecs = _weighted_pca(X, w)
+    centroid, evals, evecs = object_pca
     scale = jnp.sqrt(jnp.maximum(evals, evals[-1] * jnp.finfo(dtype).eps))
     # Control points: the centroid and one point along each principal axis.
     ctrl_w = jnp.concatenate([centroid[None], centroid + (evecs * scale).T], axis=0)  # (4, 3)
@@ -511,10 +560,27 @@ def _epnp(X: Array, m: Array, w: Array) -> SE3:
     # approximations), then Gauss-Newton on all four betas.
     gram = jnp.einsum("kpi,lpi->pkl", dk, dk)  # (6, 4, 4): <dk_k, dk_l> per pair
 
-    def linear_init(products):
-        cols = jnp.stack([gram[:, i, j] * (1.0 if i == j else 2.0) for i, j in products], -1)
-        sol = jnp.linalg.lstsq(cols, dist_w)[0]
-        value = dict(zip(products, sol, strict=True))
+    approximations = (
+        [(0, 0), (0, 1), (0, 2), (0, 3)],
+        [(0, 0), (0, 1), (1, 1)],
+        [(0, 0), (0, 1), (1, 1), (0, 2), (1, 2)],
+    )
+    # One batched least-squares solve for all three (zero columns pad them to five unknowns;
+    # the minimum-norm solution gives those zero).
+    systems = jnp.stack(
+        [
+            jnp.stack(
+                [gram[:, i, j] * (1.0 if i == j else 2.0) for i, j in products]
+                + [jnp.zeros_like(dist_w)] * (5 - len(products)),
+                axis=-1,
+            )
+            for products in approximations
+        ]
+    )
+    solutions = jax.vmap(lambda A: jnp.linalg.lstsq(A, dist_w)[0])(systems)
+
+    def linear_init(products, sol):
+        value = dict(zip(products, sol[: len(products)], strict=True))
         b11 = value[(0, 0)]
         sign = jnp.where(b11 < 0, -1.0, 1.0)
         b1 = jnp.sqrt(jnp.abs(b11))
@@ -529,11 +595,7 @@ def _epnp(X: Array, m: Array, w: Array) -> SE3:
         return beta
 
     inits = jnp.stack(
-        [
-            linear_init([(0, 0), (0, 1), (0, 2), (0, 3)]),
-            linear_init([(0, 0), (0, 1), (1, 1)]),
-            linear_init([(0, 0), (0, 1), (1, 1), (0, 2), (1, 2)]),
-        ]
+        [linear_init(p, sol) for p, sol in zip(approximations, solutions, strict=True)]
     )
 
     def gauss_newton(beta):
@@ -550,7 +612,7 @@ def _epnp(X: Array, m: Array, w: Array) -> SE3:
         ctrl_c = jnp.einsum("k,kci->ci", beta, kernel)
         Xc = alphas @ ctrl_c
         Xc = jnp.where(jnp.sum(w * Xc[:, 2]) < 0, -Xc, Xc)
-        return kabsch(X, Xc, w)
+        return _rigid_fit(X, Xc, w)
 
     return jax.vmap(lambda b: pose_from_beta(gauss_newton(b)))(inits)
 
@@ -716,10 +778,9 @@ def _sanitise(X, uv, w):
     return X, uv, w, jnp.sum(valid)
 
 
-def _geometry_status(X, m, w, count, *, planar: bool) -> PnPStatus:
-    """Data-dependent checks on the input, most fundamental last (it wins)."""
-    _, obj_evals, _ = _weighted_pca(X, w)
-    _, img_evals, _ = _weighted_pca(jnp.concatenate([m, jnp.zeros_like(m[:, :1])], -1), w)
+def _geometry_status(obj_evals, img_evals, count, *, planar: bool) -> PnPStatus:
+    """Data-dependent checks on the input (PCA eigenvalues, ascending), most fundamental last
+    (it wins)."""
     obj_std = jnp.sqrt(obj_evals[::-1])
     img_std = jnp.sqrt(img_evals[::-1])
     collinear = (obj_std[1] <= _COLLINEAR_TOL * obj_std[0]) | (
@@ -759,10 +820,11 @@ def _finish(pose, X, uv, K, dist, w, sigma_px, num_steps, converged, status) -> 
 def _general_core(X, uv, K, dist, w, sigma_px, *, max_steps: int) -> PnPResult:
     X, uv, w, count = _sanitise(X, uv, w)
     m = undistort_points(uv, K, dist)
-    status = _geometry_status(X, m, w, count, planar=False)
-    starts = jax.tree.map(
-        lambda a, b: jnp.concatenate([a, b]), _epnp(X, m, w), _ippe_candidates(X, m, w)
-    )
+    object_pca, image_pca = _weighted_pcas(X, m, w)
+    status = _geometry_status(object_pca[1], image_pca[1], count, planar=False)
+    epnp = _epnp(X, m, w, object_pca)
+    ippe = _ippe_candidates(X, _after(m, epnp.wxyz_xyz), w, object_pca)  # one LAPACK call at a time
+    starts = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), epnp, ippe)
     # With N <= 5 points several poses can fit (and EPnP's approximations are rough): refine
     # all five starts. With more points the two best starts cover the planar two-fold ambiguity.
     num_starts = 5 if X.shape[0] <= 5 else 2
@@ -782,7 +844,8 @@ def _general_core(X, uv, K, dist, w, sigma_px, *, max_steps: int) -> PnPResult:
 def _planar_core(X, uv, K, dist, w, sigma_px, *, max_steps: int, refine: bool):
     X, uv, w, count = _sanitise(X, uv, w)
     m = undistort_points(uv, K, dist)
-    status = _geometry_status(X, m, w, count, planar=True)
+    object_pca, image_pca = _weighted_pcas(X, m, w)
+    status = _geometry_status(object_pca[1], image_pca[1], count, planar=True)
 
     def one(T0):
         if refine:
@@ -792,7 +855,7 @@ def _planar_core(X, uv, K, dist, w, sigma_px, *, max_steps: int, refine: bool):
             pose, steps, converged = T0, jnp.array(0), jnp.array(True)
         return _finish(pose, X, uv, K, dist, w, sigma_px, steps, converged, status)
 
-    both = jax.vmap(one)(_ippe_candidates(X, m, w))
+    both = jax.vmap(one)(_ippe_candidates(X, m, w, object_pca))
     rmse = both.reprojection_rmse_px
     order = jnp.where(rmse[1] < rmse[0], jnp.array([1, 0]), jnp.array([0, 1]))
     both = jax.tree.map(lambda leaf: leaf[order], both)
