@@ -98,7 +98,8 @@ _PLANAR_TOL = 1e-2  # third/first principal std above which points are not copla
 
 
 class PnPStatus(eqx.Enumeration):
-    """Outcome of one PnP solve. `result.status == PnPStatus.success` is a boolean array."""
+    """Outcome of one PnP solve, per batch element. `result.status == PnPStatus.success` is a
+    boolean array; `PnPStatus[result.best.status]` is the message of one problem's status."""
 
     success = "success"
     too_few_points = (
@@ -120,7 +121,7 @@ class PnPStatus(eqx.Enumeration):
 
 
 class PnPResult(eqx.Module):
-    """One refined PnP solution. Every leaf has the problem's batch shape `(...)` in front.
+    """One PnP solution and its diagnostics. Every leaf has the batch shape `(...)` in front.
 
     - `pose`: `SE3` camera_T_object, batch `(...)`.
     - `reprojection_rmse_px`: `(...)`, RMS of per-point Euclidean pixel errors over valid points.
@@ -1015,7 +1016,10 @@ def solve_pnp_planar_result(
     `tag_object_points(size)`, on z = 0); other arguments as in `solve_pnp_result`. With
     `refine=False` the candidates are IPPE's analytic poses (what `cv2.solvePnPGeneric` with
     `SOLVEPNP_IPPE`/`IPPE_SQUARE` returns); by default each is refined by Levenberg-Marquardt
-    to the nearest minimum of the pixel reprojection error. Candidates are sorted by error.
+    to the nearest minimum of the pixel reprojection error, which for a 45 mm tag at 0.55 m with
+    0.2 px corner noise moves the analytic pose by up to ~0.7 mm and a few degrees of tilt (the
+    weakly determined directions). Candidates are sorted by error; the ambiguity ratio and the
+    candidates' separation are in the returned `PlanarPnPResult`.
     """
     arrays, batch = _prepare(
         "solve_pnp_planar", object_points, image_points, K, dist_coeffs, weights
@@ -1070,7 +1074,9 @@ def detect_tags(
     - `subpixel`: refine corners to sub-pixel accuracy (`CORNER_REFINE_SUBPIX`).
 
     Returns `corners` `(T, 4, 2)` float64 pixels in `tag_object_points` order and `ids` `(T,)`
-    int (T = 0 when nothing is found). Host-only (numpy); not jittable.
+    int (T = 0 when nothing is found). Host-only (numpy); not jittable. OpenCV's sub-pixel
+    refinement places the outer corners of a ~50 px tag ~0.25 px inside the true ones (a ~1%
+    scale bias, hence ~1% in depth); it is the detector's, not the solver's.
     """
     try:
         import cv2
