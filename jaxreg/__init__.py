@@ -49,18 +49,27 @@ from jaxreg.lie import (
 from jaxreg.neighbors import voxel_downsample as voxel_downsample
 from jaxreg.normals import estimate_normals as estimate_normals
 from jaxreg.pnp import (
+    PlanarPnPResult as PlanarPnPResult,
+    PnPResult as PnPResult,
     PnPStatus as PnPStatus,
+    detect_tags as detect_tags,
     project as project,
     reprojection_error as reprojection_error,
     solve_pnp as solve_pnp,
     solve_pnp_planar as solve_pnp_planar,
+    solve_pnp_planar_result as solve_pnp_planar_result,
+    solve_pnp_result as solve_pnp_result,
+    tag_object_points as tag_object_points,
 )
 from jaxreg.uncertainty import (
     DepthNoise as DepthNoise,
     IsotropicNoise as IsotropicNoise,
+    PointCovariance as PointCovariance,
+    PoseStatistics as PoseStatistics,
     error_budget as error_budget,
     grasp_margin as grasp_margin,
     grasp_success_probability as grasp_success_probability,
     icp_covariance as icp_covariance,
+    init_spread as init_spread,
     pose_statistics as pose_statistics,
 )
