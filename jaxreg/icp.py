@@ -54,7 +54,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxreg.align import align
 from jaxreg.kernels import L2, AbstractRobustKernel, trim_mask
-from jaxreg.lie import rotation_grid, rotation_grid_around, se3_exp
+from jaxreg.lie import rotation_grid, rotation_grid_around, se3_exp, se3_from_matrix
 from jaxreg.neighbors import NeighborGrid, build_grid, knn, query_nearest
 
 __all__ = [
@@ -368,16 +368,16 @@ def _implicit_pose(problem: _Problem, opts: _Options, pose: SE3, pairs: _Pairs) 
     return pose @ _chart(step - jax.lax.stop_gradient(step))
 
 
-def _as_pose(init, batch_shape: tuple[int, ...], dtype) -> SE3:
+def _as_pose(init, dtype) -> SE3:
+    """``init`` (``None`` for the identity, an ``SE3``, or ``(..., 4, 4)``) as an ``SE3``."""
     if init is None:
-        params = jnp.broadcast_to(jnp.array([1, 0, 0, 0, 0, 0, 0], dtype), batch_shape + (7,))
-        return SE3(params)
+        return SE3(jnp.array([1, 0, 0, 0, 0, 0, 0], dtype))
     if isinstance(init, SE3):
         return SE3(jnp.asarray(init.wxyz_xyz, dtype))
     m = jnp.asarray(init, dtype)
     if m.shape[-2:] != (4, 4):
         raise ValueError(f"init must be a jaxlie.SE3 or a (..., 4, 4) matrix, got shape {m.shape}")
-    return SE3.from_matrix(m)
+    return se3_from_matrix(m)
 
 
 def _is_concrete(x) -> bool:
@@ -565,7 +565,7 @@ def icp(
         trim_fraction=trim_fraction,
         neighbors=neighbors,
     )
-    result = _run_jit(problem, opts, _as_pose(init, (), problem.source.dtype))
+    result = _run_jit(problem, opts, _as_pose(init, problem.source.dtype))
     return _unpad(result, n, m)
 
 
@@ -586,7 +586,7 @@ def multistart_icp(
     # Many starts query the grid many times: shorter candidate lists pay for a longer build.
     problem, opts, (n, m) = _prepare(source, target, **_icp_options(options), grid_capacity=24)
     dtype = problem.source.dtype
-    starts = _as_pose(inits, (), dtype)
+    starts = _as_pose(inits, dtype)
     if len(starts.get_batch_axes()) != 1:
         raise ValueError(
             f"inits must have exactly one batch axis (S,), got {starts.get_batch_axes()}"
