@@ -102,6 +102,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from jaxreg import _octree
+
 __all__ = [
     "NeighborGrid",
     "build_grid",
@@ -193,9 +195,7 @@ class NeighborGrid(eqx.Module):
 
 _OCT32 = _OCTANTS.astype(np.int32)
 _OCT_F = _OCTANTS.astype(np.float32)
-_STENCIL32 = _STENCIL.astype(np.int32)
-_PAIR = np.arange(2, dtype=np.int32)
-_NEAR = 12  # near points per target point whose bisectors prune 1-NN candidate lists
+_NEAR = 12  # witnesses per target point whose bisectors prune 1-NN candidate lists
 # Default refinement target of 1-NN leaves. Measured on milk.pcd (bench_neighbors.py): 48
 # builds 1.3-1.6x faster than 32 for 40 queries costing 1.1-1.2x more.
 _LEAF_TARGET = 48
@@ -207,176 +207,45 @@ def _bucket(n: int) -> int:
     return 1 << max(6, max(0, int(n) - 1).bit_length())
 
 
-def _sq_dist(a: list[np.ndarray], b: list[np.ndarray]) -> np.ndarray:
-    """Squared distances from per-axis coordinate arrays (broadcasting); numpy reduces a
-    trailing axis of length 3 slowly, so axes are summed explicitly."""
-    d = [ai - bi for ai, bi in zip(a, b, strict=True)]
-    return d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
-
-
-def _near_points(x: np.ndarray, count: int) -> np.ndarray:
-    """``(n, count)`` indices of points near each point of ``x`` (itself where it has fewer).
-
-    Hashes the points into cells of about 1.5 median nearest-neighbour spacings, takes one
-    point of each of the 27 cells around each point's own (two of its own), and keeps the
-    ``count`` nearest of those. Any points are valid pruning witnesses; near ones prune most.
-    """
-    n = len(x)
-    rows = np.arange(n, dtype=np.int32)
-    xs = [np.ascontiguousarray(x[:, i]) for i in range(3)]
-    sample = np.linspace(0, n - 1, min(n, 16)).astype(np.intp)
-    d2 = _sq_dist([xi[sample, None] for xi in xs], [xi[None] for xi in xs])
-    d2[d2 == 0] = np.inf  # the sample point itself and exact duplicates
-    spacing = np.sqrt(np.min(d2, axis=1))
-    extent = (x.max(0) - x.min(0)).astype(np.float64)
-    if not extent.max() > 0:
-        return np.repeat(rows[:, None], count, axis=1)
-    size = max(1.5 * float(np.median(spacing)), float(extent.max()) / (1 << 20))
-    while np.prod(np.floor(extent / size) + 3) > 1 << 21:  # bounded hash table
-        size *= 2
-    c = ((x - x.min(0)) / np.float32(size)).astype(np.int64) + 1
-    span = c.max(0) + 2
-    key = (c[:, 0] * span[1] + c[:, 1]) * span[2] + c[:, 2]
-    # Empty cells read point 0: a far, weak but valid witness, rarely among the nearest.
-    last = np.zeros(int(np.prod(span)), np.int32)
-    last[key] = rows  # some point of each cell (the last written)
-    first = last.copy()
-    first[key[::-1]] = rows[::-1]  # usually another one
-    reps = np.empty((len(_STENCIL) + 1, n), np.int32)
-    for j, o in enumerate(_STENCIL):
-        reps[j] = last[key + int((o[0] * span[1] + o[1]) * span[2] + o[2])]
-    reps[-1] = first[key]
-    d2 = _sq_dist([xi[reps] for xi in xs], xs)  # (28, n)
-    d2[reps == rows] = np.inf
-    count = min(count, len(reps))
-    best = np.argpartition(d2, count - 1, axis=0)[:count]
-    near = np.take_along_axis(reps, best, axis=0)
-    return np.where(np.isfinite(np.take_along_axis(d2, best, axis=0)), near, rows).T
-
-
-class _Bisectors:
-    """Half-spaces that prune 1-NN candidates: each point against its near points.
-
-    Point ``p`` is never the nearest neighbour of a query in a box if another point ``q`` is
-    strictly closer to all of it: ``min_{x in box} x . d > mid . d`` with ``d = q - p``,
-    ``mid = (p + q) / 2``. For the grown box ``[lo - m, lo + a + m]^3`` that reads
-    ``lo . d > mid . d + m sum(d) - (a + 2 m) sum(min(d, 0))``. Arrays are ``(K, n)``.
-    """
-
-    def __init__(self, x: np.ndarray, margin: float):
-        d = x[_near_points(x, _NEAR)].transpose(1, 2, 0) - x.T[None]  # (K, 3, n)
-        self.d = [np.ascontiguousarray(d[:, i]) for i in range(3)]
-        mid = x.T[None] + np.float32(0.5) * d
-        self.rhs0 = (mid * d).sum(1) + np.float32(margin) * d.sum(1)
-        self.neg = np.minimum(d, np.float32(0)).sum(1)
-        self.margin = margin
-
-    def rhs(self, edge: float) -> np.ndarray:
-        """``(K, n)`` right-hand side for boxes of (ungrown) edge ``edge``."""
-        return self.rhs0 - np.float32(edge + 2 * self.margin) * self.neg
-
-
-def _gap_sq(x: np.ndarray, index: np.ndarray, edge: float, margin: float) -> np.ndarray:
-    """Squared distance along one axis from ``x`` to the grown boxes
-    ``[index edge - margin, (index + 1) edge + margin]`` (broadcasting)."""
-    lower = index.astype(np.float32) * np.float32(edge) - np.float32(margin)
-    g = np.maximum(lower - x, x - (lower + np.float32(edge + 2 * margin)))
-    g = np.maximum(g, np.float32(0))
-    return g * g
-
-
-def _outer3(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """``a[..., i] + b[..., j] + c[..., l]`` flattened over ``(i, j, l)`` (x-major)."""
-    s = a[..., :, None, None] + b[..., None, :, None] + c[..., None, None, :]
-    return s.reshape(*s.shape[:-3], -1)
-
-
 def _levels_nearest(x, cell, dims, h, margin, r2, leaf_target, max_depth, max_map, max_pairs):
-    """Leaf nodes and candidate pairs for ``k == 1`` (see :func:`build_grid`).
+    """Leaf nodes and candidate pairs for ``k == 1`` (see :mod:`jaxreg._octree`).
 
-    Pairs (node, point) are kept in point-major order, so that per-point data (its bisector
-    half-spaces) reaches them by ``np.repeat`` rather than by a gather. Returns
-    ``(levels, cell_depth)``, with per level ``(node_top, node_sub, node, pid)``: the top-level
-    cell and sub-cell coordinates of each node, and the pairs of its leaf nodes.
+    ``x`` is float64 relative to the grid origin. Returns ``(levels, cell_depth)``, with per
+    level ``(node_top, node_sub, node, pid)``: the top-level cell and sub-cell coordinates of
+    each node, and the (node, point) pairs of its leaf nodes.
     """
-    n = len(x)
-    half_spaces = _Bisectors(x, margin)
-    n_cells = math.prod(dims)
-    # Level 0: every point against the 27 top-level cells around its own, all at once.
-    gaps, lows = [], []
-    for i in range(3):
-        idx = cell[:, i : i + 1] + np.arange(-1, 2, dtype=np.int32)  # (n, 3)
-        g = _gap_sq(x[:, i : i + 1], idx, h, margin)
-        g[(idx < 0) | (idx >= dims[i])] = np.inf
-        gaps.append(g)
-        lows.append(idx.astype(np.float32) * np.float32(h))
-    ok = _outer3(*gaps) <= r2
-    rhs = half_spaces.rhs(h)
-    for j in range(len(rhs)):
-        lod = _outer3(*(lows[i] * half_spaces.d[i][j][:, None] for i in range(3)))
-        ok &= lod <= rhs[j][:, None]
-    flat = np.flatnonzero(ok)
-    pid = (flat // 27).astype(np.int32)
-    box = cell[pid] + _STENCIL32[flat % 27]
-    top = (box[:, 0].astype(np.int64) * dims[1] + box[:, 1]) * dims[2] + box[:, 2]
-    used = np.zeros(n_cells, bool)
-    used[top] = True
-    node_top = np.flatnonzero(used)
-    node = (np.cumsum(used, dtype=np.int64) - 1)[top]
-    node_sub = np.zeros((len(node_top), 3), np.int32)
-
-    cell_depth = np.zeros(n_cells, np.int32)
+    dims64 = np.asarray(dims, np.int64)
+    half_spaces = _octree.witnesses(x, _octree.near_points(x, _NEAR), float(margin))
+    node_top, counts, pid = _octree.top_level_nodes(
+        x, cell.astype(np.int64), dims64, float(h), float(margin), float(r2), *half_spaces
+    )
+    node_sub = np.zeros((len(node_top), 3), np.int64)
+    cell_depth = np.zeros(math.prod(dims), np.int32)
     levels = []
     map_size = len(node_top)
     level = 0
     while True:
-        counts = np.bincount(node, minlength=len(node_top))
         split = counts > leaf_target
         stop = level == max_depth or not split.any()
         if not stop:
             deeper = np.unique(node_top[split])
             grow = len(deeper) * 7 * 8**level
             stop = map_size + grow > max_map or 8 * int(counts[split].sum()) > max_pairs
+        node = np.repeat(np.arange(len(counts)), counts)
         if stop:
             levels.append((node_top, node_sub, node, pid))
             return levels, cell_depth
         map_size += grow
         cell_depth[deeper] = level + 1
-        on_split = split[node]
-        keep = np.flatnonzero(~on_split)
-        levels.append((node_top, node_sub, node[keep], pid[keep]))
-        # Children: each pair of a split node against its 8 sub-boxes at once.
-        sel = np.flatnonzero(on_split)
-        spid, sbox = pid[sel], box[sel]
-        srank = (np.cumsum(split) - 1)[node[sel]]
+        leaf = ~split[node]
+        levels.append((node_top, node_sub, node[leaf], pid[leaf]))
+        corner = np.stack(np.unravel_index(node_top, dims), axis=1) * 2**level + node_sub
         level += 1
-        edge = h / 2**level
-        gaps = [
-            _gap_sq(x[spid, i : i + 1], 2 * sbox[:, i : i + 1] + _PAIR, edge, margin)
-            for i in range(3)
-        ]
-        ok = (_outer3(*gaps) <= r2).T  # (8, P)
-        runs = np.bincount(spid, minlength=n)  # point-major: repeat, not gather
-        lo = [sbox[:, i].astype(np.float32) * np.float32(2 * edge) for i in range(3)]
-        rhs = half_spaces.rhs(edge)
-        worst = np.full((8, len(sel)), -np.inf, np.float32)
-        for j in range(len(rhs)):
-            d = [np.repeat(half_spaces.d[i][j], runs) for i in range(3)]
-            # corner term of child o: lo . d + edge (o . d) - rhs, for the 8 octants
-            base = lo[0] * d[0] + lo[1] * d[1] + lo[2] * d[2] - np.repeat(rhs[j], runs)
-            step = [np.float32(edge) * di for di in d]
-            x1 = base + step[0]
-            for q, v in enumerate((base, base + step[1], x1, x1 + step[1])):  # q = 2 ox + oy
-                np.maximum(worst[2 * q], v, out=worst[2 * q])
-                np.maximum(worst[2 * q + 1], v + step[2], out=worst[2 * q + 1])
-        ok &= worst <= 0
-        flat = np.flatnonzero(ok.T)
-        parent, octant = flat // 8, flat % 8
-        pid = spid[parent]
-        box = 2 * sbox[parent] + _OCT32[octant]
-        node = srank[parent] * 8 + octant
+        counts, pid = _octree.split_nodes(
+            x, corner, counts, pid, split, h / 2**level, float(margin), float(r2), *half_spaces
+        )
         node_top = np.repeat(node_top[split], 8)
-        node_sub = (2 * node_sub[split][:, None, :] + _OCT32[None]).reshape(-1, 3)
+        node_sub = (2 * node_sub[split][:, None, :] + _OCTANTS[None]).reshape(-1, 3)
 
 
 def _kth_smallest(values: np.ndarray, lens: np.ndarray, k: int) -> np.ndarray:
@@ -649,7 +518,9 @@ def build_grid(
     if not len(points):
         levels, cell_depth = [], np.zeros(math.prod(dims), np.int32)
     elif k == 1:
-        levels, cell_depth = _levels_nearest(x, cell, dims, h, margin, r2, *budget)
+        x64 = points - lo
+        r2_64 = (r + margin) ** 2
+        levels, cell_depth = _levels_nearest(x64, cell, dims, h, margin, r2_64, *budget)
     else:
         levels, cell_depth = _levels_general(x, cell, dims, h, margin, r2, k, *budget)
     cells, leaf_map, slot_rows, slots, pids, cap, overflow, n_rows = _assemble(

@@ -132,6 +132,32 @@ def test_deep_refinement_and_duplicate_points_stay_exact():
     np.testing.assert_allclose(points[idx[valid]], points[ref_idx[valid]], atol=1e-6)
 
 
+@pytest.mark.parametrize("count", [1, 2, 5])
+def test_tiny_targets_are_exact(count):
+    rng = np.random.default_rng(count)
+    points = rng.uniform(0, 0.05, (count, 3)).astype(np.float32)
+    queries = (points[rng.integers(0, count, 200)] + rng.normal(0, 0.02, (200, 3))).astype(
+        np.float32
+    )
+    check_exact(build_grid(points, 0.03), queries, points, 0.03, atol=1e-9)
+
+
+def test_lattice_target_with_points_on_cell_boundaries_is_exact():
+    # A 5 mm lattice whose planes coincide with octree cell faces: ties and boundary points.
+    axis = np.arange(0.0, 0.08, 0.005)
+    points = np.stack(np.meshgrid(axis, axis, [0.0, 0.005]), -1).reshape(-1, 3).astype(np.float32)
+    rng = np.random.default_rng(3)
+    queries = np.concatenate(
+        [points[::7] + rng.normal(0, 0.004, (len(points[::7]), 3)), points[::11]]
+    ).astype(np.float32)
+    grid = build_grid(points, 0.02, capacity=16)
+    assert grid.depth >= 1 and not bool(grid.overflow)
+    idx, d2, valid = (np.asarray(a) for a in query_nearest(grid, queries))
+    _, ref_d2 = brute_nearest(queries, points)
+    assert np.array_equal(valid, ref_d2 <= 0.02**2)
+    np.testing.assert_allclose(d2[valid], ref_d2[valid], rtol=1e-4, atol=1e-10)
+
+
 def test_query_radius_argument_tightens_and_is_clipped():
     rng = np.random.default_rng(2)
     points = rng.uniform(0, 1, (400, 3)).astype(np.float32)

@@ -1,0 +1,273 @@
+"""Host-side construction of the 1-NN candidate octree of :class:`jaxreg.neighbors.NeighborGrid`.
+
+Compiled loops (numba, cached on disk after the first build) over the target points; the
+vectorised numpy formulation this replaces spent ~30 ms on a 3.7k-point target allocating
+``(pairs, 27)`` and ``(pairs, 8)`` temporaries, against ~2 ms here.
+
+Coordinates are float64 relative to the grid origin; a node at refinement ``level`` of top-level
+cell ``c`` with sub-cell ``s`` is the box ``[(c 2^level + s) e, (c 2^level + s + 1) e]`` with
+``e = h / 2^level``, grown by ``margin`` on every side before any test (so that float32
+rounding of the query's choice of leaf never drops a candidate).
+
+A target point ``p`` is a candidate of a node unless
+
+* it is farther than ``max_distance`` (``r2`` squared, margin included) from the grown box, or
+* one of its witnesses ``q`` (its ``K`` nearest points among those hashed into the 27 cells
+  around its own) is strictly closer than ``p`` to every point of the grown box: the box lies
+  beyond the bisecting plane of ``p`` and ``q``, so no query in it has ``p`` as its nearest.
+
+Both tests can only keep a point that exact Voronoi reasoning would drop, never the reverse,
+so a query's true nearest neighbour within ``max_distance`` is always among its leaf's
+candidates.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+__all__ = ["near_points", "split_nodes", "top_level_nodes", "witnesses"]
+
+_CACHE = dict(cache=True, nogil=True)
+
+
+@numba.njit(**_CACHE)
+def _counting_sort(key: np.ndarray, num_keys: int):
+    """Points grouped by integer ``key < num_keys``: the order that sorts them (stable) and
+    ``start (num_keys + 1,)``, so that key ``k``'s points are ``order[start[k]:start[k + 1]]``."""
+    start = np.zeros(num_keys + 1, np.int64)
+    for k in key:
+        start[k + 1] += 1
+    for k in range(num_keys):
+        start[k + 1] += start[k]
+    cursor = start[:-1].copy()
+    order = np.empty(key.size, np.int64)
+    for p in range(key.size):
+        order[cursor[key[p]]] = p
+        cursor[key[p]] += 1
+    return order, start
+
+
+@numba.njit(**_CACHE)
+def near_points(x: np.ndarray, count: int) -> np.ndarray:
+    """``(n, count)`` indices of each point's witnesses: its ``count`` nearest other points
+    among those in the 27 hash cells around its own (cells of about two median spacings),
+    padded with the point itself (a witness that never prunes). Any points are valid
+    witnesses; near ones prune the most.
+    """
+    n = x.shape[0]
+    out = np.empty((n, count), np.int64)
+    for p in range(n):
+        out[p, :] = p
+    if n < 2:
+        return out
+    # Median nearest-neighbour spacing of 16 sample points.
+    samples = min(n, 16)
+    spacing = np.empty(samples)
+    for s in range(samples):
+        a = (s * (n - 1)) // max(samples - 1, 1)
+        best = np.inf
+        for b in range(n):
+            d = (x[a, 0] - x[b, 0]) ** 2 + (x[a, 1] - x[b, 1]) ** 2 + (x[a, 2] - x[b, 2]) ** 2
+            if 0 < d < best:
+                best = d
+        spacing[s] = np.sqrt(best)
+    finite = spacing[np.isfinite(spacing)]
+    if finite.size == 0:
+        return out  # every point coincides
+    extent = 0.0
+    for i in range(3):
+        extent = max(extent, x[:, i].max() - x[:, i].min())
+    size = max(2.0 * np.median(finite), extent / (1 << 20))
+    lo = np.empty(3)
+    span = np.empty(3, np.int64)
+    while True:  # one empty layer of cells on each side; a bounded table
+        for i in range(3):
+            lo[i] = x[:, i].min()
+            span[i] = int((x[:, i].max() - lo[i]) / size) + 3
+        if span[0] * span[1] * span[2] <= 1 << 22:
+            break
+        size *= 1.25
+    cell = np.empty((n, 3), np.int64)
+    for p in range(n):
+        for i in range(3):
+            cell[p, i] = min(int((x[p, i] - lo[i]) / size) + 1, span[i] - 2)
+    key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
+    order, start = _counting_sort(key, span[0] * span[1] * span[2])
+    best_d = np.empty(count)
+    for p in range(n):
+        best_d[:] = np.inf
+        for ox in range(-1, 2):
+            for oy in range(-1, 2):
+                # The three cells along z are consecutive keys: one sorted run.
+                k = ((cell[p, 0] + ox) * span[1] + cell[p, 1] + oy) * span[2] + cell[p, 2]
+                for j in range(start[k - 1], start[k + 2]):
+                    q = order[j]
+                    d = (x[p, 0] - x[q, 0]) ** 2 + (x[p, 1] - x[q, 1]) ** 2
+                    d += (x[p, 2] - x[q, 2]) ** 2
+                    if q == p or d >= best_d[count - 1]:
+                        continue
+                    slot = count - 1  # insertion into the sorted short list
+                    while slot > 0 and best_d[slot - 1] > d:
+                        best_d[slot] = best_d[slot - 1]
+                        out[p, slot] = out[p, slot - 1]
+                        slot -= 1
+                    best_d[slot] = d
+                    out[p, slot] = q
+    return out
+
+
+@numba.njit(**_CACHE)
+def witnesses(x: np.ndarray, near: np.ndarray, margin: float):
+    """Bisector half-spaces of each point against its witnesses ``near (n, K)``.
+
+    The box ``[lo, lo + e]^3`` grown by ``margin`` lies strictly beyond the bisector of ``p``
+    and its witness ``q`` (``d = q - p``, ``mid = (p + q) / 2``) when its minimum of
+    ``x . d``, ``lo . d + e neg - margin |d|_1`` with ``neg = sum_i min(d_i, 0)``, exceeds
+    ``mid . d``. Returns ``d`` as ``(n, 3, K)`` (witnesses last, for vectorised tests),
+    ``neg (n, K)`` and ``level = mid . d + margin |d|_1`` ``(n, K)``.
+    """
+    n, count = near.shape
+    wd = np.empty((n, 3, count))
+    neg = np.zeros((n, count))
+    level = np.zeros((n, count))
+    for p in range(n):
+        for j in range(count):
+            q = near[p, j]
+            for i in range(3):
+                d = x[q, i] - x[p, i]
+                wd[p, i, j] = d
+                neg[p, j] += min(d, 0.0)
+                level[p, j] += 0.5 * (x[q, i] * x[q, i] - x[p, i] * x[p, i]) + margin * abs(d)
+    return wd, neg, level
+
+
+@numba.njit(inline="always")
+def _within(x, p, lx, ly, lz, edge, margin, r2) -> bool:
+    """Point ``p`` lies within ``sqrt(r2)`` of the box ``[l, l + edge]^3`` grown by ``margin``."""
+    gx = max(lx - margin - x[p, 0], x[p, 0] - (lx + edge + margin), 0.0)
+    gy = max(ly - margin - x[p, 1], x[p, 1] - (ly + edge + margin), 0.0)
+    gz = max(lz - margin - x[p, 2], x[p, 2] - (lz + edge + margin), 0.0)
+    return gx * gx + gy * gy + gz * gz <= r2
+
+
+@numba.njit(inline="always")
+def _beyond(p, lx, ly, lz, edge, wd, neg, level) -> bool:
+    """Some witness of ``p`` is strictly closer than ``p`` to all of the grown box (see
+    :func:`witnesses`); no branch inside the loop, so it vectorises over witnesses."""
+    worst = lx * wd[p, 0, 0] + ly * wd[p, 1, 0] + lz * wd[p, 2, 0] + edge * neg[p, 0]
+    worst -= level[p, 0]
+    for j in range(1, neg.shape[1]):
+        v = lx * wd[p, 0, j] + ly * wd[p, 1, j] + lz * wd[p, 2, j] + edge * neg[p, j]
+        worst = max(worst, v - level[p, j])
+    return worst > 0.0
+
+
+@numba.njit(**_CACHE)
+def _compact(buf, offsets, counts):
+    """Concatenates the runs ``buf[offsets[i] : offsets[i] + counts[i]]``."""
+    out = np.empty(counts.sum(), np.int64)
+    total = 0
+    for i in range(counts.size):
+        out[total : total + counts[i]] = buf[offsets[i] : offsets[i] + counts[i]]
+        total += counts[i]
+    return out
+
+
+@numba.njit(**_CACHE)
+def top_level_nodes(x, cell, dims, h, margin, r2, wd, neg, level):
+    """Candidates of every top-level cell within the 27-cell stencil of an occupied one.
+
+    Args:
+        x: ``(n, 3)`` points relative to the grid origin; cell: ``(n, 3)`` their top-level
+            cells; dims: ``(3,)`` cells per axis; h: cell edge; wd, neg, level:
+            :func:`witnesses`.
+
+    Returns:
+        ``node_top (L,)`` linear cell ids (x-major, ascending), ``counts (L,)`` and ``pid``:
+        the candidates of node ``i`` are ``pid[starts[i] : starts[i] + counts[i]]`` with
+        ``starts`` the exclusive cumulative sum of ``counts``.
+    """
+    d1, d2 = dims[1], dims[2]
+    lin = (cell[:, 0] * d1 + cell[:, 1]) * d2 + cell[:, 2]
+    order, start = _counting_sort(lin, dims[0] * d1 * d2)
+    occupied = np.unique(lin)
+    around = np.empty(27 * occupied.size, np.int64)
+    m = 0
+    for c in occupied:
+        cx, cy, cz = c // (d1 * d2), (c // d2) % d1, c % d2
+        for ax in range(max(cx - 1, 0), min(cx + 2, dims[0])):
+            for ay in range(max(cy - 1, 0), min(cy + 2, d1)):
+                for az in range(max(cz - 1, 0), min(cz + 2, d2)):
+                    around[m] = (ax * d1 + ay) * d2 + az
+                    m += 1
+    node_top = np.unique(around[:m])
+    num = node_top.size
+    # Each node scans the points of its 27 cells; the cells along z are one sorted run.
+    bound = np.zeros(num, np.int64)
+    for i in range(num):
+        c = node_top[i]
+        cx, cy, cz = c // (d1 * d2), (c // d2) % d1, c % d2
+        for ax in range(max(cx - 1, 0), min(cx + 2, dims[0])):
+            for ay in range(max(cy - 1, 0), min(cy + 2, d1)):
+                k = (ax * d1 + ay) * d2
+                bound[i] += start[k + min(cz + 2, d2)] - start[k + max(cz - 1, 0)]
+    offsets = np.cumsum(bound) - bound
+    buf = np.empty(bound.sum(), np.int64)
+    counts = np.zeros(num, np.int64)
+    for i in range(num):
+        c = node_top[i]
+        cx, cy, cz = c // (d1 * d2), (c // d2) % d1, c % d2
+        lx, ly, lz = cx * h, cy * h, cz * h
+        kept = 0
+        for ax in range(max(cx - 1, 0), min(cx + 2, dims[0])):
+            for ay in range(max(cy - 1, 0), min(cy + 2, d1)):
+                k = (ax * d1 + ay) * d2
+                for j in range(start[k + max(cz - 1, 0)], start[k + min(cz + 2, d2)]):
+                    p = order[j]
+                    if _within(x, p, lx, ly, lz, h, margin, r2) and not _beyond(
+                        p, lx, ly, lz, h, wd, neg, level
+                    ):
+                        buf[offsets[i] + kept] = p
+                        kept += 1
+        counts[i] = kept
+    return node_top, counts, _compact(buf, offsets, counts)
+
+
+@numba.njit(**_CACHE)
+def split_nodes(x, corner, counts, pid, split, edge, margin, r2, wd, neg, level):
+    """Candidates of the 8 children of every node with ``split`` set.
+
+    Args:
+        corner: ``(L, 3)`` integer box corner of each node in units of its own edge
+            (``2 edge``); counts, pid: the nodes' candidates as from
+            :func:`top_level_nodes`; split: ``(L,)``; edge: the children's edge.
+
+    Returns:
+        ``counts (8 S,)`` and ``pid`` of the children, ordered by split parent, then octant
+        (bit 2 = x, bit 1 = y, bit 0 = z).
+    """
+    starts = np.cumsum(counts) - counts
+    parents = np.flatnonzero(split)
+    # Child (rank, octant) writes its candidates into a run as long as its parent's list.
+    bound = np.repeat(counts[parents], 8)
+    offsets = np.cumsum(bound) - bound
+    buf = np.empty(bound.sum(), np.int64)
+    out_counts = np.zeros(bound.size, np.int64)
+    for rank in range(parents.size):
+        a = parents[rank]
+        for octant in range(8):
+            child = 8 * rank + octant
+            lx = (2 * corner[a, 0] + ((octant >> 2) & 1)) * edge
+            ly = (2 * corner[a, 1] + ((octant >> 1) & 1)) * edge
+            lz = (2 * corner[a, 2] + (octant & 1)) * edge
+            kept = 0
+            for j in range(starts[a], starts[a] + counts[a]):
+                p = pid[j]
+                if _within(x, p, lx, ly, lz, edge, margin, r2) and not _beyond(
+                    p, lx, ly, lz, edge, wd, neg, level
+                ):
+                    buf[offsets[child] + kept] = p
+                    kept += 1
+            out_counts[child] = kept
+    return out_counts, _compact(buf, offsets, out_counts)
