@@ -163,6 +163,14 @@ def _beyond(p, lx, ly, lz, edge, wd, neg, level) -> bool:
     return worst > 0.0
 
 
+@numba.njit(inline="always")
+def _keeps(x, p, lx, ly, lz, edge, margin, r2, wd, neg, level) -> bool:
+    """Point ``p`` stays a candidate of the box ``[l, l + edge]^3`` (module docstring)."""
+    return _within(x, p, lx, ly, lz, edge, margin, r2) and not _beyond(
+        p, lx, ly, lz, edge, wd, neg, level
+    )
+
+
 @numba.njit(**_CACHE)
 def _compact(buf, offsets, counts):
     """Concatenates the runs ``buf[offsets[i] : offsets[i] + counts[i]]``."""
@@ -225,9 +233,7 @@ def top_level_nodes(x, cell, dims, h, margin, r2, wd, neg, level):
                 k = (ax * d1 + ay) * d2
                 for j in range(start[k + max(cz - 1, 0)], start[k + min(cz + 2, d2)]):
                     p = order[j]
-                    if _within(x, p, lx, ly, lz, h, margin, r2) and not _beyond(
-                        p, lx, ly, lz, h, wd, neg, level
-                    ):
+                    if _keeps(x, p, lx, ly, lz, h, margin, r2, wd, neg, level):
                         buf[offsets[i] + kept] = p
                         kept += 1
         counts[i] = kept
@@ -264,9 +270,7 @@ def split_nodes(x, corner, counts, pid, split, edge, margin, r2, wd, neg, level)
             kept = 0
             for j in range(starts[a], starts[a] + counts[a]):
                 p = pid[j]
-                if _within(x, p, lx, ly, lz, edge, margin, r2) and not _beyond(
-                    p, lx, ly, lz, edge, wd, neg, level
-                ):
+                if _keeps(x, p, lx, ly, lz, edge, margin, r2, wd, neg, level):
                     buf[offsets[child] + kept] = p
                     kept += 1
             out_counts[child] = kept

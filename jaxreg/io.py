@@ -313,7 +313,7 @@ def _parse_header(raw: bytes) -> tuple[_Header, int]:
         if len(values) != n_fields:
             raise ValueError(f"{key} has {len(values)} entries but FIELDS has {n_fields}")
     fields = []
-    for name, size, kind, count in zip(names, sizes, types, counts):
+    for name, size, kind, count in zip(names, sizes, types, counts, strict=True):
         if kind not in _TYPE_SIZES:
             raise ValueError(f"field {name!r} has unknown TYPE {kind[:8]!r} (expected F, U or I)")
         if size not in _TYPE_SIZES[kind]:
@@ -480,7 +480,7 @@ def read_pcd(path: str | Path) -> PointCloud:
 
     shape = (header.height, header.width) if header.height > 1 else (header.points,)
     fields = {}
-    for field, column in zip(header.fields, columns):
+    for field, column in zip(header.fields, columns, strict=True):
         if field.name != "_":
             fields[field.name] = column.reshape(shape + ((field.count,) if field.count > 1 else ()))
 
@@ -668,7 +668,7 @@ def _ascii_table(columns: list[tuple[str, np.ndarray]]) -> bytes:
         else:
             formats.append("%d")
     row = " ".join(formats)
-    values = zip(*(column.tolist() for _, column in columns))
+    values = zip(*(column.tolist() for _, column in columns), strict=True)
     return "".join(row % v + "\n" for v in values).encode("ascii")
 
 

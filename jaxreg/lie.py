@@ -124,9 +124,9 @@ def rotation_angle(rotation: SO3) -> Float[Array, ...]:
 
     Computed as `2 atan2(|xyz|, |w|)` of the quaternion: accurate near 0 and near pi (where
     `arccos` of the rotation matrix's trace loses half the digits), independent of the
-    quaternion's norm and sign. The gradient is finite everywhere: at the identity (a cone point of the
-    angle) it is zero, and at a half turn (a ridge, where `q` and `-q` meet) it is the
-    one-sided derivative.
+    quaternion's norm and sign. The gradient is finite everywhere: at the identity (a cone
+    point of the angle) it is zero, and at a half turn (a ridge, where `q` and `-q` meet) it
+    is the one-sided derivative.
     """
     q = rotation.wxyz
     xyz_sq = jnp.sum(q[..., 1:] ** 2, axis=-1)

@@ -593,6 +593,17 @@ def _candidate_sq_dists(grid: NeighborGrid, queries: Array, leaf: Array) -> Arra
     return dx * dx + dy * dy + dz * dz
 
 
+def _pad_slots(index, sq_dists, mask, width: int, sentinel):
+    """Pads ``(N, w)`` neighbour slots to ``(N, width)`` with empty ones (sentinel index,
+    ``inf`` distance, mask False)."""
+    pad = ((0, 0), (0, width - index.shape[1]))
+    return (
+        jnp.pad(index, pad, constant_values=sentinel),
+        jnp.pad(sq_dists, pad, constant_values=jnp.inf),
+        jnp.pad(mask, pad),
+    )
+
+
 def _radius2(grid: NeighborGrid, max_distance, dtype) -> Array:
     r = grid.max_distance if max_distance is None else jnp.minimum(max_distance, grid.max_distance)
     return jnp.square(jnp.asarray(r, dtype))
@@ -670,12 +681,7 @@ def query_knn(
     index = jnp.where(mask, grid.candidate_index[leaf[:, None], slot], grid.num_points)
     out_dtype = jnp.result_type(queries.dtype, grid.candidate_points.dtype)
     sq = jnp.where(mask, best, jnp.inf).astype(out_dtype)
-    if kk < k:
-        pad = k - kk
-        index = jnp.pad(index, ((0, 0), (0, pad)), constant_values=grid.num_points)
-        sq = jnp.pad(sq, ((0, 0), (0, pad)), constant_values=jnp.inf)
-        mask = jnp.pad(mask, ((0, 0), (0, pad)))
-    return index, sq, mask
+    return _pad_slots(index, sq, mask, k, grid.num_points)
 
 
 def query_radius(
@@ -711,12 +717,7 @@ def query_radius(
     index = jnp.where(mask, grid.candidate_index[leaf[:, None], slot], grid.num_points)
     out_dtype = jnp.result_type(queries.dtype, grid.candidate_points.dtype)
     sq = jnp.where(mask, -neg, jnp.inf).astype(out_dtype)
-    if kk < capacity:
-        pad = capacity - kk
-        index = jnp.pad(index, ((0, 0), (0, pad)), constant_values=grid.num_points)
-        sq = jnp.pad(sq, ((0, 0), (0, pad)), constant_values=jnp.inf)
-        mask = jnp.pad(mask, ((0, 0), (0, pad)))
-    return index, sq, mask, count > capacity
+    return *_pad_slots(index, sq, mask, capacity, grid.num_points), count > capacity
 
 
 # --------------------------------------------------------------------------------------------
@@ -813,12 +814,7 @@ def knn(
         valid = valid & (d2 <= jnp.square(jnp.asarray(max_distance, d2.dtype)))
     idx = jnp.where(valid, idx, m)
     d2 = jnp.where(valid, d2, jnp.inf)
-    pad = k - kk
-    if pad:
-        idx = jnp.pad(idx, ((0, 0), (0, pad)), constant_values=m)
-        d2 = jnp.pad(d2, ((0, 0), (0, pad)), constant_values=jnp.inf)
-        valid = jnp.pad(valid, ((0, 0), (0, pad)))
-    return idx, d2, valid
+    return _pad_slots(idx, d2, valid, k, m)
 
 
 def radius_search(
@@ -866,12 +862,7 @@ def radius_search(
     valid = q_ok[:, None] & (d2 <= r2)
     idx = jnp.where(valid, idx, m)
     d2 = jnp.where(valid, d2, jnp.inf)
-    pad = capacity - kk
-    if pad:
-        idx = jnp.pad(idx, ((0, 0), (0, pad)), constant_values=m)
-        d2 = jnp.pad(d2, ((0, 0), (0, pad)), constant_values=jnp.inf)
-        valid = jnp.pad(valid, ((0, 0), (0, pad)))
-    return idx, d2, valid, q_ok & (count > capacity)
+    return *_pad_slots(idx, d2, valid, capacity, m), q_ok & (count > capacity)
 
 
 # --------------------------------------------------------------------------------------------

@@ -6,8 +6,7 @@ import time
 import numpy as np
 import pytest
 import trimesh
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from jaxreg.io import (
     PointCloud,

@@ -5,8 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from jaxreg.lie import (
     SE3,
@@ -143,7 +142,7 @@ def test_jacobians_forward_reverse_numerical(dtype, group):
         v0 = _tangent(group, rng, (), regime, dtype)
         # b^-1 puts the angle's argument near the identity in the "near_zero" regime.
         for f, (forward, reverse) in zip(
-            (_composed_log, _angle_to), _jacobians(v0, a, b.inverse())
+            (_composed_log, _angle_to), _jacobians(v0, a, b.inverse()), strict=True
         ):
             assert np.all(np.isfinite(forward)) and np.all(np.isfinite(reverse))
             np.testing.assert_allclose(
@@ -589,7 +588,10 @@ def test_so3_from_matrix_gradient(dtype):
             np.asarray(SO3.exp(jnp.asarray(rng.normal(size=3))).as_matrix())
             + 0.05 * rng.normal(size=(3, 3))
         )
-        f = lambda m: so3_from_matrix(m).log()
+
+        def f(m):
+            return so3_from_matrix(m).log()
+
         h, e = 1e-6, jnp.asarray(rng.normal(size=(3, 3)))
         numerical = (f(m0 + h * e) - f(m0 - h * e)) / (2 * h)
         np.testing.assert_allclose(jax.jvp(f, (m0,), (e,))[1], numerical, atol=1e-8)
@@ -619,7 +621,10 @@ def test_open3d_information_matrix_order_and_side(x64):
     source = rng.uniform(-0.1, 0.1, size=(60, 3))
     pose = se3_exp(jnp.asarray([0.3, -0.2, 0.5, 0.4, -0.7, 0.9]))
     target = np.array(pose @ jnp.asarray(source))
-    cloud = lambda p: o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+
+    def cloud(p):
+        return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+
     info_o3d = o3d.pipelines.registration.get_information_matrix_from_point_clouds(
         cloud(source), cloud(target), 1e-3, np.array(se3_to_matrix(pose))
     )
