@@ -12,9 +12,9 @@ rounding of the query's choice of leaf never drops a candidate).
 A target point ``p`` is a candidate of a node unless
 
 * it is farther than ``max_distance`` (``r2`` squared, margin included) from the grown box, or
-* one of its witnesses ``q`` (its ``K`` nearest points among those hashed into the 27 cells
-  around its own) is strictly closer than ``p`` to every point of the grown box: the box lies
-  beyond the bisecting plane of ``p`` and ``q``, so no query in it has ``p`` as its nearest.
+* one of its witnesses ``q`` (its nearest points, :func:`self_knn`) is strictly closer than
+  ``p`` to every point of the grown box: the box lies beyond the bisecting plane of ``p``
+  and ``q``, so no query in it has ``p`` as its nearest.
 
 Both tests can only keep a point that exact Voronoi reasoning would drop, never the reverse,
 so a query's true nearest neighbour within ``max_distance`` is always among its leaf's
@@ -26,7 +26,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["near_points", "split_nodes", "top_level_nodes", "witnesses"]
+__all__ = ["self_knn", "split_nodes", "top_level_nodes", "witnesses"]
 
 _CACHE = dict(cache=True, nogil=True)
 
@@ -49,72 +49,107 @@ def _counting_sort(key: np.ndarray, num_keys: int):
 
 
 @numba.njit(**_CACHE)
-def near_points(x: np.ndarray, count: int) -> np.ndarray:
-    """``(n, count)`` indices of each point's witnesses: its ``count`` nearest other points
-    among those in the 27 hash cells around its own (cells of about two median spacings),
-    padded with the point itself (a witness that never prunes). Any points are valid
-    witnesses; near ones prune the most.
+def self_knn(x: np.ndarray, k: int):
+    """Exact ``k`` nearest points of every point of ``x`` (itself included), nearest first.
+
+    Points are hashed into cubic cells about as wide as a sampled median ``k``-th neighbour
+    distance; each point scans rings of cells around its own, outward, until the cells
+    scanned hold every point within its current ``k``-th distance. Returns
+    ``indices (n, k)`` and squared distances ``(n, k)``; with fewer than ``k`` points the
+    missing slots hold the sentinel ``n`` and ``inf``. Ties are broken by scan order.
     """
     n = x.shape[0]
-    out = np.empty((n, count), np.int64)
-    for p in range(n):
-        out[p, :] = p
-    if n < 2:
-        return out
-    # Median nearest-neighbour spacing of 16 sample points.
-    samples = min(n, 16)
-    spacing = np.empty(samples)
-    for s in range(samples):
-        a = (s * (n - 1)) // max(samples - 1, 1)
-        best = np.inf
-        for b in range(n):
-            d = (x[a, 0] - x[b, 0]) ** 2 + (x[a, 1] - x[b, 1]) ** 2 + (x[a, 2] - x[b, 2]) ** 2
-            if 0 < d < best:
-                best = d
-        spacing[s] = np.sqrt(best)
-    finite = spacing[np.isfinite(spacing)]
-    if finite.size == 0:
-        return out  # every point coincides
+    idx = np.full((n, k), n, np.int64)
+    best = np.full((n, k), np.inf)
+    if n == 0:
+        return idx, best
+    lo = np.empty(3)
     extent = 0.0
     for i in range(3):
-        extent = max(extent, x[:, i].max() - x[:, i].min())
-    size = max(2.0 * np.median(finite), extent / (1 << 20))
-    lo = np.empty(3)
+        lo[i] = x[:, i].min()
+        extent = max(extent, x[:, i].max() - lo[i])
+    # Cell size: the median k-th neighbour distance of up to 16 sample points.
+    samples = min(n, 16)
+    kth = np.empty(samples)
+    d = np.empty(n)
+    for s in range(samples):
+        a = (s * (n - 1)) // max(samples - 1, 1)
+        for b in range(n):
+            d[b] = (x[a, 0] - x[b, 0]) ** 2 + (x[a, 1] - x[b, 1]) ** 2 + (x[a, 2] - x[b, 2]) ** 2
+        kth[s] = np.sqrt(np.partition(d, min(k, n) - 1)[min(k, n) - 1])
+    size = max(np.median(kth), extent / (1 << 20), 1e-30)
     span = np.empty(3, np.int64)
-    while True:  # one empty layer of cells on each side; a bounded table
+    while True:  # a bounded table
         for i in range(3):
-            lo[i] = x[:, i].min()
-            span[i] = int((x[:, i].max() - lo[i]) / size) + 3
+            span[i] = int((x[:, i].max() - lo[i]) / size) + 1
         if span[0] * span[1] * span[2] <= 1 << 22:
             break
         size *= 1.25
     cell = np.empty((n, 3), np.int64)
     for p in range(n):
         for i in range(3):
-            cell[p, i] = min(int((x[p, i] - lo[i]) / size) + 1, span[i] - 2)
+            cell[p, i] = min(int((x[p, i] - lo[i]) / size), span[i] - 1)
     key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
     order, start = _counting_sort(key, span[0] * span[1] * span[2])
-    best_d = np.empty(count)
     for p in range(n):
-        best_d[:] = np.inf
-        for ox in range(-1, 2):
-            for oy in range(-1, 2):
-                # The three cells along z are consecutive keys: one sorted run.
-                k = ((cell[p, 0] + ox) * span[1] + cell[p, 1] + oy) * span[2] + cell[p, 2]
-                for j in range(start[k - 1], start[k + 2]):
-                    q = order[j]
-                    d = (x[p, 0] - x[q, 0]) ** 2 + (x[p, 1] - x[q, 1]) ** 2
-                    d += (x[p, 2] - x[q, 2]) ** 2
-                    if q == p or d >= best_d[count - 1]:
-                        continue
-                    slot = count - 1  # insertion into the sorted short list
-                    while slot > 0 and best_d[slot - 1] > d:
-                        best_d[slot] = best_d[slot - 1]
-                        out[p, slot] = out[p, slot - 1]
-                        slot -= 1
-                    best_d[slot] = d
-                    out[p, slot] = q
-    return out
+        cx, cy, cz = cell[p, 0], cell[p, 1], cell[p, 2]
+        for ring in range(max(span[0], span[1], span[2])):
+            # Cells at Chebyshev distance `ring`: whole z-runs on the ring's x or y faces,
+            # the two z caps elsewhere.
+            for ax in range(max(cx - ring, 0), min(cx + ring + 1, span[0])):
+                for ay in range(max(cy - ring, 0), min(cy + ring + 1, span[1])):
+                    row = (ax * span[1] + ay) * span[2]
+                    if abs(ax - cx) == ring or abs(ay - cy) == ring:
+                        _scan(
+                            x,
+                            p,
+                            order,
+                            start[row + max(cz - ring, 0)],
+                            start[row + min(cz + ring + 1, span[2])],
+                            idx[p],
+                            best[p],
+                        )
+                    else:
+                        for az in (cz - ring, cz + ring):
+                            if 0 <= az < span[2]:
+                                _scan(
+                                    x,
+                                    p,
+                                    order,
+                                    start[row + az],
+                                    start[row + az + 1],
+                                    idx[p],
+                                    best[p],
+                                )
+            # Every point nearer to p than the scanned block's nearest open face is scanned.
+            reach_sq = np.inf
+            for i in range(3):
+                low, high = cell[p, i] - ring, cell[p, i] + ring + 1
+                if low > 0:
+                    reach_sq = min(reach_sq, (x[p, i] - lo[i] - low * size) ** 2)
+                if high < span[i]:
+                    reach_sq = min(reach_sq, (lo[i] + high * size - x[p, i]) ** 2)
+            if best[p, k - 1] <= reach_sq:
+                break
+    return idx, best
+
+
+@numba.njit(inline="always")
+def _scan(x, p, order, first, last, idx, best):
+    """Inserts the points ``order[first:last]`` into ``p``'s sorted short list."""
+    k = best.size
+    for j in range(first, last):
+        q = order[j]
+        d = (x[p, 0] - x[q, 0]) ** 2 + (x[p, 1] - x[q, 1]) ** 2 + (x[p, 2] - x[q, 2]) ** 2
+        if d >= best[k - 1]:
+            continue
+        slot = k - 1
+        while slot > 0 and best[slot - 1] > d:
+            best[slot] = best[slot - 1]
+            idx[slot] = idx[slot - 1]
+            slot -= 1
+        best[slot] = d
+        idx[slot] = q
 
 
 @numba.njit(**_CACHE)
@@ -133,7 +168,7 @@ def witnesses(x: np.ndarray, near: np.ndarray, margin: float):
     level = np.zeros((n, count))
     for p in range(n):
         for j in range(count):
-            q = near[p, j]
+            q = near[p, j] if near[p, j] < n else p  # itself: a witness that never prunes
             for i in range(3):
                 d = x[q, i] - x[p, i]
                 wd[p, i, j] = d

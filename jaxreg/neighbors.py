@@ -195,7 +195,7 @@ class NeighborGrid(eqx.Module):
 
 _OCT32 = _OCTANTS.astype(np.int32)
 _OCT_F = _OCTANTS.astype(np.float32)
-_NEAR = 12  # witnesses per target point whose bisectors prune 1-NN candidate lists
+_NEAR = 13  # witnesses per target point (itself among them) pruning 1-NN candidate lists
 # Default refinement target of 1-NN leaves. Measured on milk.pcd (bench_neighbors.py): 48
 # builds 1.3-1.6x faster than 32 for 40 queries costing 1.1-1.2x more.
 _LEAF_TARGET = 48
@@ -215,7 +215,7 @@ def _levels_nearest(x, cell, dims, h, margin, r2, leaf_target, max_depth, max_ma
     each node, and the (node, point) pairs of its leaf nodes.
     """
     dims64 = np.asarray(dims, np.int64)
-    half_spaces = _octree.witnesses(x, _octree.near_points(x, _NEAR), float(margin))
+    half_spaces = _octree.witnesses(x, _octree.self_knn(x, _NEAR)[0], float(margin))
     node_top, counts, pid = _octree.top_level_nodes(
         x, cell.astype(np.int64), dims64, float(h), float(margin), float(r2), *half_spaces
     )

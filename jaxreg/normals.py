@@ -11,11 +11,10 @@ Every point gets a status; points that are masked or not finite, that have fewer
 valid neighbours, or whose neighbours are collinear or coincident (``l1`` negligible next to
 ``l2``: the normal is undefined) get a zero normal and zero curvature, never NaN.
 
-Neighbours are the exact ``k`` nearest: from a ``k``-NN :class:`~jaxreg.neighbors.NeighborGrid`
-built on the host when the cloud is a concrete array (points whose ``k``-th neighbour lies
-beyond its radius, a fraction of a percent, by brute force on the host), from blocked brute
-force :func:`jaxreg.neighbors.knn` when it is traced (under ``jit``, ``vmap`` or ``grad``),
-or passed in. The PCA is one compiled function. Timings: see :mod:`jaxreg.neighbors`.
+Neighbours are the exact ``k`` nearest: from compiled host loops over a hash grid when the
+cloud is a concrete array, from blocked brute force :func:`jaxreg.neighbors.knn` when it is
+traced (under ``jit``, ``vmap`` or ``grad``), or passed in. The PCA is one compiled
+function. Timings: ``benchmarks/bench_neighbors.py``.
 """
 
 from __future__ import annotations
@@ -26,7 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .neighbors import build_grid, knn, query_knn
+from ._octree import self_knn
+from .neighbors import knn
 
 __all__ = ["NormalEstimate", "NormalStatus", "estimate_normals", "estimate_normals_with_curvature"]
 
@@ -112,42 +112,19 @@ def _is_concrete(*arrays) -> bool:
     return not any(isinstance(a, jax.core.Tracer) for a in arrays)
 
 
-_query_knn = jax.jit(query_knn, static_argnums=2)
-
-
-def _grid_knn(points: np.ndarray, ok: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Exact ``k`` nearest valid points of every valid point, on a concrete cloud.
-
-    A ``k``-NN grid (:func:`~jaxreg.neighbors.build_grid`) with a radius of twice the median
-    ``k``-th neighbour distance of a sample answers most points exactly; the few whose
-    ``k``-th neighbour lies beyond it (sparse regions, outliers) are found by brute force on
-    the host. Returns ``(indices (N, k), valid (N, k))``, sentinel ``N``.
-    """
+def _host_knn(points: np.ndarray, ok: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Exact ``k`` nearest valid points of every valid point of a concrete cloud, by compiled
+    host loops (:func:`jaxreg._octree.self_knn`). Returns ``(indices (N, k), valid (N, k))``
+    with the sentinel ``N``."""
     n = len(points)
     rows = np.flatnonzero(ok)
-    kk = min(k, len(rows))
-    if kk == 0:
-        return np.full((n, k), n, np.int32), np.zeros((n, k), bool)
-    x = points[rows].astype(np.float64)
-    sample = x[np.linspace(0, len(x) - 1, min(len(x), 32)).astype(np.intp)]
-    d2 = ((sample[:, None, :] - x[None]) ** 2).sum(-1)
-    radius = 2 * float(np.sqrt(np.median(np.partition(d2, kk - 1, axis=1)[:, kk - 1])))
-    extent = float(np.ptp(x, axis=0).max())
-    radius = radius if radius > 0 else max(extent, 1.0)  # coincident points
-    grid = build_grid(points, radius, k=k, mask=ok)
-    idx, _, valid = (np.array(a) for a in _query_knn(grid, points, k))
-    valid &= ok[:, None]
-    idx[~valid] = n
-    short = np.flatnonzero(ok & (valid.sum(1) < kk))
-    step = max(1, (1 << 22) // len(x))
-    for lo in range(0, len(short), step):  # brute force for the few short rows
-        q = points[short[lo : lo + step]].astype(np.float64)
-        d2 = ((q[:, None, :] - x[None]) ** 2).sum(-1)
-        best = np.argpartition(d2, kk - 1, axis=1)[:, :kk]
-        best = np.take_along_axis(best, np.argsort(np.take_along_axis(d2, best, 1), 1), 1)
-        idx[short[lo : lo + step], :kk] = rows[best]
-        valid[short[lo : lo + step], :kk] = True
-    return idx, valid
+    idx, sq = self_knn(points[rows].astype(np.float64), k)
+    valid = np.isfinite(sq)
+    out = np.full((n, k), n, np.int64)
+    out[rows] = np.where(valid, rows[np.minimum(idx, len(rows) - 1)], n)
+    out_valid = np.zeros((n, k), bool)
+    out_valid[rows] = valid
+    return out, out_valid
 
 
 def estimate_normals_with_curvature(
@@ -169,8 +146,8 @@ def estimate_normals_with_curvature(
             a normal nor used as anyone's neighbour.
         neighbors: optional precomputed ``(indices (N, K), valid (N, K))`` into ``points``
             (sentinel ``N`` where invalid), e.g. from ``query_knn`` on a grid of ``points``;
-            ``k`` is then ignored. Default: the exact ``k`` nearest, from a ``k``-NN grid
-            built on the host when ``points`` (and ``mask``) are concrete arrays, from
+            ``k`` is then ignored. Default: the exact ``k`` nearest, found on the host
+            when ``points`` (and ``mask``) are concrete arrays, from
             blocked brute force :func:`~jaxreg.neighbors.knn` when traced (under ``jit``,
             ``vmap`` or ``grad``).
 
@@ -194,7 +171,7 @@ def estimate_normals_with_curvature(
         if k < 1:
             raise ValueError(f"k must be positive, got {k}")
         if concrete:
-            idx, nbr_ok = _grid_knn(np.asarray(points), np.asarray(ok), k)
+            idx, nbr_ok = _host_knn(np.asarray(points), np.asarray(ok), k)
         else:
             idx, _, nbr_ok = knn(points, points, k, mask=ok)
     else:
