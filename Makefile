@@ -26,6 +26,7 @@ demo: $(STAMP)
 	$(PY) -m jaxreg demo
 
 test: $(STAMP) system-libs
+	$(PY) -m ruff check jaxreg tests benchmarks examples paper_figs
 	$(PY) -m pytest -q
 
 bench: $(STAMP) system-libs

@@ -26,7 +26,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["self_knn", "split_nodes", "top_level_nodes", "witnesses"]
+__all__ = ["candidate_tables", "self_knn", "split_nodes", "top_level_nodes", "witnesses"]
 
 _CACHE = dict(cache=True, nogil=True)
 
@@ -310,3 +310,21 @@ def split_nodes(x, corner, counts, pid, split, edge, margin, r2, wd, neg, level)
                     kept += 1
             out_counts[child] = kept
     return out_counts, _compact(buf, offsets, out_counts)
+
+
+@numba.njit(**_CACHE)
+def candidate_tables(rows, slots, pids, target_rows, points, num_rows, capacity, sentinel):
+    """The grid's candidate tables from its (leaf row, slot, point) triples.
+
+    ``pids`` index ``points (P, 3)``, whose rows are the target rows ``target_rows``.
+    Returns ``index (num_rows, capacity)`` int32, padded with ``sentinel``, and the
+    candidates' coordinates ``(3, num_rows, capacity)`` in ``points``' dtype, ``inf`` in
+    padding slots.
+    """
+    index = np.full((num_rows, capacity), sentinel, np.int32)
+    coords = np.full((3, num_rows, capacity), np.inf, points.dtype)
+    for t in range(rows.size):
+        index[rows[t], slots[t]] = target_rows[pids[t]]
+        for i in range(3):
+            coords[i, rows[t], slots[t]] = points[pids[t], i]
+    return index, coords

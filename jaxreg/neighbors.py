@@ -4,9 +4,9 @@ Two engines, one contract (sentinel index ``== M``, the number of target rows, p
 fixed capacities chosen on the host; overflow reported, never silently dropped):
 
 * :class:`NeighborGrid` (:func:`build_grid`, then :func:`query_nearest`,
-  :func:`query_knn`, :func:`query_radius`). Built once per target, on the host with numpy,
-  then passed as a pytree into ``jit`` / ``vmap``: the structure ICP queries every iteration
-  while the source moves. A uniform grid of cells no smaller than ``max_distance`` covers the
+  :func:`query_knn`, :func:`query_radius`). Built once per target on the host, then passed
+  as a pytree into ``jit`` / ``vmap``: the structure ICP queries every iteration while the
+  source moves. A uniform grid of cells no smaller than ``max_distance`` covers the
   target's bounding box grown by ``max_distance``; each cell is refined as an octree until
   every leaf's *candidate list* fits the leaf target (48 for ``k == 1``). A leaf lists only
   the target points that can be a query's nearest neighbour (or one of its ``k`` nearest)
@@ -14,19 +14,16 @@ fixed capacities chosen on the host; overflow reported, never silently dropped):
   list when
 
   - it is farther than ``max_distance`` from the leaf's box, or
-  - (``k == 1``) one of the point's near points (about its 12 nearest, found by hashing
-    the cloud into cells of ~1.5 point spacings) is strictly closer to every point of the
-    box: the box lies beyond their bisecting plane, so no query in it has this point as
-    its nearest. The near points' bisectors bound the point's Voronoi cell, so a leaf keeps
-    roughly the points whose Voronoi cells cross it; or
+  - (``k == 1``) one of the point's 8 nearest points is strictly closer to every point of
+    the box: the box lies beyond their bisecting plane, so no query in it has this point
+    as its nearest. The near points' bisectors bound the point's Voronoi cell, so a leaf
+    keeps roughly the points whose Voronoi cells cross it; or
   - (``k > 1``) it is farther from the box than the ``k``-th smallest farthest-corner
     distance of the leaf's candidates (``k`` points are then closer to every query in it).
 
-  The build is vectorised over all nodes of a level (no Python loop over cells or points)
-  in float32: every point is tested against the 27 top-level cells around its own, then
-  every (node, point) pair of a node to split against the node's 8 children at once; for
-  ``k == 1`` pairs stay in point-major order so each point's half-spaces reach its pairs by
-  ``np.repeat``, not by gathers. The octree is stored flattened: each top-level cell owns a
+  The ``k == 1`` build runs in compiled loops (:mod:`jaxreg._octree`, numba, compiled once
+  per machine and cached on disk); the ``k > 1`` and radius builds are numpy, vectorised
+  over all nodes of a level. The octree is stored flattened: each top-level cell owns a
   dense block of sub-cells at its deepest level, so a query finds its leaf with two integer
   gathers (cell, then sub-cell), reads the leaf's ``capacity`` candidates as contiguous
   rows, and takes a running minimum: O(capacity) per query, independent of the target's
@@ -195,7 +192,7 @@ class NeighborGrid(eqx.Module):
 
 _OCT32 = _OCTANTS.astype(np.int32)
 _OCT_F = _OCTANTS.astype(np.float32)
-_NEAR = 13  # witnesses per target point (itself among them) pruning 1-NN candidate lists
+_NEAR = 9  # witnesses per target point (itself among them) pruning 1-NN candidate lists
 # Default refinement target of 1-NN leaves. Measured on milk.pcd (bench_neighbors.py): 48
 # builds 1.3-1.6x faster than 32 for 40 queries costing 1.1-1.2x more.
 _LEAF_TARGET = 48
@@ -537,23 +534,24 @@ def build_grid(
         sphere = 1
     cells = np.pad(cells, ((0, _bucket(max(len(cells), sphere)) - len(cells)), (0, 0)))
     leaf_map = np.pad(leaf_map, (0, max(_bucket(len(leaf_map)), 8 * n_table) - len(leaf_map)))
-    cand_index = np.full((n_table, cap), num_points, np.int32)
-    cand_index[slot_rows, slots] = rows[pids]
-    cand_points = np.full((3, n_table, cap), np.inf, dtype)
-    cand_points[:, slot_rows, slots] = points[pids].T
-    return NeighborGrid(
-        origin=jnp.asarray(lo, dtype),
-        cell_size=jnp.asarray(h, dtype),
-        max_distance=jnp.asarray(r, dtype),
-        dims=jnp.asarray(dims, jnp.int32),
-        cells=jnp.asarray(cells),
-        leaf_map=jnp.asarray(leaf_map),
-        candidate_index=jnp.asarray(cand_index),
-        candidate_points=jnp.asarray(cand_points),
-        num_points=jnp.asarray(num_points, jnp.int32),
-        overflow=jnp.asarray(overflow),
-        k=k,
+    cand_index, cand_points = _octree.candidate_tables(
+        slot_rows, slots, pids, rows, points.astype(dtype), n_table, cap, num_points
     )
+    arrays = jax.device_put(  # one transfer for all leaves
+        (
+            np.asarray(lo, dtype),
+            np.asarray(h, dtype),
+            np.asarray(r, dtype),
+            np.asarray(dims, np.int32),
+            cells,
+            leaf_map,
+            cand_index,
+            cand_points,
+            np.asarray(num_points, np.int32),
+            np.asarray(overflow),
+        )
+    )
+    return NeighborGrid(*arrays, k=k)
 
 
 # --------------------------------------------------------------------------------------------
