@@ -56,29 +56,28 @@ fixed capacities chosen on the host; overflow reported, never silently dropped):
 
 When each is used (``benchmarks/bench_neighbors.py`` on milk.pcd, 13.7k points, and its
 4 mm voxel downsample, 3.7k points, radius 2 cm, on a 2-core CPU shared with other jobs, so
-absolute timings vary ~2x between runs; Open3D timed in the same runs):
+absolute timings vary up to ~2x between runs; Open3D timed in the same runs, 2026-11-21):
 
 * ICP correspondences (1-NN within ``max_correspondence_distance``, the same target for
-  every iteration and every start): the grid. At 3.7k points it builds in ~25-50 ms
-  (capacity 48, depth 2, 3 MB; the previous witness-octree build took ~140-380 ms), a query
-  takes ~0.4 ms, 40 dependent queries in one jit ~8-12 ms: build + 40 queries ~40-60 ms,
-  where Open3D's whole 40-iteration ``registration_icp`` takes ~20-60 ms (its kd-tree
-  builds in 0.3 ms and it runs on both cores: the fast end is an idle machine). At 13.7k:
-  build ~120-250 ms (previously ~0.6-1.6 s), 40 queries ~13-40 ms, together ~180-290 ms
-  against ~100-270 ms for Open3D. The build is the cost: reuse a grid across calls on the
-  same target (``icp(..., neighbors=grid)``, :func:`jaxreg.icp.multistart_icp`). 64
-  vmapped query sets cost ~40-60 ms (3.7k) and ~80-190 ms (13.7k). Blocked brute force
-  takes ~45-180 ms per 3.7k query (one 3.7k x 3.7k distance matrix), so it is the
-  reference, the engine under ``jit`` with a traced target, and the choice on GPUs, where
-  that matrix product is cheap.
+  every iteration and every start): the grid. At 3.7k points it builds in ~10-16 ms
+  (capacity 48, depth 2, 3 MB; the vectorised numpy build it replaced took ~25-50 ms, the
+  one before that ~140-380 ms), a query takes ~0.1 ms inside a loop (~0.4 ms as its own
+  jitted call), 40 dependent queries in one jit ~4-8 ms: build + 40 queries ~20-25 ms,
+  where Open3D's whole 40-iteration ``registration_icp`` takes ~30-40 ms (its kd-tree
+  builds in 0.3 ms and it runs on both cores). At 13.7k: build ~70 ms (previously
+  ~120-250 ms), 40 queries ~25 ms, together ~100 ms against ~190 ms for Open3D. Reuse a
+  grid across calls on the same target (``icp(..., neighbors=grid)``,
+  :func:`jaxreg.icp.multistart_icp`). 64 vmapped query sets cost ~35-40 ms (3.7k) and
+  ~140 ms (13.7k). Blocked brute force takes ~80 ms per 3.7k query (one 3.7k x 3.7k
+  distance matrix), so it is the reference, the engine under ``jit`` with a traced
+  target, and the choice on GPUs, where that matrix product is cheap.
 * kNN for normals (one pass, ``k`` ~ 20, exact kNN as Open3D): on a concrete cloud
-  :func:`jaxreg.normals.estimate_normals` builds a ``k``-NN grid of radius twice the
-  sampled ``k``-th neighbour distance (no refinement, capacity ~300) and queries it
-  (~20-30 ms for grid and query at 3.7k, ~80-110 ms at 13.7k; the few points with fewer
-  than ``k`` neighbours in the radius are done by brute force on the host); the whole
-  estimate costs ~30-55 ms and ~130-200 ms, against ~80-120 ms and ~0.7-0.9 s with the
-  blocked brute force that it uses when the cloud is traced, and ~4-11 ms and ~25-45 ms for
-  Open3D's C++ kd-tree ``estimate_normals``.
+  :func:`jaxreg.normals.estimate_normals` finds the exact ``k`` nearest with compiled host
+  loops over a hash grid (:func:`jaxreg._octree.self_knn`, as fast as scipy's cKDTree);
+  the whole estimate costs ~12-14 ms at 3.7k and ~44 ms at 13.7k, against ~7 ms and
+  ~26 ms for Open3D's ``estimate_normals`` and ~80 ms and ~0.7 s with the blocked brute
+  force it uses when the cloud is traced. A ``k``-NN grid (``build_grid(k=20)`` then
+  :func:`query_knn`) costs about as much as the host loops and serves jitted code.
 * A kd-tree in JAX was not written: its traversal is a data-dependent loop per query,
   which under ``vmap`` runs every lane to the slowest lane's depth, and its leaf scans are
   the same gathers the grid does after O(1) instead of O(log M) steps.
