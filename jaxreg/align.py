@@ -113,6 +113,86 @@ def _check_shapes(src, dst, weights):
     return src, dst, weights
 
 
+class _Fit(eqx.Module):
+    """Horn's solution of matched rows (see :func:`_fit`); batch axes ``(...)`` throughout,
+    and the fields of :class:`Alignment` of the same name mean the same."""
+
+    weight_sum: Float[Array, "..."]
+    count: Float[Array, "..."]
+    mu_src: Float[Array, "... 3"]  # weighted centroids (0 without weight)
+    mu_dst: Float[Array, "... 3"]
+    var_src: Float[Array, "..."]  # weighted mean squared distance of src from mu_src
+    rotation: SO3  # the identity without weight
+    top: Float[Array, "..."]  # tr(R H) for the normalised cross-covariance H
+    eigengap: Float[Array, "..."]
+    collinear: Bool[Array, "..."]
+    planar: Bool[Array, "..."]
+    degenerate: Bool[Array, "..."]
+
+
+def _fit(
+    src: Float[Array, "... N 3"], dst: Float[Array, "... N 3"], w: Float[Array, "... N"]
+) -> _Fit:
+    """Weighted centroids, Horn's rotation and the degeneracy signals of :class:`Alignment`.
+
+    ``src``, ``dst`` ``(..., N, 3)`` and ``w`` ``(..., N)`` share their batch axes; ``w >= 0``
+    and rows with ``w == 0`` are padding, whatever their values. Shared by :func:`align` and
+    the ICP loop, which skips :func:`align`'s input checks. Two passes over the rows: the
+    weighted centroids, then the centred second moments. Every moment is its own sum over a
+    contiguous ``(..., N)`` coordinate array: on XLA's CPU backend that is faster than one
+    ``(6, N) @ (N, 6)`` product, by ~20% for ICP vmapped over 64 starts.
+    """
+    weight_sum = jnp.sum(w, axis=-1)
+    used = w > 0
+    count = jnp.sum(used, axis=-1).astype(w.dtype)
+    wn = w / jnp.where(weight_sum > 0, weight_sum, 1.0)[..., None]
+    z = [jnp.where(used, x[..., i], 0.0) for x in (src, dst) for i in range(3)]
+    mu = jnp.stack([jnp.sum(wn * zi, axis=-1) for zi in z], axis=-1)
+    zc = [zi - mu[..., i, None] for i, zi in enumerate(z)]
+    # The symmetric second moments of [src, dst]: [[cov_src, H], [H^T, cov_dst]].
+    second = {}
+    for i in range(6):
+        for j in range(i, 6):
+            second[i, j] = second[j, i] = jnp.sum(wn * zc[i] * zc[j], axis=-1)
+    moments = jnp.stack([jnp.stack([second[i, j] for j in range(6)], -1) for i in range(6)], -2)
+    h, cov_src, cov_dst = moments[..., :3, 3:], moments[..., :3, :3], moments[..., 3:, 3:]
+
+    # q^T K(H^T) q = tr(R(q)^T H^T) = tr(R H): Horn's matrix is K of the transpose.
+    horn = procrustes_quaternion_matrix(jnp.swapaxes(h, -1, -2))
+    eig, q = top_eigenpair(horn)
+    top = jnp.einsum("...i,...ij,...j->...", q, horn, q)  # = tr(R H)
+    # No weight at all: the identity (the centroids are then 0, and so is the translation).
+    q = jnp.where((weight_sum > 0)[..., None], q, jnp.array([1, 0, 0, 0], q.dtype))
+
+    tol = 100 * _eps(w.dtype)
+    scale_ref = jnp.abs(eig[..., -1]) + jnp.abs(eig[..., 0])
+    eigengap = (eig[..., -1] - eig[..., -2]) / jnp.where(scale_ref > 0, scale_ref, 1.0) * 2
+
+    def line_and_plane(c):
+        tr, i2, det = _shape_invariants(c)
+        tr = jnp.where(tr > 0, tr, 1.0)
+        line = i2 <= tol * tr**2
+        plane = line | (det <= tol * jnp.where(i2 > 0, i2, 1.0) * tr)
+        return line, plane
+
+    src_line, src_plane = line_and_plane(cov_src)
+    dst_line, _ = line_and_plane(cov_dst)
+    collinear = src_line | dst_line
+    return _Fit(
+        weight_sum=weight_sum,
+        count=count,
+        mu_src=mu[..., :3],
+        mu_dst=mu[..., 3:],
+        var_src=jnp.trace(cov_src, axis1=-2, axis2=-1),
+        rotation=SO3(wxyz=q),
+        top=top,
+        eigengap=eigengap,
+        collinear=collinear,
+        planar=src_plane,
+        degenerate=(count < 3) | collinear | (eigengap <= tol),
+    )
+
+
 @eqx.filter_jit
 def align(
     src: Float[ArrayLike, "... N 3"],
@@ -136,68 +216,36 @@ def align(
     src, dst, weights = _check_shapes(src, dst, weights)
     finite = jnp.all(jnp.isfinite(src) & jnp.isfinite(dst), axis=-1)
     w = jnp.where(finite & (weights > 0), weights, 0.0)
-    used = (w > 0)[..., None]
-    src = jnp.where(used, src, 0.0)
-    dst = jnp.where(used, dst, 0.0)
+    shape = jnp.broadcast_shapes(src.shape, dst.shape, w[..., None].shape)
+    src, dst = jnp.broadcast_to(src, shape), jnp.broadcast_to(dst, shape)
+    w = jnp.broadcast_to(w, shape[:-1])
+    fit = _fit(src, dst, w)
 
-    weight_sum = jnp.sum(w, axis=-1)
-    count = jnp.sum(w > 0, axis=-1).astype(w.dtype)
-    has_weight = weight_sum > 0
-    wn = w / jnp.where(has_weight, weight_sum, 1.0)[..., None]
-    mu_src = jnp.einsum("...n,...nd->...d", wn, src)
-    mu_dst = jnp.einsum("...n,...nd->...d", wn, dst)
-    a = jnp.where(used, src - mu_src[..., None, :], 0.0)
-    b = jnp.where(used, dst - mu_dst[..., None, :], 0.0)
-    # One pass for all second moments: [[cov_src, H], [H^T, cov_dst]].
-    ab = jnp.concatenate([a, b], axis=-1)
-    moments = jnp.einsum("...ni,...nj->...ij", wn[..., None] * ab, ab)
-    h, cov_src, cov_dst = moments[..., :3, 3:], moments[..., :3, :3], moments[..., 3:, 3:]
-
-    # q^T K(H^T) q = tr(R(q)^T H^T) = tr(R H): Horn's matrix is K of the transpose.
-    horn = procrustes_quaternion_matrix(jnp.swapaxes(h, -1, -2))
-    eig, q = top_eigenpair(horn)
-    rotation = SO3(wxyz=q)
-    top = jnp.einsum("...i,...ij,...j->...", q, horn, q)  # = tr(R H)
-    var_src = jnp.trace(cov_src, axis1=-2, axis2=-1)
+    rotation = fit.rotation
     if with_scale:
-        scale = top / jnp.where(var_src > 0, var_src, 1.0)
+        scale = fit.top / jnp.where(fit.var_src > 0, fit.var_src, 1.0)
     else:
-        scale = jnp.ones_like(top)
-    translation = mu_dst - scale[..., None] * rotation.apply(mu_src)
+        scale = jnp.ones_like(fit.top)
+    translation = fit.mu_dst - scale[..., None] * rotation.apply(fit.mu_src)
     pose = SE3.from_rotation_and_translation(rotation, translation)
+    used = (w > 0)[..., None]
+    a = jnp.where(used, src - fit.mu_src[..., None, :], 0.0)
+    b = jnp.where(used, dst - fit.mu_dst[..., None, :], 0.0)
     rotated = jnp.einsum("...ij,...nj->...ni", rotation.as_matrix(), a)
     resid = scale[..., None, None] * rotated - b
+    wn = w / jnp.where(fit.weight_sum > 0, fit.weight_sum, 1.0)[..., None]
     sq = jnp.einsum("...n,...nd->...", wn, resid * resid)
     rms = jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
-
-    eps = _eps(w.dtype)
-    scale_ref = jnp.abs(eig[..., -1]) + jnp.abs(eig[..., 0])
-    eigengap = (eig[..., -1] - eig[..., -2]) / jnp.where(scale_ref > 0, scale_ref, 1.0) * 2
-    tol = 100 * eps
-
-    def line_and_plane(c):
-        tr, i2, det = _shape_invariants(c)
-        tr = jnp.where(tr > 0, tr, 1.0)
-        line = i2 <= tol * tr**2
-        plane = line | (det <= tol * jnp.where(i2 > 0, i2, 1.0) * tr)
-        return line, plane
-
-    src_line, src_plane = line_and_plane(cov_src)
-    dst_line, _ = line_and_plane(cov_dst)
-    collinear = src_line | dst_line
-    degenerate = (count < 3) | collinear | (eigengap <= tol)
-    identity = jnp.array([1, 0, 0, 0, 0, 0, 0], w.dtype)
-    pose = SE3(wxyz_xyz=jnp.where(has_weight[..., None], pose.wxyz_xyz, identity))
     return Alignment(
         pose=pose,
         scale=scale,
-        weight_sum=weight_sum,
-        count=count,
+        weight_sum=fit.weight_sum,
+        count=fit.count,
         rms=rms,
-        eigengap=eigengap,
-        collinear=collinear,
-        planar=src_plane,
-        degenerate=degenerate,
+        eigengap=fit.eigengap,
+        collinear=fit.collinear,
+        planar=fit.planar,
+        degenerate=fit.degenerate,
     )
 
 

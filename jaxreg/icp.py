@@ -10,8 +10,8 @@ Conventions:
   best ``trim_fraction`` of them), weights them by the kernel's IRLS weight of the squared
   residual, and solves for an increment applied on the left (in the target frame):
 
-  - point-to-point: weighted Kabsch (:func:`jaxreg.align.align`) of the moved source onto
-    its matches; residual ``r = |T p - q|``.
+  - point-to-point: weighted Kabsch of the moved source onto its matches (the closed form
+    and degeneracy signal of :func:`jaxreg.align.align`); residual ``r = |T p - q|``.
   - point-to-plane: one Gauss-Newton step on the residual ``r = n_q . (T p - q)`` with the
     small-angle linearisation ``exp(d) p ~ p + w x p + v`` about the weighted centroid of
     the moved source, then the exact update ``T <- exp(d) T`` (:func:`jaxreg.lie.se3_exp`:
@@ -52,7 +52,7 @@ import numpy as np
 from jaxlie import SE3, SO3
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg.align import align
+from jaxreg.align import _fit
 from jaxreg.kernels import L2, AbstractRobustKernel, trim_mask
 from jaxreg.lie import rotation_grid, rotation_grid_around, se3_exp, se3_from_matrix
 from jaxreg.neighbors import NeighborGrid, build_grid, knn, query_nearest
@@ -157,9 +157,14 @@ class _Pairs(eqx.Module):
 
 
 def _apply(pose: SE3, points: Float[Array, "N 3"]) -> Float[Array, "N 3"]:
-    """``pose @ points`` through the rotation matrix: one small matmul, which stays fast
-    under ``vmap`` (jaxlie's quaternion ``apply`` batched over poses is ~30x slower here)."""
-    return points @ pose.rotation().as_matrix().T + pose.translation()
+    """``pose @ points`` in the loop: three broadcast multiply-adds with the rotation
+    matrix's columns, which XLA fuses into their consumers (the neighbour query, the Kabsch
+    sums). On XLA's CPU backend ``points @ R.T`` is a separate kernel ~20x slower than that,
+    and jaxlie's quaternion ``apply`` batched over poses is slower still. Differentiated
+    code uses the matmul instead (see :func:`_objective`)."""
+    r = pose.rotation().as_matrix()
+    rotated = points[:, :1] * r[:, 0] + points[:, 1:2] * r[:, 1] + points[:, 2:] * r[:, 2]
+    return rotated + pose.translation()
 
 
 def _fill_gather(values: Array, index: Array) -> Array:
@@ -167,31 +172,47 @@ def _fill_gather(values: Array, index: Array) -> Array:
     return values.at[index].get(mode="fill", fill_value=0.0)
 
 
+def _dot3(a: Float[Array, "N 3"], b: Float[Array, "N 3"]) -> Float[Array, " N"]:
+    """Row-wise dot product, written out: XLA's CPU backend runs a sum over a minor axis of
+    length 3 as a separate kernel ~10x slower than the products it would fuse with."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
 def _residual_sq(problem: _Problem, moved: Array, index: Array, method: str) -> Array:
     """Squared residual of each pair: 3D distance or distance along the target normal."""
     diff = moved - _fill_gather(problem.target, index)
     if method == "point_to_plane":
-        r = jnp.sum(_fill_gather(problem.target_normals, index) * diff, axis=-1)
+        r = _dot3(_fill_gather(problem.target_normals, index), diff)
         return r * r
-    return jnp.sum(diff * diff, axis=-1)
+    return _dot3(diff, diff)
+
+
+def _match(problem: _Problem, moved: Float[Array, "N 3"], distance: Array) -> Int[Array, " N"]:
+    """Index of the nearest target point of each moved source point within ``distance``;
+    a row that is not a valid target point (padding, or one past the last row) when none.
+
+    Only the index is used: the squared distance and the found flag are recomputed from it
+    (:func:`_pairs`), so the query's candidate scan has a single consumer."""
+    if problem.grid is not None:
+        return query_nearest(problem.grid, moved, distance)[0]
+    index, _, _ = knn(moved, problem.target, 1, max_distance=distance, mask=problem.target_valid)
+    return index[:, 0]
 
 
 def _correspond(problem: _Problem, opts: _Options, pose: SE3, distance: Array) -> _Pairs:
     """Nearest-neighbour pairs of the source moved by ``pose``, rejected and weighted."""
     moved = _apply(pose, problem.source)
-    if problem.grid is not None:
-        index, d2, found = query_nearest(problem.grid, moved, distance)
-        # Materialise the match once: without the barrier XLA fuses the candidate scan into
-        # each consumer and repeats it (4-6x slower under vmap).
-        index, d2, found = jax.lax.optimization_barrier((index, d2, found))
-    else:
-        index, d2, found = knn(
-            moved, problem.target, 1, max_distance=distance, mask=problem.target_valid
-        )
-        index, d2, found = index[:, 0], d2[:, 0], found[:, 0]
+    return _pairs(problem, opts, moved, _match(problem, moved, distance))
+
+
+def _pairs(problem: _Problem, opts: _Options, moved: Array, index: Array) -> _Pairs:
+    """Rejection, trimming and IRLS weights of the pairs ``(moved[i], target[index[i]])``,
+    with ``index`` from :func:`_match`."""
+    found = problem.target_valid.at[index].get(mode="fill", fill_value=False)
     usable = problem.source_weights > 0
     kept = found & usable
-    s = _residual_sq(problem, moved, index, opts.method)
+    d2 = _residual_sq(problem, moved, index, "point_to_point")
+    s = d2 if opts.method == "point_to_point" else _residual_sq(problem, moved, index, opts.method)
     if opts.trim_fraction is not None:
         kept = trim_mask(s, opts.trim_fraction, kept)
     s_safe = jnp.where(kept, s, 0.0)
@@ -212,11 +233,11 @@ def _plane_step(problem: _Problem, moved: Array, pairs: _Pairs) -> tuple[SE3, Ar
     n = _fill_gather(problem.target_normals, pairs.index)
     centroid = jnp.sum(w[:, None] * moved, 0) / jnp.maximum(jnp.sum(w), 1e-30)
     p = jnp.where(pairs.kept[:, None], moved - centroid, 0.0)
-    radius = jnp.sqrt(jnp.sum(w * jnp.sum(p * p, -1)) / jnp.maximum(jnp.sum(w), 1e-30))
+    radius = jnp.sqrt(jnp.sum(w * _dot3(p, p)) / jnp.maximum(jnp.sum(w), 1e-30))
     radius = jnp.where(radius > 0, radius, 1.0)
     # Rotation columns scaled by the cloud radius so both blocks share units (conditioning).
     jac = jnp.concatenate([n, jnp.cross(p, n) / radius], axis=-1)
-    r = jnp.sum(n * (moved - q), axis=-1)
+    r = _dot3(n, moved - q)
     a = jnp.einsum("n,ni,nj->ij", w, jac, jac)
     b = -jnp.einsum("n,ni,n->i", w, jac, r)
     delta, degenerate = _pinv_solve(a, b)
@@ -234,81 +255,94 @@ def _pinv_solve(a: Float[Array, "6 6"], b: Float[Array, " 6"]) -> tuple[Array, A
     return vec @ (inv * (vec.T @ b)), ~jnp.all(ok)
 
 
-def _increment(problem: _Problem, opts: _Options, pose: SE3, pairs: _Pairs):
-    moved = _apply(pose, problem.source)
+def _increment(problem: _Problem, opts: _Options, moved: Array, pairs: _Pairs):
+    """Increment (left, target frame) from the ``pairs`` of the ``moved`` source; and
+    :func:`jaxreg.align.align`'s degeneracy flag (point-to-point) or rank loss (plane)."""
     if opts.method == "point_to_plane":
         return _plane_step(problem, moved, pairs)
-    target = _fill_gather(problem.target, pairs.index)
-    result = align(moved, target, pairs.weight)
-    return result.pose, result.degenerate
+    # align()'s closed form without its input checks: the weighted rows are finite by
+    # construction, and _fit ignores the others (unmatched, or matched to target padding).
+    fit = _fit(moved, _fill_gather(problem.target, pairs.index), pairs.weight)
+    translation = fit.mu_dst - fit.rotation @ fit.mu_src
+    return SE3.from_rotation_and_translation(fit.rotation, translation), fit.degenerate
 
 
 def _run(problem: _Problem, opts: _Options, init: SE3) -> RegistrationResult:
     """The ICP loop for one start (unbatched; vmap for many).
 
-    Each trip of the loop matches the source at the current pose, then either finishes
-    (the previous increment passed the tolerance test, the iteration bound is reached, or
-    there are too few pairs) or takes one increment. The last trip's pairs are those of the
-    final pose, so the matching code appears once in the compiled graph.
+    Each trip of the loop weighs the pairs of the current pose, then either finishes (the
+    previous increment passed the tolerance test, the iteration bound is reached, or there
+    are too few pairs) or takes one increment; it ends by matching the source at the pose it
+    leaves. The first trip only matches the initial pose, so the matching code appears once
+    in the compiled graph, and the last leaves the match of the final pose.
+
+    The match crosses the trip boundary as loop state, which XLA materialises. Consumed
+    within the trip, its candidate scan would be fused into each consumer and repeated
+    (several times over under ``vmap``); ``optimization_barrier`` does not prevent that, as
+    XLA removes it before fusion.
     """
     dtype = problem.source.dtype
     tol = opts.tolerance.astype(dtype)
-    n = problem.source.shape[0]
 
     # Derivatives come from _implicit_pose; nothing is differentiated through the loop.
     frozen, fopts = jax.lax.stop_gradient((problem, opts))
 
     def body(state):
-        pose, it = state["pose"], state["iteration"]
-        distance = fopts.distances[jnp.minimum(it, opts.max_iterations - 1)]
-        pairs = _correspond(frozen, fopts, pose, distance)
-        too_few = pairs.count < 3
-        flat_rmse = (jnp.abs(state["pairs"].rmse - pairs.rmse) < tol * pairs.rmse) & (
-            pairs.count == state["pairs"].count
+        pose, it, primed = state["pose"], state["iteration"], state["primed"]
+        # Before the first match (primed False) the pairs are empty: that trip only matches.
+        moved = _apply(pose, frozen.source)
+        pairs = _pairs(frozen, fopts, moved, state["match"])
+        too_few = primed & (pairs.count < 3)
+        flat_rmse = (jnp.abs(state["rmse"] - pairs.rmse) < tol * pairs.rmse) & (
+            pairs.count == state["count"]
         )
         converged = state["small_step"] | flat_rmse
         finish = converged | too_few | (it >= opts.max_iterations)
-        inc, degenerate = _increment(frozen, fopts, pose, pairs)
+        inc, degenerate = _increment(frozen, fopts, moved, pairs)
         new_pose = inc @ pose
         finite = jnp.all(jnp.isfinite(new_pose.wxyz_xyz))
-        take = ~finish & finite
+        step = primed & ~finish
+        take = step & finite
         status = ICPStatus.where(too_few, ICPStatus.too_few_correspondences, state["status"])
-        status = ICPStatus.where(~finish & ~finite, ICPStatus.non_finite, status)
+        status = ICPStatus.where(step & ~finite, ICPStatus.non_finite, status)
         step_t = jnp.linalg.norm(inc.translation())
         step_r = jnp.linalg.norm(inc.rotation().log())
+        next_pose = jax.tree.map(lambda a, b: jnp.where(take, a, b), new_pose, pose)
+        next_it = it + take.astype(it.dtype)
+        distance = fopts.distances[jnp.minimum(next_it, opts.max_iterations - 1)]
         return dict(
-            pose=jax.tree.map(lambda a, b: jnp.where(take, a, b), new_pose, pose),
-            iteration=it + take.astype(it.dtype),
-            finished=~take,
-            small_step=(step_t < tol) & (step_r < tol),
+            pose=next_pose,
+            iteration=next_it,
+            primed=jnp.array(True),
+            match=_match(frozen, _apply(next_pose, frozen.source), distance),
+            finished=primed & ~take,
+            small_step=take & (step_t < tol) & (step_r < tol),
             converged=converged & ~too_few,
             degenerate=jnp.where(take, degenerate, state["degenerate"]),
-            pairs=pairs,
+            rmse=pairs.rmse,
+            count=pairs.count,
             status=status,
             history=state["history"].at[it].set(jnp.where(take, pairs.rmse, jnp.nan)),
         )
 
-    empty = _Pairs(
-        index=jnp.full((n,), problem.target.shape[0], jnp.int32),
-        weight=jnp.zeros((n,), dtype),
-        kept=jnp.zeros((n,), bool),
-        count=jnp.array(-1, jnp.int32),
-        rmse=jnp.array(jnp.inf, dtype),
-        fraction=jnp.array(0.0, dtype),
-    )
     state = dict(
         pose=init,
         iteration=jnp.array(0, jnp.int32),
+        primed=jnp.array(False),  # the first trip only matches the initial pose
+        match=jnp.full(problem.source.shape[:1], problem.target.shape[0], jnp.int32),
         finished=jnp.array(False),
         small_step=jnp.array(False),
         converged=jnp.array(False),
         degenerate=jnp.array(False),
-        pairs=empty,
+        rmse=jnp.array(jnp.inf, dtype),
+        count=jnp.array(-1, jnp.int32),
         status=ICPStatus.success,
         history=jnp.full((opts.max_iterations,), jnp.nan, dtype),
     )
     state = jax.lax.while_loop(lambda st: ~st["finished"], body, jax.lax.stop_gradient(state))
-    pairs = state["pairs"]
+    # The last trip took no step and re-matched the final pose: form its pairs once more
+    # rather than carry (N,) arrays through every trip.
+    pairs = _pairs(frozen, fopts, _apply(state["pose"], frozen.source), state["match"])
     status = state["status"]
     ok = status == ICPStatus.success
     status = ICPStatus.where(ok & state["degenerate"], ICPStatus.degenerate, status)
@@ -338,7 +372,9 @@ def _chart(delta: Float[Array, " 6"]) -> SE3:
 
 def _objective(problem: _Problem, opts: _Options, pose: SE3, pairs: _Pairs) -> Array:
     """Robust ICP objective with the correspondences (and the kept set) frozen."""
-    moved = _apply(pose, problem.source)
+    # A matmul, unlike _apply: its derivatives are matmuls too, where those of _apply's
+    # broadcasts are reductions that make the implicit-function Hessian ~5x slower.
+    moved = problem.source @ pose.rotation().as_matrix().T + pose.translation()
     s = _residual_sq(problem, moved, pairs.index, opts.method)
     rho = opts.kernel.rho(jnp.where(pairs.kept, s, 0.0))
     return jnp.sum(jnp.where(pairs.kept, problem.source_weights * rho, 0.0))

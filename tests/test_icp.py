@@ -359,3 +359,42 @@ def test_results_are_unpadded_and_similar_clouds_share_one_compilation():
 
     rotated = np.asarray(SO3.from_z_radians(0.5) @ jnp.asarray(scene[:770]))
     assert signature(model[:800], scene) == signature(model[:790], rotated)
+
+
+def test_point_to_point_step_is_align_of_the_pairs():
+    """The loop's Kabsch step skips align()'s input checks; on pairs as the loop forms them
+    (weights, zero-weight rows, rows matched to nothing or to target padding) it gives
+    align()'s pose and degeneracy flag, including the degenerate and weightless cases."""
+    from jaxreg.align import align
+    from jaxreg.icp import _fill_gather, _icp_options, _increment, _Pairs, _prepare
+
+    rng = np.random.default_rng(3)
+    source = rng.normal(size=(37, 3)).astype(np.float32) * [0.05, 0.03, 0.02]
+    target = rng.normal(size=(50, 3)).astype(np.float32) * 0.04 + [0.3, -0.1, 0.8]
+    problem, opts, (n, m) = _prepare(source, target, **_icp_options({}))
+    moved = problem.source  # a step is taken from whatever pose moved the source
+    m_pad = problem.target.shape[0]
+    line = np.outer(np.linspace(-0.05, 0.05, m), [1.0, 0.5, 0.2]).astype(np.float32)
+    problem_line, _, _ = _prepare(source, line, **_icp_options({}))
+
+    index = rng.integers(0, m, moved.shape[0])
+    index[::7] = m_pad  # no match: the sentinel one past the last row
+    index[3::11] = m  # a grid built on the unpadded target returns m: a padding row
+    weight = rng.uniform(0.1, 2.0, moved.shape[0]).astype(np.float32)
+    weight[index >= m] = 0.0
+    weight[n:] = 0.0  # source padding rows
+    weight[5::9] = 0.0  # e.g. a robust kernel's zero weight
+    cases = {
+        "general": (problem, weight),
+        "fewer than 3 pairs": (problem, np.where(np.arange(len(weight)) < 3, weight, 0.0)),
+        "no weight": (problem, np.zeros_like(weight)),
+        "collinear targets": (problem_line, weight),
+    }
+    for name, (prob, w) in cases.items():
+        index_ = jnp.asarray(index, jnp.int32)
+        pairs = _Pairs(index_, jnp.asarray(w), jnp.asarray(w > 0), 0, 0.0, 0.0)
+        step, degenerate = _increment(prob, opts, moved, pairs)
+        ref = align(moved, _fill_gather(prob.target, index_), w)
+        np.testing.assert_allclose(step.as_matrix(), ref.pose.as_matrix(), atol=2e-6, err_msg=name)
+        assert bool(degenerate) == bool(ref.degenerate), name
+        assert bool(degenerate) == (name != "general"), name
