@@ -22,6 +22,26 @@ def median_seconds(fn: Callable[[], object], repeats: int = 5, warmup: int = 1) 
     return statistics.median(times)
 
 
+def interleaved_medians(
+    fns: dict[str, Callable[[], object]], repeats: int = 5, warmup: int = 1
+) -> dict[str, float]:
+    """Median wall time of each function, timed in rounds that call every function once.
+
+    Interleaving gives every contender the same share of a shared machine's load, which
+    timing them one after another does not. Each ``fn`` must block until its result is ready.
+    """
+    for _ in range(warmup):
+        for fn in fns.values():
+            fn()
+    times = {name: [] for name in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            start = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - start)
+    return {name: statistics.median(t) for name, t in times.items()}
+
+
 def print_table(title: str, header: list[str], rows: list[list[object]]) -> None:
     """Prints a plain-text table with right-aligned columns."""
     cells = [header] + [[str(c) for c in row] for row in rows]

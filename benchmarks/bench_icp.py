@@ -9,7 +9,8 @@ exactly ``--iterations`` iterations (convergence thresholds set to zero), from t
 starts. Times are medians over repeats after a warm-up call; jaxreg's compile time is
 reported separately. The multi-start rows time ``--starts`` starts spread within 30 degrees
 of the identity: jaxreg runs them in one vmapped call (its grid build included), the peers in
-a Python loop.
+a Python loop. Contenders are timed in interleaved rounds (each round calls every one once),
+so that a shared machine's load falls on all of them alike.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _timing import median_seconds, print_table
+from _timing import interleaved_medians, print_table
 
 import jaxreg as jr
 from jaxreg.neighbors import build_grid
@@ -64,59 +65,31 @@ def main():
     init_mats = np.asarray(inits.as_matrix(), np.float64)
     options = dict(max_correspondence_distance=dist, max_iterations=iters, tolerance=0.0)
 
-    rows = []
+    single = {}  # name -> callable, timed interleaved with its peers
+    multi = {}
+    compile_s = {}
 
-    def add(name, seconds, per_start=None, compile_s=None):
-        rows.append(
-            [
-                name,
-                f"{seconds * 1e3:.1f}",
-                "" if per_start is None else f"{per_start * 1e3:.2f}",
-                "" if compile_s is None else f"{compile_s:.1f}",
-            ]
-        )
-        return seconds
+    def compiled(name, fn):
+        start = time.perf_counter()
+        fn()
+        compile_s[name] = time.perf_counter() - start
+        return fn
 
-    # jaxreg, single start: with the grid built in the call, and with a prebuilt grid.
-    start = time.perf_counter()
-    jax.block_until_ready(jr.icp(model, scene, **options))
-    compile_single = time.perf_counter() - start
-    t_single = add(
-        "jaxreg icp (builds its grid)",
-        median_seconds(
-            lambda: jax.block_until_ready(jr.icp(model, scene, **options)), args.repeats
-        ),
-        compile_s=compile_single,
-    )
     grid = build_grid(scene, dist)
-    t_prebuilt = add(
-        "jaxreg icp (prebuilt grid)",
-        median_seconds(
-            lambda: jax.block_until_ready(jr.icp(model, scene, neighbors=grid, **options)),
-            args.repeats,
-        ),
+    single["jaxreg icp (builds its grid)"] = compiled(
+        "jaxreg icp (builds its grid)",
+        lambda: jax.block_until_ready(jr.icp(model, scene, **options)),
     )
-    t_build = add(
-        "  of which grid build (host)",
-        median_seconds(lambda: build_grid(scene, dist), args.repeats),
+    single["jaxreg icp (prebuilt grid)"] = lambda: jax.block_until_ready(
+        jr.icp(model, scene, neighbors=grid, **options)
     )
-    start = time.perf_counter()
-    jax.block_until_ready(jr.multistart_icp(model, scene, inits, **options))
-    compile_multi = time.perf_counter() - start
-    t_multi = median_seconds(
-        lambda: jax.block_until_ready(
-            jr.multistart_icp(model, scene, inits, **options)
-        ),
-        max(3, args.repeats // 2),
-    )
-    add(
-        f"jaxreg multistart_icp x{args.starts} (one call)",
-        t_multi,
-        t_multi / args.starts,
-        compile_multi,
+    single["  grid build alone (host)"] = lambda: build_grid(scene, dist)
+    multi_name = f"jaxreg multistart_icp x{args.starts} (one call)"
+    multi[multi_name] = compiled(
+        multi_name, lambda: jax.block_until_ready(jr.multistart_icp(model, scene, inits, **options))
     )
 
-    peers = {}
+    peers = []
     try:
         import open3d as o3d
 
@@ -129,9 +102,9 @@ def main():
         def o3d_one(init=IDENTITY):
             return reg.registration_icp(src, tgt, dist, init, est, crit)
 
-        peers["Open3D"] = add("Open3D registration_icp", median_seconds(o3d_one, args.repeats))
-        t = median_seconds(lambda: [o3d_one(m) for m in init_mats], max(3, args.repeats // 2))
-        peers["Open3D loop"] = add(f"Open3D loop x{args.starts}", t, t / args.starts)
+        single["Open3D registration_icp"] = o3d_one
+        multi[f"Open3D loop x{args.starts}"] = lambda: [o3d_one(m) for m in init_mats]
+        peers.append(("Open3D registration_icp", f"Open3D loop x{args.starts}"))
     except ImportError as err:
         print(f"open3d unavailable ({err}): its rows are skipped")
     try:
@@ -155,44 +128,44 @@ def main():
                 num_threads=1,
             )
 
-        peers["small_gicp"] = add(
-            "small_gicp ICP (prebuilt tree, 1 thread)", median_seconds(sg_one, args.repeats)
+        single["small_gicp ICP (prebuilt tree, 1 thread)"] = sg_one
+        multi[f"small_gicp loop x{args.starts}"] = lambda: [sg_one(m) for m in init_mats]
+        peers.append(
+            ("small_gicp ICP (prebuilt tree, 1 thread)", f"small_gicp loop x{args.starts}")
         )
-        t = median_seconds(lambda: [sg_one(m) for m in init_mats], max(3, args.repeats // 2))
-        peers["small_gicp loop"] = add(f"small_gicp loop x{args.starts}", t, t / args.starts)
     except ImportError as err:
         print(f"small_gicp unavailable ({err}): its rows are skipped")
 
+    t = interleaved_medians(single, args.repeats) | interleaved_medians(
+        multi, max(3, args.repeats // 2)
+    )
+    rows = []
+    for name, seconds in t.items():
+        per_start = f"{seconds / args.starts * 1e3:.2f}" if name in multi else ""
+        compile_col = f"{compile_s[name]:.1f}" if name in compile_s else ""
+        rows.append([name, f"{seconds * 1e3:.1f}", per_start, compile_col])
     device = jax.devices()[0]
     print_table(
         f"ICP point-to-point, milk.pcd @ 4 mm ({len(model)} -> {len(scene)} points), {iters} "
         f"iterations; jax {jax.__version__} on {device.platform} ({device.device_kind}), "
-        f"{os.cpu_count()} cores, {platform.machine()}",
+        f"{os.cpu_count()} cores, {platform.machine()}; medians of interleaved rounds",
         ["solver", "median ms", "ms per start", "compile s"],
         rows,
     )
     ratios = []
-    for peer in ("Open3D", "small_gicp"):
-        if peer in peers:
-            ratios.append(
-                [f"single start: {peer} / jaxreg (builds grid)", f"{peers[peer] / t_single:.2f}x"]
-            )
-            ratios.append(
-                [
-                    f"single start: {peer} / jaxreg (prebuilt grid)",
-                    f"{peers[peer] / t_prebuilt:.2f}x",
-                ]
-            )
-        if f"{peer} loop" in peers:
-            ratios.append(
-                [
-                    f"{args.starts} starts: {peer} loop / jaxreg multistart",
-                    f"{peers[peer + ' loop'] / t_multi:.2f}x",
-                ]
-            )
+    for one, loop in peers:
+        peer = one.split()[0]
+        for mode in ("builds its grid", "prebuilt grid"):
+            ratio = t[one] / t[f"jaxreg icp ({mode})"]
+            ratios.append([f"single start: {peer} / jaxreg ({mode})", f"{ratio:.2f}x"])
+        ratios.append(
+            [
+                f"{args.starts} starts: {peer} loop / jaxreg multistart",
+                f"{t[loop] / t[multi_name]:.2f}x",
+            ]
+        )
     if ratios:
         print_table("Speed-up of jaxreg (higher is faster)", ["comparison", "ratio"], ratios)
-    del t_build
 
 
 if __name__ == "__main__":
