@@ -471,26 +471,10 @@ def _prepare(
     source_weights = jnp.asarray(source_weights, dtype)
     if source_weights.shape != (n,):
         raise ValueError(f"source_weights must have shape ({n},), got {source_weights.shape}")
-    # NaN rows (depth holes) take no part; the arithmetic never sees them.
-    source_ok = jnp.all(jnp.isfinite(source), -1)
-    source_weights = jnp.where(source_ok, source_weights, 0.0)
-    source = jnp.where(source_ok[:, None], source, 0.0)
-    target_ok = jnp.all(jnp.isfinite(target), -1)
-    if target_normals is not None:
-        target_ok &= jnp.all(jnp.isfinite(target_normals), -1)
-        target_normals = jnp.where(target_ok[:, None], target_normals, 0.0)
-    far = jnp.asarray(jnp.finfo(dtype).max / 4, dtype)  # never within any distance
-    target = jnp.where(target_ok[:, None], target, far)
-    # Pad both clouds to bucketed sizes so that clouds of similar size share one compiled
-    # loop: zero-weight source rows, far-away target rows.
     m = target.shape[0]
-    n_pad, m_pad = _bucket(n) - n, _bucket(m) - m
-    source = jnp.pad(source, ((0, n_pad), (0, 0)))
-    source_weights = jnp.pad(source_weights, (0, n_pad))
-    target = jnp.pad(target, ((0, m_pad), (0, 0)), constant_values=far)
-    target_ok = jnp.pad(target_ok, (0, m_pad))
-    if target_normals is not None:
-        target_normals = jnp.pad(target_normals, ((0, m_pad), (0, 0)))
+    source, source_weights, target, target_ok, target_normals = _clean(
+        source, source_weights, target, target_normals, _bucket(n) - n, _bucket(m) - m
+    )
 
     distances = jnp.asarray(max_correspondence_distance, dtype)
     if distances.ndim == 0:
@@ -501,14 +485,12 @@ def _prepare(
             f"iteration: shape ({max_iterations},), got {distances.shape}"
         )
     if neighbors is None and _is_concrete(target) and _is_concrete(distances):
-        ok = np.asarray(target_ok)
-        if not ok.any():
-            neighbors = None  # nothing to index: every query is invalid below
-        else:
+        points, ok = np.asarray(target), np.asarray(target_ok)
+        if ok.any():  # else nothing to index: every query is invalid
             radius = float(np.max(np.asarray(distances)))
-            neighbors = build_grid(np.asarray(target), radius, mask=ok, capacity=grid_capacity)
+            neighbors = build_grid(points, radius, mask=ok, capacity=grid_capacity)
             if grid_capacity is not None and bool(neighbors.overflow):
-                neighbors = build_grid(np.asarray(target), radius, mask=ok)
+                neighbors = build_grid(points, radius, mask=ok)
     problem = _Problem(source, source_weights, target, target_ok, target_normals, neighbors)
     opts = _Options(
         method=method,
@@ -519,6 +501,36 @@ def _prepare(
         trim_fraction=None if trim_fraction is None else jnp.asarray(trim_fraction, dtype),
     )
     return problem, opts, (n, m)
+
+
+@eqx.filter_jit
+def _clean(source, source_weights, target, target_normals, n_pad: int, m_pad: int):
+    """Masks non-finite rows and pads both clouds to bucketed sizes, in one compiled call.
+
+    NaN rows (depth holes) take no part and the arithmetic never sees them: a source row
+    gets weight 0 and coordinates 0; a target row (or one with a non-finite normal) is moved
+    far away and marked invalid. Padding rows are zero-weight source rows and far, invalid
+    target rows, so clouds of similar size share one compiled loop. Returns the source, its
+    weights, the target, its validity mask and its normals (``None`` stays ``None``).
+    """
+    dtype = source.dtype
+    source_ok = jnp.all(jnp.isfinite(source), -1)
+    source_weights = jnp.where(source_ok, source_weights, 0.0)
+    source = jnp.where(source_ok[:, None], source, 0.0)
+    target_ok = jnp.all(jnp.isfinite(target), -1)
+    if target_normals is not None:
+        target_ok &= jnp.all(jnp.isfinite(target_normals), -1)
+        target_normals = jnp.where(target_ok[:, None], target_normals, 0.0)
+        target_normals = jnp.pad(target_normals, ((0, m_pad), (0, 0)))
+    far = jnp.asarray(jnp.finfo(dtype).max / 4, dtype)  # never within any distance
+    target = jnp.where(target_ok[:, None], target, far)
+    return (
+        jnp.pad(source, ((0, n_pad), (0, 0))),
+        jnp.pad(source_weights, (0, n_pad)),
+        jnp.pad(target, ((0, m_pad), (0, 0)), constant_values=far),
+        jnp.pad(target_ok, (0, m_pad)),
+        target_normals,
+    )
 
 
 def _bucket(rows: int) -> int:
