@@ -381,27 +381,50 @@ def _objective(problem: _Problem, opts: _Options, pose: SE3, pairs: _Pairs) -> A
 
 
 def _implicit_pose(problem: _Problem, opts: _Options, pose: SE3, pairs: _Pairs) -> SE3:
-    """Attach implicit-function-theorem derivatives to the converged ``pose``.
+    """The converged ``pose``, carrying implicit-function-theorem derivatives with respect to
+    the problem's data and the options (see :func:`_converged`); its value is ``pose``."""
+    params = jax.lax.stop_gradient(pose.wxyz_xyz)
+    return SE3(_converged(problem, opts, params=params, pairs=jax.lax.stop_gradient(pairs)))
+
+
+@eqx.filter_custom_jvp
+def _converged(problem: _Problem, opts: _Options, *, params: Array, pairs: _Pairs) -> Array:
+    """``params`` (the converged pose's ``wxyz_xyz``) unchanged; differentiable in ``problem``
+    and ``opts`` through the rule below, so the forward pass pays nothing for derivatives."""
+    return params
+
+
+@_converged.def_jvp
+def _converged_jvp(primals, tangents, *, params, pairs):
+    """Implicit-function-theorem tangent of the converged pose.
 
     At the fixed point the gradient ``g(theta)`` of the frozen-correspondence objective in a
     right perturbation ``pose @ chart(d)`` vanishes, so ``d theta -> -H^-1 dg/dtheta`` is the
-    derivative of the solution. The returned pose has exactly the forward value of ``pose``
-    (the step is ``d - stop_gradient(d)``) and that derivative; ``H`` is held constant (its
-    own derivative multiplies ``g = 0``), and any chart that agrees with ``exp`` to first
-    order gives the same ``H`` at a stationary point. Rank-deficient ``H`` (degenerate
-    geometry) gets the minimum-norm derivative.
+    derivative of the solution. ``H`` is held constant (its own derivative multiplies
+    ``g = 0``), and any chart that agrees with ``exp`` to first order gives the same ``H``
+    at a stationary point. Rank-deficient ``H`` (degenerate geometry) gets the minimum-norm
+    derivative.
     """
-    pose = jax.lax.stop_gradient(pose)
-    pairs = jax.lax.stop_gradient(pairs)
+    pose = SE3(params)
+    zero = jnp.zeros(6, params.dtype)
+    diff, static = eqx.partition(primals, eqx.is_inexact_array)
+    # Symbolic-zero (None) tangents of differentiable leaves become explicit zeros.
+    t_diff = jax.tree.map(
+        lambda p, t: None if p is None else (jnp.zeros_like(p) if t is None else t),
+        diff,
+        tangents,
+        is_leaf=lambda x: x is None,
+    )
 
-    def f(delta, prob):
-        return _objective(prob, opts, pose @ _chart(delta), pairs)
+    def objective(delta, data):
+        problem, opts = eqx.combine(data, static)
+        return _objective(problem, opts, pose @ _chart(delta), pairs)
 
-    zero = jnp.zeros(6, problem.source.dtype)
-    grad = jax.grad(f)(zero, problem)
-    hess = jax.lax.stop_gradient(jax.hessian(f)(zero, problem))
-    step, _ = _pinv_solve(hess, -grad)
-    return pose @ _chart(step - jax.lax.stop_gradient(step))
+    _, d_grad = jax.jvp(lambda data: jax.grad(objective)(zero, data), (diff,), (t_diff,))
+    hess = jax.hessian(objective)(zero, diff)
+    step, _ = _pinv_solve(hess, -d_grad)
+    _, d_params = jax.jvp(lambda d: (pose @ _chart(d)).wxyz_xyz, (zero,), (step,))
+    return params, d_params
 
 
 def _as_pose(init, dtype) -> SE3:
