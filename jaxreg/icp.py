@@ -34,7 +34,8 @@ is kept and the status says why.
 Gradients: the returned pose is differentiable with respect to the source and target
 points, target normals, source weights and the kernel scale by the implicit function
 theorem at the converged fixed point with correspondences held fixed, not by unrolling
-the iterations (see :func:`_implicit_pose`).
+the iterations, and computed only when something differentiates (a custom JVP rule,
+:func:`_converged_jvp`).
 
 Nearest neighbours come from a :class:`jaxreg.neighbors.NeighborGrid` built once per target
 on the host (pass ``neighbors=`` to reuse one across calls). When the target is traced (under
