@@ -47,6 +47,16 @@ def check_exact(grid, queries, points, r, atol):
     return valid
 
 
+def check_distances(grid, queries, points, r):
+    """Validity and distances exactly as brute force (no query near the radius); returns
+    the grid's and the reference's indices and the validity, for tie-aware checks."""
+    idx, d2, valid = (np.asarray(a) for a in query_nearest(grid, queries))
+    ref_idx, ref_d2 = brute_nearest(queries, points)
+    assert np.array_equal(valid, ref_d2 <= r * r)
+    np.testing.assert_allclose(d2[valid], ref_d2[valid], rtol=1e-4, atol=1e-10)
+    return idx, ref_idx, valid
+
+
 @pytest.mark.parametrize("r", [0.01, 0.03])
 def test_grid_nearest_is_exact_on_surfaces(dtype, r):
     rng = np.random.default_rng(0)
@@ -124,10 +134,7 @@ def test_deep_refinement_and_duplicate_points_stay_exact():
     queries = (points[::3] + rng.normal(0, 0.01, (len(points[::3]), 3))).astype(np.float32)
     grid = build_grid(points, 0.03, capacity=40)
     assert grid.depth >= 2 and not bool(grid.overflow)
-    idx, d2, valid = (np.asarray(a) for a in query_nearest(grid, queries))
-    ref_idx, ref_d2 = brute_nearest(queries, points)
-    assert np.array_equal(valid, ref_d2 <= 0.03**2)
-    np.testing.assert_allclose(d2[valid], ref_d2[valid], rtol=1e-4, atol=1e-9)
+    idx, ref_idx, valid = check_distances(grid, queries, points, 0.03)
     # Ties among the copies go either way; the point returned is the same.
     np.testing.assert_allclose(points[idx[valid]], points[ref_idx[valid]], atol=1e-6)
 
@@ -152,10 +159,7 @@ def test_lattice_target_with_points_on_cell_boundaries_is_exact():
     ).astype(np.float32)
     grid = build_grid(points, 0.02, capacity=16)
     assert grid.depth >= 1 and not bool(grid.overflow)
-    idx, d2, valid = (np.asarray(a) for a in query_nearest(grid, queries))
-    _, ref_d2 = brute_nearest(queries, points)
-    assert np.array_equal(valid, ref_d2 <= 0.02**2)
-    np.testing.assert_allclose(d2[valid], ref_d2[valid], rtol=1e-4, atol=1e-10)
+    check_distances(grid, queries, points, 0.02)
 
 
 def test_query_radius_argument_tightens_and_is_clipped():
