@@ -207,17 +207,6 @@ def _keeps(x, p, lx, ly, lz, edge, margin, r2, wd, neg, level) -> bool:
 
 
 @numba.njit(**_CACHE)
-def _compact(buf, offsets, counts):
-    """Concatenates the runs ``buf[offsets[i] : offsets[i] + counts[i]]``."""
-    out = np.empty(counts.sum(), np.int64)
-    total = 0
-    for i in range(counts.size):
-        out[total : total + counts[i]] = buf[offsets[i] : offsets[i] + counts[i]]
-        total += counts[i]
-    return out
-
-
-@numba.njit(**_CACHE)
 def top_level_nodes(x, cell, dims, h, margin, r2, wd, neg, level):
     """Candidates of every top-level cell within the 27-cell stencil of an occupied one.
 
@@ -245,34 +234,25 @@ def top_level_nodes(x, cell, dims, h, margin, r2, wd, neg, level):
                     around[m] = (ax * d1 + ay) * d2 + az
                     m += 1
     node_top = np.unique(around[:m])
-    num = node_top.size
-    # Each node scans the points of its 27 cells; the cells along z are one sorted run.
-    bound = np.zeros(num, np.int64)
-    for i in range(num):
-        c = node_top[i]
-        cx, cy, cz = c // (d1 * d2), (c // d2) % d1, c % d2
-        for ax in range(max(cx - 1, 0), min(cx + 2, dims[0])):
-            for ay in range(max(cy - 1, 0), min(cy + 2, d1)):
-                k = (ax * d1 + ay) * d2
-                bound[i] += start[k + min(cz + 2, d2)] - start[k + max(cz - 1, 0)]
-    offsets = np.cumsum(bound) - bound
-    buf = np.empty(bound.sum(), np.int64)
-    counts = np.zeros(num, np.int64)
-    for i in range(num):
+    counts = np.zeros(node_top.size, np.int64)
+    pid = np.empty(27 * cell.shape[0], np.int64)  # a point lies in at most 27 stencils
+    total = 0
+    for i in range(node_top.size):
         c = node_top[i]
         cx, cy, cz = c // (d1 * d2), (c // d2) % d1, c % d2
         lx, ly, lz = cx * h, cy * h, cz * h
-        kept = 0
+        before = total
         for ax in range(max(cx - 1, 0), min(cx + 2, dims[0])):
             for ay in range(max(cy - 1, 0), min(cy + 2, d1)):
+                # The cells along z are consecutive keys: one sorted run.
                 k = (ax * d1 + ay) * d2
                 for j in range(start[k + max(cz - 1, 0)], start[k + min(cz + 2, d2)]):
                     p = order[j]
                     if _keeps(x, p, lx, ly, lz, h, margin, r2, wd, neg, level):
-                        buf[offsets[i] + kept] = p
-                        kept += 1
-        counts[i] = kept
-    return node_top, counts, _compact(buf, offsets, counts)
+                        pid[total] = p
+                        total += 1
+        counts[i] = total - before
+    return node_top, counts, pid[:total]
 
 
 @numba.njit(**_CACHE)
@@ -290,26 +270,23 @@ def split_nodes(x, corner, counts, pid, split, edge, margin, r2, wd, neg, level)
     """
     starts = np.cumsum(counts) - counts
     parents = np.flatnonzero(split)
-    # Child (rank, octant) writes its candidates into a run as long as its parent's list.
-    bound = np.repeat(counts[parents], 8)
-    offsets = np.cumsum(bound) - bound
-    buf = np.empty(bound.sum(), np.int64)
-    out_counts = np.zeros(bound.size, np.int64)
+    out_counts = np.zeros(8 * parents.size, np.int64)
+    out = np.empty(8 * counts[parents].sum(), np.int64)
+    total = 0
     for rank in range(parents.size):
         a = parents[rank]
         for octant in range(8):
-            child = 8 * rank + octant
             lx = (2 * corner[a, 0] + ((octant >> 2) & 1)) * edge
             ly = (2 * corner[a, 1] + ((octant >> 1) & 1)) * edge
             lz = (2 * corner[a, 2] + (octant & 1)) * edge
-            kept = 0
+            before = total
             for j in range(starts[a], starts[a] + counts[a]):
                 p = pid[j]
                 if _keeps(x, p, lx, ly, lz, edge, margin, r2, wd, neg, level):
-                    buf[offsets[child] + kept] = p
-                    kept += 1
-            out_counts[child] = kept
-    return out_counts, _compact(buf, offsets, out_counts)
+                    out[total] = p
+                    total += 1
+            out_counts[8 * rank + octant] = total - before
+    return out_counts, out[:total]
 
 
 @numba.njit(**_CACHE)

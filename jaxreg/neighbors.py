@@ -108,6 +108,7 @@ __all__ = [
     "query_nearest",
     "query_radius",
     "radius_search",
+    "valid_rows",
     "voxel_downsample",
 ]
 
@@ -203,7 +204,25 @@ def _bucket(n: int) -> int:
     return 1 << max(6, max(0, int(n) - 1).bit_length())
 
 
-def _levels_nearest(x, cell, dims, h, margin, r2, leaf_target, max_depth, max_map, max_pairs):
+def _split_plan(node_top, counts, level, map_size, leaf_target, max_depth, max_map, max_pairs):
+    """Which nodes of this level to split, or ``None`` when refinement stops here.
+
+    Nodes with more than ``leaf_target`` candidates split unless ``level`` is ``max_depth``
+    or the split would grow ``leaf_map`` (now ``map_size`` entries) past ``max_map`` or the
+    next level's pairs past ``max_pairs``. Returns ``(split (L,), deeper, grow)``: the
+    top-level cells that gain a level and the ``leaf_map`` entries that costs.
+    """
+    split = counts > leaf_target
+    if level == max_depth or not split.any():
+        return None
+    deeper = np.unique(node_top[split])
+    grow = len(deeper) * 7 * 8**level
+    if map_size + grow > max_map or 8 * int(counts[split].sum()) > max_pairs:
+        return None
+    return split, deeper, grow
+
+
+def _levels_nearest(x, cell, dims, h, margin, r2, *budget):
     """Leaf nodes and candidate pairs for ``k == 1`` (see :mod:`jaxreg._octree`).
 
     ``x`` is float64 relative to the grid origin. Returns ``(levels, cell_depth)``, with per
@@ -221,16 +240,12 @@ def _levels_nearest(x, cell, dims, h, margin, r2, leaf_target, max_depth, max_ma
     map_size = len(node_top)
     level = 0
     while True:
-        split = counts > leaf_target
-        stop = level == max_depth or not split.any()
-        if not stop:
-            deeper = np.unique(node_top[split])
-            grow = len(deeper) * 7 * 8**level
-            stop = map_size + grow > max_map or 8 * int(counts[split].sum()) > max_pairs
+        plan = _split_plan(node_top, counts, level, map_size, *budget)
         node = np.repeat(np.arange(len(counts)), counts)
-        if stop:
+        if plan is None:
             levels.append((node_top, node_sub, node, pid))
             return levels, cell_depth
+        split, deeper, grow = plan
         map_size += grow
         cell_depth[deeper] = level + 1
         leaf = ~split[node]
@@ -273,7 +288,7 @@ def _prune_kth(b: list[np.ndarray], lens: np.ndarray, size, r2, k: int | None) -
     return keep
 
 
-def _levels_general(x, cell, dims, h, margin, r2, k, leaf_target, max_depth, max_map, max_pairs):
+def _levels_general(x, cell, dims, h, margin, r2, k, *budget):
     """Leaf nodes and candidate pairs for ``k > 1`` or radius grids (``k=None``), in node-major
     order built from a cell-sorted copy of the points (no pair sort). Same output as
     :func:`_levels_nearest`."""
@@ -312,15 +327,11 @@ def _levels_general(x, cell, dims, h, margin, r2, k, leaf_target, max_depth, max
         node = np.repeat(np.arange(len(lens)), lens)[keep]
         pid, b = pid[keep], [bi[keep] for bi in b]
         counts = np.bincount(node, minlength=len(lens))
-        split = counts > leaf_target
-        stop = level == max_depth or not split.any()
-        if not stop:
-            deeper = np.unique(node_top[split])
-            grow = len(deeper) * 7 * 8**level
-            stop = map_size + grow > max_map or 8 * int(counts[split].sum()) > max_pairs
-        if stop:
+        plan = _split_plan(node_top, counts, level, map_size, *budget)
+        if plan is None:
             levels.append((node_top, node_sub, node, pid))
             return levels, cell_depth
+        split, deeper, grow = plan
         map_size += grow
         cell_depth[deeper] = level + 1
         on_split = split[node]
@@ -730,6 +741,21 @@ def query_radius(
 # Blocked brute force (jittable with the target traced; the reference).
 
 
+def valid_rows(points: Array, mask: ArrayLike | None) -> Bool[Array, " M"]:
+    """``(M,)`` rows of ``points (M, 3)`` that are finite and, when given, set in ``mask``.
+
+    Raises:
+        ValueError: ``mask`` is not ``(M,)``.
+    """
+    ok = jnp.all(jnp.isfinite(points), axis=-1)
+    if mask is None:
+        return ok
+    mask = jnp.asarray(mask)
+    if mask.shape != ok.shape:
+        raise ValueError(f"mask must be ({ok.shape[0]},), got {mask.shape}")
+    return ok & mask
+
+
 def _brute_setup(queries, points, mask, block):
     queries = _check_queries(queries)
     points = jnp.asarray(points)
@@ -737,12 +763,7 @@ def _brute_setup(queries, points, mask, block):
         raise ValueError(f"points must be (M, 3), got {points.shape}")
     m = points.shape[0]
     dtype = jnp.result_type(queries.dtype, points.dtype)
-    ok = jnp.all(jnp.isfinite(points), axis=-1)
-    if mask is not None:
-        mask = jnp.asarray(mask)
-        if mask.shape != (m,):
-            raise ValueError(f"mask must be ({m},), got {mask.shape}")
-        ok = ok & mask
+    ok = valid_rows(points, mask)
     # Centre at the valid points' mean: the screening product then loses little to rounding.
     count = ok.sum()
     centre = jnp.where(ok[:, None], points, 0).sum(0) / jnp.maximum(count, 1)

@@ -26,7 +26,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._octree import self_knn
-from .neighbors import knn
+from .neighbors import knn, valid_rows
 
 __all__ = ["NormalEstimate", "NormalStatus", "estimate_normals", "estimate_normals_with_curvature"]
 
@@ -161,12 +161,7 @@ def estimate_normals_with_curvature(
     if not jnp.issubdtype(points.dtype, jnp.floating):
         points = points.astype(jnp.result_type(float))
     n = points.shape[0]
-    ok = jnp.all(jnp.isfinite(points), axis=-1)
-    if mask is not None:
-        mask = jnp.asarray(mask)
-        if mask.shape != (n,):
-            raise ValueError(f"mask must be ({n},), got {mask.shape}")
-        ok = ok & mask
+    ok = valid_rows(points, mask)
     if neighbors is None:
         if k < 1:
             raise ValueError(f"k must be positive, got {k}")
