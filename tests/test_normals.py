@@ -103,7 +103,7 @@ def test_grid_neighbours_give_the_same_normals():
         normals_of(points, neighbors=(idx[:5], ok[:5]))
 
 
-def test_concrete_clouds_use_the_grid_with_the_same_result():
+def test_concrete_clouds_use_host_knn_with_the_same_result():
     rng = np.random.default_rng(5)
     d = rng.normal(size=(800, 3))
     points = np.array([0.0, 0.1, 0.6]) + 0.08 * d / np.linalg.norm(d, axis=1, keepdims=True)
@@ -112,11 +112,24 @@ def test_concrete_clouds_use_the_grid_with_the_same_result():
     points[7] = np.nan
     mask = np.ones(800, bool)
     mask[[3, 4]] = False
-    eager = estimate_normals_with_curvature(points, 12, mask=mask)  # grid on the host
+    eager = estimate_normals_with_curvature(points, 12, mask=mask)  # kNN on the host
     traced = estimate(points, 12, mask=mask)  # brute force under jit
     for a, b in zip(jax.tree.leaves(eager), jax.tree.leaves(traced), strict=True):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-5)
     assert not np.asarray(eager.valid)[[3, 4, 7]].any()
+
+
+def test_concrete_bad_clouds_are_flagged_on_the_host_path():
+    nan = np.full((6, 3), np.nan, np.float32)
+    est = estimate_normals_with_curvature(nan, 4)
+    assert bool((est.status == NormalStatus.invalid_point).all())
+    np.testing.assert_array_equal(np.asarray(est.normals), 0.0)
+    pair = np.array([[0, 0, 1.0], [0.01, 0, 1.0]], np.float32)  # fewer points than k
+    est = estimate_normals_with_curvature(pair, 5)
+    assert bool((est.status == NormalStatus.too_few_neighbors).all())
+    np.testing.assert_array_equal(np.asarray(est.num_neighbors), 2)
+    with pytest.raises(ValueError, match="mask must be"):
+        estimate_normals_with_curvature(pair, 5, mask=np.ones(3, bool))
 
 
 def test_vmap_over_clouds():
