@@ -46,7 +46,12 @@ from jaxreg.lie import (
     rotation_grid_around as rotation_grid_around,
     se3_exp as se3_exp,
 )
-from jaxreg.neighbors import voxel_downsample as voxel_downsample
+from jaxreg.neighbors import (
+    NeighborGrid as NeighborGrid,
+    build_grid as build_grid,
+    validate_grid as validate_grid,
+    voxel_downsample as voxel_downsample,
+)
 from jaxreg.normals import estimate_normals as estimate_normals
 from jaxreg.pnp import (
     PlanarPnPResult as PlanarPnPResult,

@@ -109,6 +109,7 @@ __all__ = [
     "query_radius",
     "radius_search",
     "valid_rows",
+    "validate_grid",
     "voxel_downsample",
 ]
 
@@ -562,6 +563,68 @@ def build_grid(
         )
     )
     return NeighborGrid(*arrays, k=k)
+
+
+def validate_grid(grid: NeighborGrid, target: ArrayLike, max_distance: ArrayLike) -> None:
+    """Checks on the host that ``grid`` can answer queries against ``target`` exactly.
+
+    A grid's indices refer to the rows of the target it was built on, and its answers are
+    exact only within ``grid.max_distance`` and without ``overflow``; a grid that fails any
+    of these gives plausible but wrong neighbours, so callers that accept a prebuilt grid
+    (ICP's ``neighbors=``) check it here before use. The coordinate check compares every
+    filled candidate slot with ``target`` (vectorised numpy, O(leaves x capacity)).
+
+    Values cannot be inspected under ``jit``: checks whose inputs are traced are skipped, so
+    call this before entering ``jit`` (the shapes are still checked).
+
+    Args:
+        grid: from :func:`build_grid`.
+        target: ``(M, 3)`` the target the caller will match against.
+        max_distance: the largest query radius the caller will use (ICP: the largest
+            ``max_correspondence_distance`` of its schedule); a scalar or an array of radii.
+
+    Raises:
+        ValueError: ``target`` is not ``(M, 3)``; the grid was built on another target
+            (row count or candidate coordinates differ); ``grid.max_distance`` is smaller
+            than ``max_distance``; or ``grid.overflow`` is set.
+    """
+    shape = np.shape(target)
+    if len(shape) != 2 or shape[1] != 3:
+        raise ValueError(f"target must be (M, 3), got shape {shape}")
+
+    def concrete(*xs) -> bool:
+        return not any(isinstance(x, jax.core.Tracer) for x in xs)
+
+    if concrete(grid.num_points) and int(grid.num_points) != shape[0]:
+        raise ValueError(
+            f"the grid was built on a target of {int(grid.num_points)} rows, not this one "
+            f"({shape[0]} rows): build it with build_grid(target, ...) on this target"
+        )
+    if concrete(grid.candidate_index, grid.candidate_points, target):
+        index = np.asarray(grid.candidate_index)
+        coords = np.asarray(grid.candidate_points)
+        filled = index < shape[0]
+        stored = coords[:, filled].T
+        expected = np.asarray(target)[index[filled]].astype(coords.dtype)
+        if not np.array_equal(stored, expected):
+            raise ValueError(
+                "the grid was built on another target (its candidate coordinates differ "
+                "from target's rows): build it with build_grid(target, ...) on this target"
+            )
+    if concrete(grid.max_distance, max_distance):
+        dtype = np.asarray(grid.max_distance).dtype
+        needed = np.max(np.asarray(max_distance, dtype))
+        if needed > np.asarray(grid.max_distance):
+            raise ValueError(
+                f"the grid is exact within {float(grid.max_distance):g} but queries reach "
+                f"{float(needed):g}: rebuild it with build_grid(target, max_distance="
+                f"{float(needed):g})"
+            )
+    if concrete(grid.overflow) and bool(grid.overflow):
+        raise ValueError(
+            "the grid overflowed (a leaf had more candidates than its capacity), so its "
+            "queries may be inexact: rebuild it with capacity=None or a larger capacity"
+        )
 
 
 # --------------------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ from jaxreg.neighbors import (
     query_nearest,
     query_radius,
     radius_search,
+    validate_grid,
     voxel_downsample,
 )
 
@@ -325,6 +326,46 @@ def test_build_grid_rejects_bad_input():
         jax.jit(lambda p: build_grid(p, 0.1).origin)(points)
     with pytest.raises(ValueError, match=r"\(N, 3\)"):
         query_nearest(build_grid(points, 0.1), np.zeros((2, 5, 3)))
+
+
+def test_validate_grid_accepts_the_grid_of_this_target():
+    points = surface_cloud(np.random.default_rng(11), 600).astype(np.float32)
+    points[5] = np.nan  # a hole: never a candidate, so it never breaks the comparison
+    grid = build_grid(points, 0.05)
+    validate_grid(grid, points, 0.05)
+    validate_grid(grid, points.astype(np.float64), np.array([0.05, 0.02, 0.01]))
+    validate_grid(build_grid(np.float64(points), 0.02), points, 0.02)  # 0.02 is not a float32
+
+
+def test_validate_grid_rejects_a_grid_of_another_target():
+    rng = np.random.default_rng(12)
+    points = surface_cloud(rng, 600).astype(np.float32)
+    grid = build_grid(points, 0.05)
+    with pytest.raises(ValueError, match="600 rows, not this one"):
+        validate_grid(grid, points[:-1], 0.05)
+    moved = points.copy()
+    moved[rng.integers(0, 600)] += 1e-3  # same row count, one point moved
+    with pytest.raises(ValueError, match="another target"):
+        validate_grid(grid, moved, 0.05)
+    with pytest.raises(ValueError, match="another target"):
+        validate_grid(grid, points[::-1], 0.05)
+
+
+def test_validate_grid_rejects_a_grid_smaller_than_the_queries():
+    points = surface_cloud(np.random.default_rng(13), 600)
+    grid = build_grid(points, 0.02)
+    with pytest.raises(ValueError, match="max_distance=0.05"):
+        validate_grid(grid, points, 0.05)
+    with pytest.raises(ValueError, match="queries reach 0.03"):
+        validate_grid(grid, points, np.array([0.03, 0.01]))
+
+
+def test_validate_grid_rejects_an_overflowed_grid():
+    points = surface_cloud(np.random.default_rng(14), 900)
+    grid = build_grid(points, 0.05, capacity=2, max_depth=0)
+    assert bool(grid.overflow)
+    with pytest.raises(ValueError, match="overflowed"):
+        validate_grid(grid, points, 0.05)
 
 
 def test_voxel_downsample_centroids():
