@@ -14,10 +14,11 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Int
 
-__all__ = ["AbstractResult"]
+__all__ = ["AbstractResult", "select_status"]
 
 
 class AbstractResult(eqx.Module):
@@ -51,3 +52,16 @@ class AbstractResult(eqx.Module):
         codes = np.asarray(self.status._value)
         messages = np.asarray(self.status._enumeration._index_to_message, dtype=object)
         return str(messages[codes]) if codes.ndim == 0 else messages[codes]
+
+
+def select_status(cases, default) -> eqx.Enumeration:
+    """Elementwise status over batch axes: the member of the first true condition, else
+    ``default``.
+
+    ``cases`` is a sequence of ``(condition, member)`` with boolean ``(...)`` conditions and
+    members of one ``equinox.Enumeration``; ``Enumeration.where`` takes only a scalar
+    predicate, which suits code written per problem and vmapped, this batched code.
+    """
+    conditions = [jnp.asarray(c) for c, _ in cases]
+    code = jnp.select(conditions, [m._value for _, m in cases], default._value)
+    return type(default)(_value=code, _enumeration=default._enumeration)

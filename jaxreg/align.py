@@ -34,36 +34,61 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 from jaxlie import SE3, SO3
-from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from jaxreg._result import AbstractResult, select_status
 from jaxreg.lie import procrustes_quaternion_matrix, top_eigenpair
 
-__all__ = ["Alignment", "align", "kabsch", "umeyama"]
+__all__ = ["Alignment", "AlignmentStatus", "align", "kabsch", "umeyama"]
 
 
-class Alignment(eqx.Module):
+class AlignmentStatus(eqx.Enumeration):
+    """Outcome of :func:`align`; each member's value is the message a user needs."""
+
+    success = "success: the rotation and translation are unique"
+    too_few_correspondences = (
+        "fewer than 3 correspondences with positive weight and finite coordinates: a rigid "
+        "transform needs 3 non-collinear pairs (check the weights and NaN rows)"
+    )
+    degenerate = (
+        "degenerate geometry: the source or target points are collinear or coincident, so the "
+        "rotation about their line is unobservable"
+    )
+    ambiguous_rotation = (
+        "the optimal rotation is not unique (Horn's top eigenvalue is repeated): a symmetric "
+        "or reflected configuration; add points that break the symmetry"
+    )
+
+
+class Alignment(AbstractResult):
     """Result of :func:`align`; every field carries the problem's batch axes ``(...)``.
 
     Attributes:
-        pose: ``SE3`` mapping source into destination coordinates (``dst ~ scale * R src + t``;
+        pose: ``SE3`` mapping source into target coordinates (``target ~ scale * R source + t``;
             with a scale, ``pose`` holds ``R`` and ``t``).
+        status: :class:`AlignmentStatus` of each problem.
+        converged: ``(...)`` ``status == success`` (a closed form has nothing else to converge).
+        iterations: ``(...)`` always 0 (closed form); present so every result reads alike.
         scale: ``(...)`` similarity scale (exactly 1 for Kabsch).
         weight_sum: ``(...)`` total weight of the finite rows used.
         count: ``(...)`` number of rows with positive weight.
         rms: ``(...)`` weighted RMS residual of the aligned sets.
         eigengap: ``(...)`` relative gap between the top two eigenvalues of Horn's matrix, in
             ``[0, 2]``; 0 means the optimal rotation is not unique.
-        collinear: ``(...)`` source or destination points lie on a line (rotation about it
+        collinear: ``(...)`` source or target points lie on a line (rotation about it
             is unobservable).
         planar: ``(...)`` source points lie on a plane. Informational: three non-collinear
             points fix a rotation, but planar scenes are where the SVD gradient fails.
         degenerate: ``(...)`` fewer than 3 weighted rows, collinear geometry, or a
-            non-unique rotation. The pose is then not trustworthy (identity when there is
-            no weight at all) and its gradient is cut to zero along the unobservable
-            directions.
+            non-unique rotation (any status but ``success``). The pose is then not
+            trustworthy (identity when there is no weight at all) and its gradient is cut to
+            zero along the unobservable directions.
     """
 
     pose: SE3
+    status: AlignmentStatus
+    converged: Bool[Array, "..."]
+    iterations: Int[Array, "..."]
     scale: Float[Array, "..."]
     weight_sum: Float[Array, "..."]
     count: Float[Array, "..."]
@@ -94,10 +119,10 @@ def _check_shapes(src, dst, weights):
     src = jnp.asarray(src)
     dst = jnp.asarray(dst)
     if src.ndim < 2 or src.shape[-1] != 3:
-        raise ValueError(f"src must have shape (..., N, 3), got {src.shape}")
+        raise ValueError(f"source must have shape (..., N, 3), got {src.shape}")
     if dst.shape[-2:] != src.shape[-2:]:
         raise ValueError(
-            f"src and dst must be matched row for row: got {src.shape} and {dst.shape}"
+            f"source and target must be matched row for row: got {src.shape} and {dst.shape}"
         )
     if src.shape[-2] < 3:
         raise ValueError(f"a rigid alignment needs at least 3 correspondences, got {src.shape[-2]}")
@@ -195,31 +220,35 @@ def _fit(
 
 @eqx.filter_jit
 def align(
-    src: Float[ArrayLike, "... N 3"],
-    dst: Float[ArrayLike, "... N 3"],
+    source: Float[ArrayLike, "... N 3"],
+    target: Float[ArrayLike, "... N 3"],
     weights: Float[ArrayLike, "... N"] | None = None,
     *,
     with_scale: bool = False,
 ) -> Alignment:
-    """Weighted least-squares rigid (or similarity) transform from ``src`` to ``dst``.
+    """Weighted least-squares rigid (or similarity) transform from ``source`` to ``target``.
 
     Args:
-        src: ``(..., N, 3)`` source points; row ``i`` corresponds to row ``i`` of ``dst``.
-        dst: ``(..., N, 3)`` destination points (batch axes broadcast against ``src``).
+        source: ``(..., N, 3)`` source points; row ``i`` corresponds to row ``i`` of ``target``.
+        target: ``(..., N, 3)`` target points (batch axes broadcast against ``source``).
         weights: optional ``(..., N)`` non-negative weights (negative values count as 0).
             Zero-weight rows are padding. Defaults to 1.
         with_scale: also estimate a similarity scale (Umeyama).
 
     Returns:
-        An :class:`Alignment` with the pose, scale, residual and degeneracy signals.
+        An :class:`Alignment` with the pose, scale, residual, status and degeneracy signals.
+
+    Raises:
+        ValueError: malformed shapes, or fewer than 3 rows (a static count; fewer than 3
+            *weighted* rows is the status ``too_few_correspondences``).
     """
-    src, dst, weights = _check_shapes(src, dst, weights)
-    finite = jnp.all(jnp.isfinite(src) & jnp.isfinite(dst), axis=-1)
+    source, target, weights = _check_shapes(source, target, weights)
+    finite = jnp.all(jnp.isfinite(source) & jnp.isfinite(target), axis=-1)
     w = jnp.where(finite & (weights > 0), weights, 0.0)
-    shape = jnp.broadcast_shapes(src.shape, dst.shape, w[..., None].shape)
-    src, dst = jnp.broadcast_to(src, shape), jnp.broadcast_to(dst, shape)
+    shape = jnp.broadcast_shapes(source.shape, target.shape, w[..., None].shape)
+    source, target = jnp.broadcast_to(source, shape), jnp.broadcast_to(target, shape)
     w = jnp.broadcast_to(w, shape[:-1])
-    fit = _fit(src, dst, w)
+    fit = _fit(source, target, w)
 
     rotation = fit.rotation
     if with_scale:
@@ -229,15 +258,19 @@ def align(
     translation = fit.mu_dst - scale[..., None] * rotation.apply(fit.mu_src)
     pose = SE3.from_rotation_and_translation(rotation, translation)
     used = (w > 0)[..., None]
-    a = jnp.where(used, src - fit.mu_src[..., None, :], 0.0)
-    b = jnp.where(used, dst - fit.mu_dst[..., None, :], 0.0)
+    a = jnp.where(used, source - fit.mu_src[..., None, :], 0.0)
+    b = jnp.where(used, target - fit.mu_dst[..., None, :], 0.0)
     rotated = jnp.einsum("...ij,...nj->...ni", rotation.as_matrix(), a)
     resid = scale[..., None, None] * rotated - b
     wn = w / jnp.where(fit.weight_sum > 0, fit.weight_sum, 1.0)[..., None]
     sq = jnp.einsum("...n,...nd->...", wn, resid * resid)
     rms = jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
+    status = _status(fit)
     return Alignment(
         pose=pose,
+        status=status,
+        converged=status == AlignmentStatus.success,
+        iterations=jnp.zeros(fit.count.shape, jnp.int32),
         scale=scale,
         weight_sum=fit.weight_sum,
         count=fit.count,
@@ -249,36 +282,48 @@ def align(
     )
 
 
+def _status(fit: _Fit) -> AlignmentStatus:
+    """The first failure that applies, in the order: weight, collinearity, uniqueness."""
+    return select_status(
+        [
+            (fit.count < 3, AlignmentStatus.too_few_correspondences),
+            (fit.collinear, AlignmentStatus.degenerate),
+            (fit.degenerate, AlignmentStatus.ambiguous_rotation),
+        ],
+        AlignmentStatus.success,
+    )
+
+
 def kabsch(
-    src: Float[ArrayLike, "... N 3"],
-    dst: Float[ArrayLike, "... N 3"],
+    source: Float[ArrayLike, "... N 3"],
+    target: Float[ArrayLike, "... N 3"],
     weights: Float[ArrayLike, "... N"] | None = None,
 ) -> SE3:
-    """Rigid transform minimising ``sum_i w_i ||R src_i + t - dst_i||^2``.
+    """Rigid transform minimising ``sum_i w_i ||R source_i + t - target_i||^2``.
 
     Args:
-        src: ``(..., N, 3)`` source points, row-matched to ``dst``.
-        dst: ``(..., N, 3)`` destination points.
+        source: ``(..., N, 3)`` source points, row-matched to ``target``.
+        target: ``(..., N, 3)`` target points.
         weights: optional ``(..., N)`` non-negative weights; zero rows are padding.
 
     Returns:
-        ``SE3`` with batch axes ``(...)`` mapping source into destination coordinates. It is
-        always a proper rotation. Callers that need the degeneracy signal (collinear points,
-        fewer than 3 weighted rows, non-unique rotation) use :func:`align`.
+        ``SE3`` with batch axes ``(...)`` mapping source into target coordinates. It is
+        always a proper rotation. Callers that need the status (collinear points, fewer than
+        3 weighted rows, non-unique rotation) use :func:`align`.
     """
-    return align(src, dst, weights).pose
+    return align(source, target, weights).pose
 
 
 def umeyama(
-    src: Float[ArrayLike, "... N 3"],
-    dst: Float[ArrayLike, "... N 3"],
+    source: Float[ArrayLike, "... N 3"],
+    target: Float[ArrayLike, "... N 3"],
     weights: Float[ArrayLike, "... N"] | None = None,
 ) -> tuple[SE3, Float[Array, "..."]]:
-    """Similarity transform minimising ``sum_i w_i ||c R src_i + t - dst_i||^2``.
+    """Similarity transform minimising ``sum_i w_i ||c R source_i + t - target_i||^2``.
 
     Returns:
         ``(pose, scale)``: ``pose`` holds ``R`` and ``t`` (batch axes ``(...)``) and ``scale``
-        is ``c`` with shape ``(...)``, so ``dst ~ scale * pose.rotation() @ src + t``.
+        is ``c`` with shape ``(...)``, so ``target ~ scale * pose.rotation() @ source + t``.
     """
-    result = align(src, dst, weights, with_scale=True)
+    result = align(source, target, weights, with_scale=True)
     return result.pose, result.scale

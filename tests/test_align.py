@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from jaxreg.align import align, kabsch, umeyama
+from jaxreg.align import Alignment, AlignmentStatus, align, kabsch, umeyama
 
 try:
     from scipy.spatial.transform import Rotation
@@ -123,6 +123,44 @@ def test_degeneracy_signals():
     plane = src * np.array([1.0, 1.0, 0.0], np.float32)
     res = align(plane, dst)
     assert bool(res.planar) and not bool(res.degenerate)
+
+
+def test_status_names_what_happened():
+    src, dst, _, _ = random_problem(3, (), n=10, dtype=np.float32)
+    ok = align(src, dst)
+    assert ok.status == AlignmentStatus.success and bool(ok.converged)
+    assert int(ok.iterations) == 0
+
+    two = align(src, dst, np.array([1, 1] + [0] * 8, np.float32))
+    assert two.status == AlignmentStatus.too_few_correspondences and not bool(two.converged)
+    assert "fewer than 3" in two.status_message()
+
+    line = np.outer(np.linspace(-1, 1, 10), [0.3, 0.2, 0.1]).astype(np.float32)
+    assert align(line, line + 1.0).status == AlignmentStatus.degenerate
+
+    # A mirror image of a cloud with two equal spreads: Horn's top eigenvalue is repeated,
+    # so a whole circle of rotations fits equally well.
+    axes = np.concatenate([np.eye(3), -np.eye(3)]) * np.array([3.0, 1.0, 1.0])
+    mirrored = axes * np.array([-1.0, 1.0, 1.0])
+    amb = align(axes.astype(np.float32), mirrored.astype(np.float32))
+    assert amb.status == AlignmentStatus.ambiguous_rotation and not bool(amb.converged)
+
+
+def test_batched_result_indexes_to_one_problem():
+    src, dst, _, _ = random_problem(4, (3,), n=10, dtype=np.float32)
+    weights = np.ones((3, 10), np.float32)
+    weights[1, 2:] = 0.0
+    batch = align(src, dst, weights)
+    assert batch.batch_shape == (3,)
+    one = batch[1]
+    assert isinstance(one, Alignment) and one.batch_shape == ()
+    assert one.status == AlignmentStatus.too_few_correspondences
+    np.testing.assert_array_equal(one.pose.wxyz_xyz, batch.pose.wxyz_xyz[1])
+    assert list(batch.status_message()) == [
+        batch[i].status_message() for i in range(3)
+    ]
+    with pytest.raises(IndexError, match="one problem"):
+        one[0]
 
 
 def test_nan_rows_are_masked_not_propagated():
