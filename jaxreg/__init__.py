@@ -19,7 +19,10 @@ from jaxreg.align import Alignment as Alignment, kabsch as kabsch, umeyama as um
 from jaxreg.icp import (
     ICPStatus as ICPStatus,
     RegistrationResult as RegistrationResult,
+    best_index as best_index,
     icp as icp,
+    icp_covariance as icp_covariance,
+    init_spread as init_spread,
     multistart_icp as multistart_icp,
     pca_inits as pca_inits,
     perturbed_inits as perturbed_inits,
@@ -74,7 +77,5 @@ from jaxreg.uncertainty import (
     error_budget as error_budget,
     grasp_margin as grasp_margin,
     grasp_success_probability as grasp_success_probability,
-    icp_covariance as icp_covariance,
-    init_spread as init_spread,
     pose_statistics as pose_statistics,
 )

@@ -1,10 +1,12 @@
-"""Pose uncertainty: closed-form ICP covariance, repeatability statistics, grasp success.
+"""Pose uncertainty: measurement noise models, repeatability statistics, grasp success.
 
 Three pieces that turn a registered pose into a grasp decision:
 
-* :func:`icp_covariance` predicts the covariance of a converged ICP pose from the noise of
-  the measured points (the sensitivity, or "Censi", covariance), and optionally adds the
-  spread that the uncertainty of the initial pose causes (:func:`init_spread`).
+* Noise models (:class:`IsotropicNoise`, :class:`PointCovariance`, :class:`DepthNoise` for
+  points lifted from a depth image through the hand-eye transform) give each point's
+  covariance and draw noisy copies for Monte Carlo studies. :func:`jaxreg.icp_covariance`
+  (in :mod:`jaxreg.icp`, beside the solver whose Hessian it shares) propagates them to the
+  covariance of a registered pose.
 * :func:`pose_statistics` measures the spread of repeated pose estimates: Karcher mean,
   per-axis sigma and bias, rotation spread as geodesic angles, symmetry canonicalisation,
   and the per-viewpoint clustering that betrays a hand-eye bias.
@@ -16,9 +18,6 @@ target/scene/base coordinates; tangents are jaxlie's ``(vx, vy, vz, wx, wy, wz)`
 covariances are of the *right* perturbation ``T_true = T_est @ exp(delta)``,
 ``delta ~ N(0, Sigma)``, so ``Sigma`` is expressed in the source (object) frame. Use
 :func:`jaxreg.lie.adjoint_transport` for the same covariance in the target frame.
-
-How far the closed form can be trusted, measured by Monte Carlo (``tests/test_uncertainty.py``,
-``paper_figs/fig_covariance_vs_monte_carlo.py``): see :func:`icp_covariance`.
 """
 
 from __future__ import annotations
@@ -32,8 +31,7 @@ import numpy as np
 from jaxlie import SE3
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg.icp import _chart, _correspond, _icp_options, _objective, _prepare, multistart_icp
-from jaxreg.lie import geodesic_angle, karcher_mean, se3_exp
+from jaxreg.lie import geodesic_angle, karcher_mean
 
 __all__ = [
     "AbstractPointNoise",
@@ -46,8 +44,6 @@ __all__ = [
     "error_budget",
     "grasp_margin",
     "grasp_success_probability",
-    "icp_covariance",
-    "init_spread",
     "pose_statistics",
 ]
 
@@ -196,244 +192,6 @@ class DepthNoise(AbstractPointNoise):
         return rot @ cov @ rot.T
 
 
-NoiseLike = AbstractPointNoise | float | None
-
-
-def _as_noise(noise, name: str) -> AbstractPointNoise | None:
-    if noise is None or isinstance(noise, AbstractPointNoise):
-        return noise
-    sigma = jnp.asarray(noise)
-    if sigma.ndim != 0:
-        raise ValueError(
-            f"{name} must be a scalar sigma (metres) or a noise model (IsotropicNoise, "
-            f"DepthNoise, PointCovariance), got an array of shape {sigma.shape}"
-        )
-    return IsotropicNoise(sigma)
-
-
-# --------------------------------------------------------------------------------------------
-# Closed-form covariance of a converged ICP pose.
-
-
-def _finite_rows(points: Array) -> Array:
-    return jnp.all(jnp.isfinite(points), axis=-1)
-
-
-@eqx.filter_jit
-def _sensitivity_covariance(problem, opts, pose, source_cov, target_cov):
-    """``H^+ (sum_i B_i C_i B_i^T) H^+`` with unobservable axes set to ``inf``."""
-    pose = SE3(pose.wxyz_xyz.astype(problem.source.dtype))
-    pairs = _correspond(problem, opts, pose, opts.distances[-1])
-
-    def objective(delta, source, target):
-        prob = eqx.tree_at(lambda p: (p.source, p.target), problem, (source, target))
-        return _objective(prob, opts, pose @ _chart(delta), pairs)
-
-    zero = jnp.zeros(6, problem.source.dtype)
-    hess = jax.hessian(objective)(zero, problem.source, problem.target)
-    # B = d(grad_delta F)/d(points): six reverse passes, one per pose axis, run one after
-    # the other. Not `jax.jacrev`: its vmapped scatter-add is miscompiled by XLA on CPU in
-    # float32 once the update count passes ~2^15 (wrong B, jax 0.10.2; a test guards it).
-    _, pullback = jax.vjp(
-        lambda s, t: jax.grad(objective)(zero, s, t), problem.source, problem.target
-    )
-    mixed_source, mixed_target = jax.lax.map(pullback, jnp.eye(6, dtype=zero.dtype))
-    spread = jnp.zeros((6, 6), zero.dtype)
-    if source_cov is not None:
-        spread += jnp.einsum("anj,njk,bnk->ab", mixed_source, source_cov, mixed_source)
-    if target_cov is not None:
-        spread += jnp.einsum("anj,njk,bnk->ab", mixed_target, target_cov, mixed_target)
-    lam, vec = jnp.linalg.eigh(hess)
-    rel = 1e-6 if hess.dtype == jnp.float64 else 1e-5
-    ok = lam > rel * jnp.maximum(lam[-1], jnp.finfo(lam.dtype).tiny)
-    inv = vec @ (jnp.where(ok, 1.0 / jnp.where(ok, lam, 1.0), 0.0)[:, None] * vec.T)
-    cov = inv @ spread @ inv
-    # Axes that take part in an unconstrained direction have no finite variance.
-    null_weight = jnp.sum(jnp.where(ok, 0.0, vec**2), axis=-1)
-    free = null_weight > 1e-4
-    cov = jnp.where(free[:, None] | free[None, :], jnp.inf, cov)
-    return 0.5 * (cov + cov.T)
-
-
-def icp_covariance(
-    source: Float[ArrayLike, "N 3"],
-    target: Float[ArrayLike, "M 3"],
-    pose: SE3,
-    *,
-    method: str = "point_to_point",
-    target_normals: Float[ArrayLike, "M 3"] | None = None,
-    point_sigma: Float[ArrayLike, ""] | None = None,
-    source_noise: NoiseLike = None,
-    target_noise: NoiseLike = None,
-    init_covariance: Float[ArrayLike, "6 6"] | None = None,
-    **icp_options,
-) -> Float[Array, "6 6"]:
-    """Covariance ``(6, 6)`` of a converged ICP pose under measurement noise.
-
-    At the converged ``pose`` the correspondences are recomputed exactly as :func:`icp`
-    forms them (nearest target point within the final ``max_correspondence_distance``, the
-    same trimming and kernel) and held fixed. The objective ``F(delta, z)`` (``z`` the point
-    coordinates, ``delta`` a right perturbation of ``pose``) is stationary in ``delta`` at
-    the solution, so by the implicit function theorem a measurement perturbation ``dz``
-    moves the solution by ``-H^-1 B dz`` with ``H = d^2F/d delta^2`` and
-    ``B = d^2F/(d delta dz)``. With independent point noise of covariances ``C_i``:
-
-        ``Sigma = H^-1 (sum_i B_i C_i B_i^T) H^-1``
-
-    (Censi's formula, here from automatic differentiation, so it holds for both methods,
-    robust kernels and trimming alike). Target normals are treated as exact.
-
-    How far it can be trusted, measured against Monte Carlo on PCL's milk.pcd (Kinect scan
-    re-measured with depth noise ``sigma_z = 2 mm * z^2`` along each camera ray and
-    re-registered with vmapped ICP; predicted / measured sigma per axis
-    ``(vx, vy, vz, wx, wy, wz)``, from ``paper_figs/fig_covariance_vs_monte_carlo.py``):
-
-    * point-to-plane, noisy scan registered to a 4 mm voxel model (300 draws):
-      0.95 0.91 0.95 0.93 0.95 0.86. Within 20% (a test checks it).
-    * point-to-plane, model registered to the noisy scan as target, normals re-estimated from
-      every noisy copy (100 draws): 0.85 0.87 0.79 0.83 0.69 0.86. The formula holds normals
-      fixed and sees no correspondence changes, so it is 15-30% optimistic here.
-    * point-to-point, same data as the first (300 draws): 0.61 0.60 0.70 0.65 0.63 0.20.
-      The closed form is overconfident by 30-40%, and fivefold about the axis the carton's
-      faces barely constrain: point-to-point's solution jumps between discrete
-      correspondence sets (a 4 mm target spacing against ~1.3 mm of noise), which a
-      linearisation with frozen matches cannot see. The gap widens, not narrows, with less
-      noise (ratios 0.1-0.5 at a tenth of it). Prefer point-to-plane for error bars.
-
-    Neither includes the spread from where ICP starts: on a resampled surface there are many
-    nearby fixed points, and the start picks one; ``init_covariance`` adds it.
-
-    Args:
-        source: ``(N, 3)`` source points (NaN rows ignored), as given to :func:`icp`.
-        target: ``(M, 3)`` target points (NaN rows ignored).
-        pose: the converged ``SE3`` source -> target (e.g. ``icp(...).pose``).
-        method: ``"point_to_point"`` or ``"point_to_plane"``.
-        target_normals: ``(M, 3)``, required for point-to-plane.
-        point_sigma: shorthand for isotropic noise of ``point_sigma`` metres per axis on
-            every point of *both* clouds; not allowed together with ``source_noise`` or
-            ``target_noise``.
-        source_noise, target_noise: the noise of each cloud: ``None`` (exact), a scalar
-            sigma (isotropic, metres) or a noise model (:class:`IsotropicNoise`,
-            :class:`DepthNoise` for lifted depth, :class:`PointCovariance`), in the frame
-            of that cloud.
-        init_covariance: ``(6, 6)`` covariance of the initial pose's right perturbation. When
-            given, :func:`init_spread` adds the spread of ICP re-run from 13 sigma points of
-            that Gaussian around ``pose`` (zero when every start converges to the same
-            pose; large when some fall into another basin).
-        **icp_options: the options the registration was run with (those of :func:`icp`:
-            ``max_correspondence_distance``, ``kernel``, ``trim_fraction``,
-            ``source_weights``, ``neighbors``, and for ``init_covariance`` also
-            ``max_iterations`` and ``tolerance``).
-
-    Returns:
-        ``(6, 6)`` covariance of the right perturbation of ``pose`` in jaxlie's tangent order
-        ``(vx, vy, vz, wx, wy, wz)`` (metres and radians, source frame). Axes that take part
-        in a direction the geometry leaves unconstrained (a plane or a cylinder for
-        point-to-plane, a sphere for both) have ``inf`` in their rows and columns.
-
-    Raises:
-        ValueError: bad shapes, an unknown method, no noise given, or ``point_sigma``
-            together with a per-cloud noise.
-    """
-    if point_sigma is not None:
-        if source_noise is not None or target_noise is not None:
-            raise ValueError(
-                "give either point_sigma (the same isotropic noise on both clouds) or "
-                "source_noise / target_noise, not both"
-            )
-        source_noise = target_noise = point_sigma
-    source_noise = _as_noise(source_noise, "source_noise")
-    target_noise = _as_noise(target_noise, "target_noise")
-    if source_noise is None and target_noise is None:
-        raise ValueError(
-            "icp_covariance needs a noise model: point_sigma, source_noise or target_noise"
-        )
-    if not isinstance(pose, SE3) or pose.get_batch_axes() != ():
-        raise ValueError("pose must be one jaxlie.SE3 (vmap icp_covariance for a batch)")
-    options = _icp_options(dict(icp_options, method=method, target_normals=target_normals))
-    problem, opts, *_ = _prepare(source, target, **options)
-
-    def noise_cov(noise, points, rows):
-        """Covariances of the finite rows of ``points``, zero elsewhere and on the rows
-        that ``_prepare`` may have appended as padding."""
-        if noise is None:
-            return None
-        points = jnp.asarray(points, problem.source.dtype)
-        ok = _finite_rows(points)
-        cov = noise.covariance(jnp.where(ok[:, None], points, 0.0))
-        cov = jnp.where(ok[:, None, None], cov, 0.0)
-        return jnp.pad(cov, ((0, rows - cov.shape[0]), (0, 0), (0, 0)))
-
-    cov = _sensitivity_covariance(
-        problem,
-        opts,
-        pose,
-        noise_cov(source_noise, source, problem.source.shape[0]),
-        noise_cov(target_noise, target, problem.target.shape[0]),
-    )
-    if init_covariance is not None:
-        cov = cov + init_spread(source, target, pose, init_covariance, **options)
-    return cov
-
-
-# --------------------------------------------------------------------------------------------
-# Spread from the initial pose's uncertainty.
-
-
-def _sigma_points(covariance: Array, kappa: float) -> tuple[Array, Array]:
-    """Unscented-transform points ``(2n+1, n)`` and weights ``(2n+1,)`` of ``N(0, cov)``."""
-    n = covariance.shape[-1]
-    lam, vec = jnp.linalg.eigh(covariance)
-    root = vec * jnp.sqrt(jnp.maximum(lam, 0.0) * (n + kappa))  # columns: scaled axes
-    points = jnp.concatenate([jnp.zeros((1, n), covariance.dtype), root.T, -root.T])
-    weights = jnp.concatenate(
-        [jnp.array([kappa / (n + kappa)]), jnp.full((2 * n,), 0.5 / (n + kappa))]
-    ).astype(covariance.dtype)
-    return points, weights
-
-
-def init_spread(
-    source: Float[ArrayLike, "N 3"],
-    target: Float[ArrayLike, "M 3"],
-    pose: SE3,
-    init_covariance: Float[ArrayLike, "6 6"],
-    *,
-    kappa: float = 1.0,
-    **icp_options,
-) -> Float[Array, "6 6"]:
-    """Covariance ``(6, 6)`` of ICP's result caused by an uncertain initial pose.
-
-    The initial pose is modelled as ``pose @ exp(d)``, ``d ~ N(0, init_covariance)`` (right
-    perturbation, jaxlie tangent order): the converged ``pose`` stands in for the truth. The
-    13 unscented sigma points ``d = 0, +-sqrt((6 + kappa) lambda_k) u_k`` (``lambda_k, u_k``
-    the eigenpairs of ``init_covariance``), with weights ``kappa / (6 + kappa)`` and
-    ``1 / (2 (6 + kappa))``, are registered in one vmapped call
-    (:func:`jaxreg.icp.multistart_icp`), and the weighted covariance of the results' right
-    perturbations ``log(pose^-1 @ T_j)`` is returned. Starts that converge to the same fixed
-    point add nothing; starts that stop early or fall into another basin add their spread,
-    which is the overconfidence a sensor-noise-only covariance hides.
-
-    Args:
-        source, target, pose: as for :func:`icp_covariance`.
-        init_covariance: ``(6, 6)`` PSD, metres and radians.
-        kappa: spread of the sigma points (``>= 0``); the default reaches
-            ``sqrt(7) = 2.6`` standard deviations along each principal axis.
-        **icp_options: options of :func:`icp` (method, target_normals, ...).
-    """
-    cov0 = jnp.asarray(init_covariance, pose.wxyz_xyz.dtype)
-    if cov0.shape != (6, 6):
-        raise ValueError(f"init_covariance must be (6, 6), got {cov0.shape}")
-    if kappa < 0:
-        raise ValueError(f"kappa must be >= 0, got {kappa}")
-    points, weights = _sigma_points(cov0, kappa)
-    starts = SE3(pose.wxyz_xyz[None]) @ se3_exp(points)
-    results = multistart_icp(source, target, starts, **icp_options)
-    deltas = (SE3(pose.wxyz_xyz[None]).inverse() @ results.pose).log()
-    mean = weights @ deltas
-    centred = deltas - mean
-    return jnp.einsum("s,si,sj->ij", weights, centred, centred)
-
-
 # --------------------------------------------------------------------------------------------
 # Repeatability statistics of a set of pose estimates.
 
@@ -479,7 +237,7 @@ class PoseStatistics(eqx.Module):
     target, frame): positions ``t_k`` of the object origin, and rotation vectors
     ``log(R_k R_mean^-1)`` (a left perturbation, about base axes). ``covariance`` instead
     follows jaxreg's convention (right perturbation, object frame) so that it can be set
-    beside :func:`icp_covariance`.
+    beside :func:`jaxreg.icp_covariance`.
 
     Attributes:
         mean: ``SE3``, Karcher mean of the canonicalised poses.

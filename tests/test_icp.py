@@ -10,6 +10,7 @@ from jaxlie import SE3, SO3
 
 from jaxreg.icp import (
     ICPStatus,
+    best_index,
     icp,
     multistart_icp,
     pca_inits,
@@ -19,7 +20,7 @@ from jaxreg.icp import (
 )
 from jaxreg.io import load_points
 from jaxreg.kernels import Tukey
-from jaxreg.neighbors import voxel_downsample
+from jaxreg.neighbors import build_grid, voxel_downsample
 from jaxreg.normals import estimate_normals
 
 try:
@@ -106,13 +107,14 @@ def test_multistart_escapes_the_wrong_basin_and_keeps_per_start_status():
     failed = np.asarray(results.status == ICPStatus.too_few_correspondences)
     np.testing.assert_array_equal(failed, [False] * 12 + [True])
     assert "fewer than 3 correspondences" in results.status_message()[12]
-    best = int(select_best(results))
-    best_pose = SE3(results.pose.wxyz_xyz[best])
-    assert rotation_error_deg(best_pose, r) < 1.0
+    assert not bool(results.converged[12])
+    best = select_best(results)
+    assert best.batch_shape == () and best.status == ICPStatus.success
+    assert rotation_error_deg(best.pose, r) < 1.0
+    index = int(best_index(results))
+    np.testing.assert_array_equal(best.pose.wxyz_xyz, results.pose.wxyz_xyz[index])
     single = icp(model, scene, SE3(inits.wxyz_xyz[2]), max_correspondence_distance=0.02)
-    np.testing.assert_allclose(
-        SE3(results.pose.wxyz_xyz[2]).as_matrix(), single.pose.as_matrix(), atol=1e-5
-    )
+    np.testing.assert_allclose(results[2].pose.as_matrix(), single.pose.as_matrix(), atol=1e-5)
 
 
 def test_init_as_matrix_and_distance_schedule():
@@ -174,7 +176,7 @@ def test_bad_input_gives_a_clear_error_or_status():
     assert np.all(np.isfinite(result.pose.wxyz_xyz))
 
     far = icp(model, scene, SE3.from_translation(jnp.array([3.0, 0.0, 0.0])))
-    assert far.status == ICPStatus.too_few_correspondences
+    assert far.status == ICPStatus.too_few_correspondences and not bool(far.converged)
     np.testing.assert_allclose(far.pose.translation(), [3.0, 0.0, 0.0])  # kept, flagged
 
     holes = model.copy()
@@ -185,7 +187,89 @@ def test_bad_input_gives_a_clear_error_or_status():
     line = np.outer(np.linspace(-0.05, 0.05, 50), [1.0, 0.5, 0.2]).astype(np.float32)
     degenerate = icp(line, line + 0.001, max_correspondence_distance=0.02)
     assert degenerate.status == ICPStatus.degenerate
+    assert not bool(degenerate.converged)  # the loop stopped, but the pose is not unique
     assert np.all(np.isfinite(degenerate.pose.wxyz_xyz))
+
+    bounded = icp(model, scene, max_correspondence_distance=0.02, max_iterations=2)
+    assert bounded.status == ICPStatus.max_iterations and not bool(bounded.converged)
+
+
+def test_a_kernel_that_weighs_every_pair_zero_is_named_not_called_degenerate():
+    """Tukey's weight is 0 beyond its scale: on a 2 cm lattice moved by 6 mm per axis every
+    point's match is its twin, 10.4 mm away: within the correspondence distance, but past a
+    1 mm scale, so no pair has weight."""
+    axis = np.arange(4, dtype=np.float32) * 0.02
+    model = np.stack(np.meshgrid(axis, axis, axis), -1).reshape(-1, 3)
+    result = icp(model, model + 0.006, kernel=Tukey(0.001))
+    assert result.status == ICPStatus.too_few_weighted_pairs
+    assert "kernel" in result.status_message()
+    assert not bool(result.converged) and int(result.iterations) == 0
+    np.testing.assert_array_equal(result.pose.wxyz_xyz, SE3.identity().wxyz_xyz)
+    assert float(result.inlier_fraction) == 1.0  # every pair is within the distance
+    plain = icp(model, model + 0.006, kernel=Tukey(0.05))  # a scale that fits the residuals
+    assert plain.status == ICPStatus.success
+    np.testing.assert_allclose(plain.pose.translation(), [0.006] * 3, atol=1e-5)
+
+
+def test_points_without_a_unit_normal_are_neither_matched_nor_counted():
+    """Point-to-plane against a box whose normals are zero (what estimate_normals returns where
+    a normal is undefined), unnormalised or NaN on three rows in four: only the fourth row
+    can be a match. With the source equal to the target and a distance below the point
+    spacing, each source point can match only its own twin."""
+    rng = np.random.default_rng(0)
+    half = np.array([0.03, 0.02, 0.015])
+    target = rng.uniform(-half, half, (800, 3))
+    axis = rng.integers(0, 3, 800)
+    target[np.arange(800), axis] = np.sign(rng.normal(size=800)) * half[axis]
+    normals = np.zeros_like(target)
+    normals[np.arange(800), axis] = np.sign(target[np.arange(800), axis])
+    normals[0::4] = 0.0
+    normals[1::4] *= 2.0
+    normals[2::4] = np.nan
+    target, normals = target.astype(np.float32), normals.astype(np.float32)
+    result = icp(
+        target,
+        target,
+        method="point_to_plane",
+        target_normals=normals,
+        max_correspondence_distance=1e-5,
+    )
+    assert result.status == ICPStatus.success
+    assert float(result.inlier_fraction) == 0.25 and int(result.num_inliers) == 200
+    matched = np.asarray(result.correspondences) < 800
+    np.testing.assert_array_equal(np.flatnonzero(matched), np.arange(3, 800, 4))
+    everything = icp(
+        target,
+        target,
+        method="point_to_plane",
+        target_normals=np.zeros_like(normals),
+        max_correspondence_distance=0.01,
+    )
+    assert everything.status == ICPStatus.too_few_correspondences
+    assert "unit normals" in everything.status_message()
+
+
+def test_a_grid_that_cannot_answer_for_this_target_raises():
+    model, scene, _ = lesson_cube(5.0)
+    with pytest.raises(ValueError, match="another target"):
+        icp(model, scene, neighbors=build_grid(scene + np.float32(0.001), 0.02))
+    with pytest.raises(ValueError, match="exact within 0.005 but queries reach 0.02"):
+        icp(model, scene, max_correspondence_distance=0.02, neighbors=build_grid(scene, 0.005))
+    schedule = np.geomspace(0.05, 0.01, 10)
+    with pytest.raises(ValueError, match="queries reach 0.05"):
+        icp(
+            model,
+            scene,
+            max_correspondence_distance=schedule,
+            max_iterations=10,
+            neighbors=build_grid(scene, 0.02),
+        )
+    overflowed = build_grid(scene, 0.02, capacity=1)
+    assert bool(overflowed.overflow)
+    with pytest.raises(ValueError, match="overflowed"):
+        icp(model, scene, neighbors=overflowed)
+    good = icp(model, scene, neighbors=build_grid(scene, 0.02))
+    assert good.status == ICPStatus.success
 
 
 def test_start_batch_is_sharded_over_devices():
@@ -343,7 +427,7 @@ def test_implicit_gradient_matches_finite_differences(method, x64):
 
 
 def test_results_are_unpadded_and_similar_clouds_share_one_compilation():
-    from jaxreg.icp import _icp_options, _prepare
+    from jaxreg._icp_setup import Settings, prepare
 
     model, scene, _ = lesson_cube(5.0)
     result = icp(model[:787], scene, max_correspondence_distance=0.02)
@@ -353,7 +437,7 @@ def test_results_are_unpadded_and_similar_clouds_share_one_compilation():
     np.testing.assert_array_equal(far.correspondences, len(scene))  # the sentinel is M
 
     def signature(source, target):
-        problem, opts, _ = _prepare(source, target, **_icp_options({}))
+        problem, opts, _ = prepare(source, target, Settings())
         leaves = jax.tree.leaves((problem, opts))
         return jax.tree.structure((problem, opts)), [(x.shape, x.dtype) for x in leaves]
 
@@ -365,17 +449,18 @@ def test_point_to_point_step_is_align_of_the_pairs():
     """The loop's Kabsch step skips align()'s input checks; on pairs as the loop forms them
     (weights, zero-weight rows, rows matched to nothing or to target padding) it gives
     align()'s pose and degeneracy flag, including the degenerate and weightless cases."""
+    from jaxreg._icp_core import Pairs, _increment, fill_gather
+    from jaxreg._icp_setup import Settings, prepare
     from jaxreg.align import align
-    from jaxreg.icp import _fill_gather, _icp_options, _increment, _Pairs, _prepare
 
     rng = np.random.default_rng(3)
     source = rng.normal(size=(37, 3)).astype(np.float32) * [0.05, 0.03, 0.02]
     target = rng.normal(size=(50, 3)).astype(np.float32) * 0.04 + [0.3, -0.1, 0.8]
-    problem, opts, (n, m) = _prepare(source, target, **_icp_options({}))
+    problem, opts, (n, m) = prepare(source, target, Settings())
     moved = problem.source  # a step is taken from whatever pose moved the source
     m_pad = problem.target.shape[0]
     line = np.outer(np.linspace(-0.05, 0.05, m), [1.0, 0.5, 0.2]).astype(np.float32)
-    problem_line, _, _ = _prepare(source, line, **_icp_options({}))
+    problem_line, _, _ = prepare(source, line, Settings())
 
     index = rng.integers(0, m, moved.shape[0])
     index[::7] = m_pad  # no match: the sentinel one past the last row
@@ -392,9 +477,9 @@ def test_point_to_point_step_is_align_of_the_pairs():
     }
     for name, (prob, w) in cases.items():
         index_ = jnp.asarray(index, jnp.int32)
-        pairs = _Pairs(index_, jnp.asarray(w), jnp.asarray(w > 0), 0, 0.0, 0.0)
+        pairs = Pairs(index_, jnp.asarray(w), jnp.asarray(w > 0), 0, 0, 0.0, 0.0)
         step, degenerate = _increment(prob, opts, moved, pairs)
-        ref = align(moved, _fill_gather(prob.target, index_), w)
+        ref = align(moved, fill_gather(prob.target, index_), w)
         np.testing.assert_allclose(step.as_matrix(), ref.pose.as_matrix(), atol=2e-6, err_msg=name)
         assert bool(degenerate) == bool(ref.degenerate), name
         assert bool(degenerate) == (name != "general"), name
