@@ -1,24 +1,28 @@
-"""Host-side construction of the 1-NN candidate octree of :class:`jaxreg.neighbors.NeighborGrid`.
+"""Compiled host loops (numba) behind :class:`jaxreg.neighbors.NeighborGrid` and exact host kNN.
 
-Compiled loops (numba, cached on disk after the first build) over the target points; the
-vectorised numpy formulation this replaces spent ~30 ms on a 3.7k-point target allocating
-``(pairs, 27)`` and ``(pairs, 8)`` temporaries, against ~2 ms here.
+The grid's octree is built here for every kind of grid (1-NN, kNN, radius): the loops run
+over target points and octree nodes, and need no ``(pairs, 27)`` temporaries, so a build
+costs a few milliseconds per thousand points. They are compiled on the first build on a
+machine and cached on disk (``__pycache__``).
 
-Coordinates are float64 relative to the grid origin; a node at refinement ``level`` of top-level
-cell ``c`` with sub-cell ``s`` is the box ``[(c 2^level + s) e, (c 2^level + s + 1) e]`` with
-``e = h / 2^level``, grown by ``margin`` on every side before any test (so that float32
+Coordinates are float64 relative to the grid origin; a node at refinement ``level`` of
+top-level cell ``c`` with sub-cell ``s`` is the box ``[(c 2^level + s) e, (c 2^level + s + 1) e]``
+with ``e = h / 2^level``, grown by ``margin`` on every side before any test (so that float32
 rounding of the query's choice of leaf never drops a candidate).
 
 A target point ``p`` is a candidate of a node unless
 
 * it is farther than ``max_distance`` (``r2`` squared, margin included) from the grown box, or
-* one of its witnesses ``q`` (its nearest points, :func:`self_knn`) is strictly closer than
-  ``p`` to every point of the grown box: the box lies beyond the bisecting plane of ``p``
-  and ``q``, so no query in it has ``p`` as its nearest.
+* (1-NN grids) one of its witnesses ``q`` (its nearest points, :func:`self_knn`) is strictly
+  closer than ``p`` to every point of the grown box: the box lies beyond the bisecting plane
+  of ``p`` and ``q``, so no query in it has ``p`` as its nearest; or
+* (kNN grids, ``k > 1``) it is farther from the grown box than the ``k``-th smallest
+  farthest-corner distance of the node's candidates: ``k`` points are then closer than ``p``
+  to every query in the box.
 
-Both tests can only keep a point that exact Voronoi reasoning would drop, never the reverse,
-so a query's true nearest neighbour within ``max_distance`` is always among its leaf's
-candidates.
+Each test can only keep a point that exact reasoning would drop, never the reverse, so every
+true neighbour within ``max_distance`` of a query is among its leaf's candidates. Radius
+grids (``k=None``) apply the first test alone.
 """
 
 from __future__ import annotations
@@ -26,7 +30,14 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["candidate_tables", "self_knn", "split_nodes", "top_level_nodes", "witnesses"]
+__all__ = [
+    "candidate_tables",
+    "no_witnesses",
+    "self_knn",
+    "split_nodes",
+    "top_level_nodes",
+    "witnesses",
+]
 
 _CACHE = dict(cache=True, nogil=True)
 
@@ -177,6 +188,11 @@ def witnesses(x: np.ndarray, near: np.ndarray, margin: float):
     return wd, neg, level
 
 
+def no_witnesses(n: int):
+    """Witness arrays with no witnesses (kNN and radius grids): nothing is pruned by them."""
+    return np.zeros((n, 3, 0)), np.zeros((n, 0)), np.zeros((n, 0))
+
+
 @numba.njit(inline="always")
 def _within(x, p, lx, ly, lz, edge, margin, r2) -> bool:
     """Point ``p`` lies within ``sqrt(r2)`` of the box ``[l, l + edge]^3`` grown by ``margin``."""
@@ -189,10 +205,10 @@ def _within(x, p, lx, ly, lz, edge, margin, r2) -> bool:
 @numba.njit(inline="always")
 def _beyond(p, lx, ly, lz, edge, wd, neg, level) -> bool:
     """Some witness of ``p`` is strictly closer than ``p`` to all of the grown box (see
-    :func:`witnesses`); no branch inside the loop, so it vectorises over witnesses."""
-    worst = lx * wd[p, 0, 0] + ly * wd[p, 1, 0] + lz * wd[p, 2, 0] + edge * neg[p, 0]
-    worst -= level[p, 0]
-    for j in range(1, neg.shape[1]):
+    :func:`witnesses`; never with no witnesses); no branch inside the loop, so it
+    vectorises over witnesses."""
+    worst = -np.inf
+    for j in range(neg.shape[1]):
         v = lx * wd[p, 0, j] + ly * wd[p, 1, j] + lz * wd[p, 2, j] + edge * neg[p, j]
         worst = max(worst, v - level[p, j])
     return worst > 0.0
@@ -206,14 +222,39 @@ def _keeps(x, p, lx, ly, lz, edge, margin, r2, wd, neg, level) -> bool:
     )
 
 
+@numba.njit(inline="always")
+def _prune_kth(x, out, first, last, lx, ly, lz, edge, margin, k, far):
+    """Drops from ``out[first:last]`` (one node's candidates) every point farther from the
+    grown box than the ``k``-th smallest farthest-corner distance among them, compacting in
+    place; returns the new end. ``far`` is scratch of length ``>= last - first``."""
+    count = last - first
+    if k < 2 or count <= k:
+        return last
+    for j in range(count):
+        p = out[first + j]
+        fx = max(x[p, 0] - (lx - margin), lx + edge + margin - x[p, 0])
+        fy = max(x[p, 1] - (ly - margin), ly + edge + margin - x[p, 1])
+        fz = max(x[p, 2] - (lz - margin), lz + edge + margin - x[p, 2])
+        far[j] = fx * fx + fy * fy + fz * fz
+    bound = np.partition(far[:count], k - 1)[k - 1]
+    end = first
+    for j in range(count):
+        p = out[first + j]
+        if _within(x, p, lx, ly, lz, edge, margin, bound):
+            out[end] = p
+            end += 1
+    return end
+
+
 @numba.njit(**_CACHE)
-def top_level_nodes(x, cell, dims, h, margin, r2, wd, neg, level):
+def top_level_nodes(x, cell, dims, h, margin, r2, wd, neg, level, k):
     """Candidates of every top-level cell within the 27-cell stencil of an occupied one.
 
     Args:
         x: ``(n, 3)`` points relative to the grid origin; cell: ``(n, 3)`` their top-level
             cells; dims: ``(3,)`` cells per axis; h: cell edge; wd, neg, level:
-            :func:`witnesses`.
+            :func:`witnesses` (or :func:`no_witnesses`); k: the kNN pruning's ``k``
+            (0 or 1: none).
 
     Returns:
         ``node_top (L,)`` linear cell ids (x-major, ascending), ``counts (L,)`` and ``pid``:
@@ -236,6 +277,7 @@ def top_level_nodes(x, cell, dims, h, margin, r2, wd, neg, level):
     node_top = np.unique(around[:m])
     counts = np.zeros(node_top.size, np.int64)
     pid = np.empty(27 * cell.shape[0], np.int64)  # a point lies in at most 27 stencils
+    far = np.empty(cell.shape[0])
     total = 0
     for i in range(node_top.size):
         c = node_top[i]
@@ -251,18 +293,20 @@ def top_level_nodes(x, cell, dims, h, margin, r2, wd, neg, level):
                     if _keeps(x, p, lx, ly, lz, h, margin, r2, wd, neg, level):
                         pid[total] = p
                         total += 1
+        total = _prune_kth(x, pid, before, total, lx, ly, lz, h, margin, k, far)
         counts[i] = total - before
     return node_top, counts, pid[:total]
 
 
 @numba.njit(**_CACHE)
-def split_nodes(x, corner, counts, pid, split, edge, margin, r2, wd, neg, level):
+def split_nodes(x, corner, counts, pid, split, edge, margin, r2, wd, neg, level, k):
     """Candidates of the 8 children of every node with ``split`` set.
 
     Args:
         corner: ``(L, 3)`` integer box corner of each node in units of its own edge
             (``2 edge``); counts, pid: the nodes' candidates as from
-            :func:`top_level_nodes`; split: ``(L,)``; edge: the children's edge.
+            :func:`top_level_nodes`; split: ``(L,)``; edge: the children's edge; the rest
+            as for :func:`top_level_nodes`.
 
     Returns:
         ``counts (8 S,)`` and ``pid`` of the children, ordered by split parent, then octant
@@ -272,6 +316,7 @@ def split_nodes(x, corner, counts, pid, split, edge, margin, r2, wd, neg, level)
     parents = np.flatnonzero(split)
     out_counts = np.zeros(8 * parents.size, np.int64)
     out = np.empty(8 * counts[parents].sum(), np.int64)
+    far = np.empty(counts.max() if counts.size else 0)
     total = 0
     for rank in range(parents.size):
         a = parents[rank]
@@ -285,6 +330,7 @@ def split_nodes(x, corner, counts, pid, split, edge, margin, r2, wd, neg, level)
                 if _keeps(x, p, lx, ly, lz, edge, margin, r2, wd, neg, level):
                     out[total] = p
                     total += 1
+            total = _prune_kth(x, out, before, total, lx, ly, lz, edge, margin, k, far)
             out_counts[8 * rank + octant] = total - before
     return out_counts, out[:total]
 

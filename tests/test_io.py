@@ -20,7 +20,9 @@ from jaxreg.io import (
 
 
 def _open3d():
-    return pytest.importorskip("open3d", reason="open3d (the `peers` extra) is not installed")
+    return pytest.importorskip(
+        "open3d", reason="open3d (the `peers` extra) is not importable", exc_type=ImportError
+    )
 
 
 def _header(fields, sizes, types, counts, width, height, points, data, viewpoint="0 0 0 1 0 0 0"):

@@ -616,7 +616,9 @@ def test_open3d_information_matrix_order_and_side(x64):
     """Open3D's `get_information_matrix_from_point_clouds` is J^T J of point-to-point residuals
     for a left perturbation, rows ordered (w, t): equal to our (v, w)-order J^T J permuted with
     `covariance_to_open3d`; the right-perturbation version is `Ad^T I Ad`."""
-    o3d = pytest.importorskip("open3d")
+    o3d = pytest.importorskip(
+        "open3d", reason="open3d (the `peers` extra) is not importable", exc_type=ImportError
+    )
     rng = np.random.default_rng(13)
     source = rng.uniform(-0.1, 0.1, size=(60, 3))
     pose = se3_exp(jnp.asarray([0.3, -0.2, 0.5, 0.4, -0.7, 0.9]))

@@ -378,7 +378,9 @@ def test_voxel_downsample_centroids():
 
 
 def test_voxel_downsample_matches_open3d(pcl_dir):
-    o3d = pytest.importorskip("open3d")
+    o3d = pytest.importorskip(
+        "open3d", reason="open3d (the `peers` extra) is not importable", exc_type=ImportError
+    )
     points = load_points(pcl_dir / "milk.pcd")
     ours = voxel_downsample(points, 0.004)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))

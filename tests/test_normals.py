@@ -143,7 +143,9 @@ def test_vmap_over_clouds():
 
 
 def test_agrees_with_open3d_on_milk(pcl_dir):
-    o3d = pytest.importorskip("open3d")
+    o3d = pytest.importorskip(
+        "open3d", reason="open3d (the `peers` extra) is not importable", exc_type=ImportError
+    )
     points = voxel_downsample(load_points(pcl_dir / "milk.pcd"), 0.004)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))

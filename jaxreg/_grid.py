@@ -1,0 +1,438 @@
+"""The neighbour grid: its structure, its host-side build and the check of a prebuilt grid.
+
+:class:`NeighborGrid` is a target cloud indexed once on the host (:func:`build_grid`, which
+plans an octree over a uniform grid and fills its candidate lists with the compiled loops of
+:mod:`jaxreg._octree`) and then passed into ``jit`` / ``vmap`` as a pytree; the jittable
+queries and the contract they keep are in :mod:`jaxreg.neighbors`, which re-exports these
+names. :func:`validate_grid` is for callers that accept a grid built elsewhere: a grid's
+indices refer to the target it was built on, and it is exact only within its radius and
+without overflow.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import equinox as eqx
+import jax
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from jaxreg import _octree
+
+__all__ = ["NeighborGrid", "build_grid", "validate_grid"]
+
+# Octant order of a node's children: bit 2 = x, bit 1 = y, bit 0 = z (as in _octree).
+_OCTANTS = np.array(list(itertools.product((0, 1), repeat=3)), dtype=np.int64)
+
+
+class NeighborGrid(eqx.Module):
+    """A target cloud indexed for static-shape neighbour queries (see :mod:`jaxreg.neighbors`).
+
+    Built by :func:`build_grid`; a pytree of arrays (only ``k`` is static) whose shapes are
+    rounded up to powers of two, so targets of similar size and extent give grids of the
+    same structure and shapes: a jitted function taking the grid compiles once for them.
+
+    Attributes:
+        origin: ``(3,)`` corner of the top-level grid, in target coordinates.
+        cell_size: ``()`` edge of a top-level cell (``>= max_distance``).
+        max_distance: ``()`` the radius within which queries are exact.
+        dims: ``(3,)`` top-level cells per axis.
+        cells: ``(>= prod(dims), 2)`` per top-level cell (x-major order): the offset of its
+            block in ``leaf_map`` and its refinement depth ``d``; the block holds the leaf
+            row of each of its ``(2^d)^3`` sub-cells. Rows past ``prod(dims)`` are padding.
+        leaf_map: ``(entries,)`` leaf row of every sub-cell; entry 0 and padding hold row 0,
+            the empty leaf.
+        candidate_index: ``(leaves, capacity)`` target row of each candidate, padded with
+            the sentinel ``num_points``.
+        candidate_points: ``(3, leaves, capacity)`` candidate coordinates, one plane per
+            axis (``inf`` in padding slots), so a query reads them without a second gather.
+        num_points: ``()`` ``M``, the number of target rows (masked rows included): the
+            sentinel index.
+        overflow: ``()`` True when some leaf had more candidates than ``capacity`` at the
+            maximum depth and was truncated: queries may then be inexact.
+        k: static: the grid answers kNN queries for up to ``k`` neighbours; ``None`` keeps
+            every point within ``max_distance`` (needed by :func:`query_radius`).
+    """
+
+    origin: Float[Array, "3"]
+    cell_size: Float[Array, ""]
+    max_distance: Float[Array, ""]
+    dims: Int[Array, "3"]
+    cells: Int[Array, "cells 2"]
+    leaf_map: Int[Array, " entries"]
+    candidate_index: Int[Array, "leaves capacity"]
+    candidate_points: Float[Array, "3 leaves capacity"]
+    num_points: Int[Array, ""]
+    overflow: Bool[Array, ""]
+    k: int | None = eqx.field(static=True)
+
+    @property
+    def capacity(self) -> int:
+        """Candidate slots per leaf (static: the candidate table's width)."""
+        return self.candidate_index.shape[1]
+
+    @property
+    def num_leaves(self) -> int:
+        """Rows of the candidate table, the empty leaf and padding included."""
+        return self.candidate_index.shape[0]
+
+    @property
+    def depth(self) -> int:
+        """Deepest refinement below the top-level cells (host; not under ``jit``)."""
+        return int(self.cells[:, 1].max())
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the grid's arrays, in bytes."""
+        return sum(x.nbytes for x in jax.tree_util.tree_leaves(self))
+
+
+# --------------------------------------------------------------------------------------------
+# Host-side construction.
+#
+# The candidate lists of every level come from compiled loops (:mod:`jaxreg._octree`); numpy
+# here plans the refinement and lays the leaves out as tables. Every box is grown by
+# ``margin`` before it is tested, so float32 rounding (of the stored coordinates, and of the
+# query's choice of leaf) can only keep a candidate that exact arithmetic would drop, never
+# drop one it would keep.
+
+_NEAR = 9  # witnesses per target point (itself among them) pruning 1-NN candidate lists
+# Default refinement target of 1-NN leaves. Measured on milk.pcd (bench_neighbors.py): 48
+# builds 1.3-1.6x faster than 32 for 40 queries costing 1.1-1.2x more.
+_LEAF_TARGET = 48
+
+
+def _bucket(n: int) -> int:
+    """Table length for ``n`` rows: the next power of two (at least 64), so that similar
+    targets give identically shaped grids and a jitted caller does not recompile."""
+    return 1 << max(6, max(0, int(n) - 1).bit_length())
+
+
+def _split_plan(node_top, counts, level, map_size, leaf_target, max_depth, max_map, max_pairs):
+    """Which nodes of this level to split, or ``None`` when refinement stops here.
+
+    Nodes with more than ``leaf_target`` candidates split unless ``level`` is ``max_depth``
+    or the split would grow ``leaf_map`` (now ``map_size`` entries) past ``max_map`` or the
+    next level's pairs past ``max_pairs``. Returns ``(split (L,), deeper, grow)``: the
+    top-level cells that gain a level and the ``leaf_map`` entries that costs.
+    """
+    split = counts > leaf_target
+    if level == max_depth or not split.any():
+        return None
+    deeper = np.unique(node_top[split])
+    grow = len(deeper) * 7 * 8**level
+    if map_size + grow > max_map or 8 * int(counts[split].sum()) > max_pairs:
+        return None
+    return split, deeper, grow
+
+
+def _levels(x, cell, dims, h, margin, r2, k, *budget):
+    """Leaf nodes and candidate pairs of every refinement level (see :mod:`jaxreg._octree`).
+
+    ``x`` is float64 relative to the grid origin, ``cell`` its top-level cells. Returns
+    ``(levels, cell_depth)``, with per level ``(node_top, node_sub, node, pid)``: the
+    top-level cell and sub-cell coordinates of each node, and the (node, point) pairs of its
+    leaf nodes; ``cell_depth`` is each top-level cell's refinement depth.
+    """
+    if k == 1:
+        half_spaces = _octree.witnesses(x, _octree.self_knn(x, _NEAR)[0], margin)
+    else:
+        half_spaces = _octree.no_witnesses(len(x))
+    tests = (margin, r2, *half_spaces, k or 0)
+    node_top, counts, pid = _octree.top_level_nodes(x, cell, np.asarray(dims), h, *tests)
+    node_sub = np.zeros((len(node_top), 3), np.int64)
+    cell_depth = np.zeros(math.prod(dims), np.int32)
+    levels = []
+    map_size = len(node_top)
+    level = 0
+    while True:
+        plan = _split_plan(node_top, counts, level, map_size, *budget)
+        node = np.repeat(np.arange(len(counts)), counts)
+        if plan is None:
+            levels.append((node_top, node_sub, node, pid))
+            return levels, cell_depth
+        split, deeper, grow = plan
+        map_size += grow
+        cell_depth[deeper] = level + 1
+        leaf = ~split[node]
+        levels.append((node_top, node_sub, node[leaf], pid[leaf]))
+        corner = np.stack(np.unravel_index(node_top, dims), axis=1) * 2**level + node_sub
+        level += 1
+        counts, pid = _octree.split_nodes(x, corner, counts, pid, split, h / 2**level, *tests)
+        node_top = np.repeat(node_top[split], 8)
+        node_sub = (2 * node_sub[split][:, None, :] + _OCTANTS[None]).reshape(-1, 3)
+
+
+def _group_order(keys: np.ndarray, n_keys: int) -> np.ndarray:
+    """Stable order sorting integer ``0 <= keys < n_keys < 2^32``: LSD radix on 16-bit digits
+    (numpy's stable sort of uint16 is a counting sort, far faster than a comparison sort)."""
+    if n_keys <= 1 << 16:
+        return np.argsort(keys.astype(np.uint16), kind="stable")
+    low = np.argsort((keys & 0xFFFF).astype(np.uint16), kind="stable")
+    return low[np.argsort((keys[low] >> 16).astype(np.uint16), kind="stable")]
+
+
+def _assemble(levels, cell_depth, dims, h, x, capacity):
+    """Flattened octree tables from the leaf pairs of every level (see :class:`NeighborGrid`).
+
+    Returns ``(cells, leaf_map, rows, slots, pids, cap, overflow, n_rows)``: the table
+    position ``(rows, slots)`` of each kept candidate ``pids`` (row 0 is the empty leaf).
+    """
+    n_cells = math.prod(dims)
+    row_parts, pid_parts, leaf_info = [], [], []
+    n_rows = 1
+    for level, (node_top, node_sub, node, pid) in enumerate(levels):
+        present = np.bincount(node, minlength=len(node_top)) > 0
+        ids = np.flatnonzero(present)
+        row_of = np.zeros(len(node_top), np.int64)
+        row_of[ids] = n_rows + np.arange(len(ids))
+        n_rows += len(ids)
+        row_parts.append(row_of[node])
+        pid_parts.append(pid)
+        leaf_info.append((level, node_top[ids], node_sub[ids], row_of[ids]))
+    rows = np.concatenate([np.zeros(0, np.int64), *row_parts])
+    pids = np.concatenate([np.zeros(0, np.int32), *pid_parts])
+    counts = np.bincount(rows, minlength=n_rows)
+    needed = int(counts.max()) if len(rows) else 0
+    cap = capacity if capacity is not None else max(16, -(-needed // 16) * 16)
+    overflow = needed > cap
+    if overflow:
+        # Truncation keeps each leaf's candidates nearest its centre.
+        centre = np.zeros((n_rows, 3), np.float32)
+        for level, top, sub, row in leaf_info:
+            corner = np.stack(np.unravel_index(top, dims), axis=1) * 2**level + sub
+            centre[row] = (corner + 0.5) * np.float32(h / 2**level)
+        dist = ((x[pids] - centre[rows]) ** 2).sum(1)
+        order = np.lexsort((dist, rows))
+    else:
+        order = _group_order(rows, n_rows)
+    rows, pids = rows[order], pids[order]
+    starts = np.cumsum(counts) - counts
+    slots = np.arange(len(rows)) - starts[rows]
+    fits = slots < cap
+    rows, pids, slots = rows[fits], pids[fits], slots[fits]
+
+    # Each top-level cell with leaves owns a dense block of (2^depth)^3 entries.
+    used = np.zeros(n_cells, bool)
+    for _, top, _, _ in leaf_info:
+        used[top] = True
+    depth = np.where(used, cell_depth, 0)
+    block = np.where(used, 8 ** depth.astype(np.int64), 0)
+    base = np.where(used, 1 + np.cumsum(block) - block, 0)
+    leaf_map = np.zeros(1 + int(block.sum()), np.int32)
+    for level, top, sub, row in leaf_info:
+        extra = depth[top] - level  # the leaf spans 2^extra sub-cells per axis
+        for e in np.unique(extra):
+            sel = np.flatnonzero(extra == e)
+            side = 1 << int(e)
+            span = np.stack(np.unravel_index(np.arange(side**3), (side,) * 3), axis=1)
+            full = (1 << depth[top[sel]].astype(np.int64))[:, None]
+            s = sub[sel][:, None, :].astype(np.int64) * side + span[None]
+            entry = base[top[sel]][:, None] + (s[..., 0] * full + s[..., 1]) * full + s[..., 2]
+            leaf_map[entry] = row[sel][:, None]
+    cells = np.stack([base, depth], axis=1).astype(np.int32)
+    return cells, leaf_map, rows, slots, pids, cap, overflow, n_rows
+
+
+def build_grid(
+    target: ArrayLike,
+    max_distance: float,
+    *,
+    k: int | None = 1,
+    capacity: int | None = None,
+    max_depth: int | None = None,
+    max_cells: int = 1 << 21,
+    max_map: int = 1 << 22,
+    max_pairs: int = 1 << 23,
+    mask: ArrayLike | None = None,
+) -> NeighborGrid:
+    """Indexes a target cloud for exact neighbour queries within ``max_distance`` (host).
+
+    Runs on the host in compiled loops (``target`` must be concrete, not a tracer); the
+    result is a pytree to pass into jitted code. Build once per target, query many times.
+
+    Args:
+        target: ``(M, 3)`` target points. Rows that are not finite, or where ``mask`` is
+            False, are never returned; indices refer to rows of ``target``.
+        max_distance: radius within which queries are exact (ICP: the largest
+            ``max_correspondence_distance`` of its schedule). Larger radii cost build time
+            and memory, not query time.
+        k: the largest ``k`` that :func:`query_knn` will ask for (1 for ICP, the default);
+            ``None`` keeps every point within ``max_distance`` of a leaf, as
+            :func:`query_radius` needs.
+        capacity: candidate slots per leaf. ``None``: refine leaves to at most 48
+            candidates for ``k == 1`` (``max(32, 2 k)`` otherwise) and size the capacity on
+            the host (the longest list rounded up to a multiple of 16) so nothing is
+            dropped. An explicit value is also the refinement target and a hard cap:
+            leaves still above it at the maximum depth are truncated (keeping the
+            candidates nearest the leaf's centre) and ``overflow`` is set. Query time
+            grows with the capacity, build time falls.
+        max_depth: levels of octree refinement below the top-level cells; default 6 for
+            ``k == 1`` and 0 otherwise (kNN and radius lists shrink little when refined:
+            on milk.pcd one level costs 3-5x the build time and memory for 10-30% faster
+            queries).
+        max_cells: cap on the number of top-level cells; the cell size grows (beyond
+            ``max_distance``) to respect it, which bounds memory for tiny radii.
+        max_map: cap on the entries of ``leaf_map``; refinement stops before exceeding it.
+        max_pairs: cap on the (node, candidate) pairs of one refinement level (host memory).
+        mask: ``(M,)`` optional validity of the target rows.
+
+    Returns:
+        A :class:`NeighborGrid`, float32 unless ``target`` is float64 with x64 enabled.
+
+    Raises:
+        ValueError: ``target`` is a tracer or not ``(M, 3)``, ``max_distance`` is not
+            positive and finite, ``k`` or ``capacity`` is not positive, or ``capacity < k``.
+    """
+    if isinstance(target, jax.core.Tracer):
+        raise ValueError("build_grid runs on the host: build the grid outside jit, pass it in")
+    pts = np.asarray(target, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"target must be (M, 3), got shape {pts.shape}")
+    r = float(max_distance)
+    if not (math.isfinite(r) and r > 0):
+        raise ValueError(f"max_distance must be positive and finite, got {max_distance}")
+    if k is not None and k < 1:
+        raise ValueError(f"k must be >= 1 or None, got {k}")
+    if capacity is not None and capacity < max(1, k or 1):
+        raise ValueError(f"capacity must be >= max(1, k), got {capacity} with k={k}")
+    if max_depth is None:
+        max_depth = 6 if k == 1 else 0
+    num_points = pts.shape[0]
+    valid = np.all(np.isfinite(pts), axis=1)
+    if mask is not None:
+        m = np.asarray(mask, dtype=bool)
+        if m.shape != (num_points,):
+            raise ValueError(f"mask must be ({num_points},), got shape {m.shape}")
+        valid &= m
+    in_dtype = np.asarray(target).dtype
+    dtype = jax.dtypes.canonicalize_dtype(
+        in_dtype if np.issubdtype(in_dtype, np.floating) else np.float64
+    )
+    rows = np.flatnonzero(valid)
+    points = pts[rows]
+
+    # Boxes are grown by a margin far above float32 rounding of the query's sub-cell (and of
+    # the build's own float32 arithmetic), so a query assigned to a neighbouring sub-cell by
+    # rounding still finds its neighbours.
+    margin = 1e-5 * (float(np.abs(points).max()) + r) if len(points) else 0.0
+    if len(points):
+        lo = points.min(0) - r - margin
+        extent = points.max(0) + r + margin - lo
+        # Cells at least max_distance (plus the margins) wide: the cells a point can be a
+        # candidate of are then within its 27-cell stencil.
+        h = max(r + 2 * margin, float(np.cbrt(np.prod(extent) / max_cells)))
+        while True:
+            dims = tuple(int(d) for d in np.maximum(np.ceil(extent / h), 1))
+            if math.prod(dims) <= max_cells:
+                break
+            h *= 1.05
+    else:
+        lo, h, dims = np.zeros(3), r, (1, 1, 1)
+    if capacity is not None:
+        leaf_target = capacity
+    else:
+        leaf_target = _LEAF_TARGET if k == 1 else max(32, 2 * (k or 16))
+    x = points - lo
+    cell = np.minimum(np.floor(x / h), np.array(dims) - 1).astype(np.int64)
+    budget = (leaf_target, max_depth, max_map, max_pairs)
+    if len(points):
+        levels, cell_depth = _levels(x, cell, dims, h, margin, (r + margin) ** 2, k, *budget)
+    else:
+        levels, cell_depth = [], np.zeros(math.prod(dims), np.int32)
+    cells, leaf_map, slot_rows, slots, pids, cap, overflow, n_rows = _assemble(
+        levels, cell_depth, dims, h, x, capacity
+    )
+    # Padded sizes. The cell table to the cells of the cube around the bounding sphere (any
+    # rotation of the target fits in it); the map to 8 entries per table row unless it needs
+    # more (it depends on how many cells refine one level deeper, a threshold effect).
+    n_table = _bucket(n_rows)
+    if len(points):
+        radius = float(np.sqrt(((points - points.mean(0)) ** 2).sum(1).max()))
+        sphere = min(math.ceil((2 * (radius + r + margin)) / h + 1) ** 3, max_cells)
+    else:
+        sphere = 1
+    cells = np.pad(cells, ((0, _bucket(max(len(cells), sphere)) - len(cells)), (0, 0)))
+    leaf_map = np.pad(leaf_map, (0, max(_bucket(len(leaf_map)), 8 * n_table) - len(leaf_map)))
+    cand_index, cand_points = _octree.candidate_tables(
+        slot_rows, slots, pids, rows, points.astype(dtype), n_table, cap, num_points
+    )
+    arrays = jax.device_put(  # one transfer for all leaves
+        (
+            np.asarray(lo, dtype),
+            np.asarray(h, dtype),
+            np.asarray(r, dtype),
+            np.asarray(dims, np.int32),
+            cells,
+            leaf_map,
+            cand_index,
+            cand_points,
+            np.asarray(num_points, np.int32),
+            np.asarray(overflow),
+        )
+    )
+    return NeighborGrid(*arrays, k=k)
+
+
+def validate_grid(grid: NeighborGrid, target: ArrayLike, max_distance: ArrayLike) -> None:
+    """Checks on the host that ``grid`` can answer queries against ``target`` exactly.
+
+    A grid's indices refer to the rows of the target it was built on, and its answers are
+    exact only within ``grid.max_distance`` and without ``overflow``; a grid that fails any
+    of these gives plausible but wrong neighbours, so callers that accept a prebuilt grid
+    (ICP's ``neighbors=``) check it here before use. The coordinate check compares every
+    filled candidate slot with ``target`` (vectorised numpy, O(leaves x capacity)).
+
+    Values cannot be inspected under ``jit``: checks whose inputs are traced are skipped, so
+    call this before entering ``jit`` (the shapes are still checked).
+
+    Args:
+        grid: from :func:`build_grid`.
+        target: ``(M, 3)`` the target the caller will match against.
+        max_distance: the largest query radius the caller will use (ICP: the largest
+            ``max_correspondence_distance`` of its schedule); a scalar or an array of radii.
+
+    Raises:
+        ValueError: ``target`` is not ``(M, 3)``; the grid was built on another target
+            (row count or candidate coordinates differ); ``grid.max_distance`` is smaller
+            than ``max_distance``; or ``grid.overflow`` is set.
+    """
+    shape = np.shape(target)
+    if len(shape) != 2 or shape[1] != 3:
+        raise ValueError(f"target must be (M, 3), got shape {shape}")
+
+    def concrete(*xs) -> bool:
+        return not any(isinstance(x, jax.core.Tracer) for x in xs)
+
+    if concrete(grid.num_points) and int(grid.num_points) != shape[0]:
+        raise ValueError(
+            f"the grid was built on a target of {int(grid.num_points)} rows, not this one "
+            f"({shape[0]} rows): build it with build_grid(target, ...) on this target"
+        )
+    if concrete(grid.candidate_index, grid.candidate_points, target):
+        index = np.asarray(grid.candidate_index)
+        coords = np.asarray(grid.candidate_points)
+        filled = index < shape[0]
+        stored = coords[:, filled].T
+        expected = np.asarray(target)[index[filled]].astype(coords.dtype)
+        if not np.array_equal(stored, expected):
+            raise ValueError(
+                "the grid was built on another target (its candidate coordinates differ "
+                "from target's rows): build it with build_grid(target, ...) on this target"
+            )
+    if concrete(grid.max_distance, max_distance):
+        dtype = np.asarray(grid.max_distance).dtype
+        needed = np.max(np.asarray(max_distance, dtype))
+        if needed > np.asarray(grid.max_distance):
+            raise ValueError(
+                f"the grid is exact within {float(grid.max_distance):g} but queries reach "
+                f"{float(needed):g}: rebuild it with build_grid(target, max_distance="
+                f"{float(needed):g})"
+            )
+    if concrete(grid.overflow) and bool(grid.overflow):
+        raise ValueError(
+            "the grid overflowed (a leaf had more candidates than its capacity), so its "
+            "queries may be inexact: rebuild it with capacity=None or a larger capacity"
+        )
