@@ -264,12 +264,14 @@ def test_knn_pads_missing_neighbours_with_the_sentinel():
     assert np.all(np.isinf(np.asarray(d2[0, 2:])))
 
 
-def test_grid_knn_matches_ckdtree_within_radius():
+@pytest.mark.parametrize("max_depth", [0, 3])  # 3: refined leaves, pruned by the k-th bound
+def test_grid_knn_matches_ckdtree_within_radius(max_depth):
     spatial = pytest.importorskip("scipy.spatial")
     rng = np.random.default_rng(8)
     points = surface_cloud(rng, 1500).astype(np.float32)
     queries = (points[:400] + rng.normal(0, 0.004, (400, 3))).astype(np.float32)
-    grid = build_grid(points, 0.015, k=6)
+    grid = build_grid(points, 0.015, k=6, max_depth=max_depth, capacity=None)
+    assert (grid.depth > 0) == (max_depth > 0)
     _, d2, valid = jax.jit(query_knn, static_argnums=2)(grid, queries, 6)
     ref_d, _ = spatial.cKDTree(points).query(queries, 6, distance_upper_bound=0.015)
     assert np.array_equal(np.asarray(valid), np.isfinite(ref_d))
@@ -280,7 +282,7 @@ def test_grid_knn_matches_ckdtree_within_radius():
         query_knn(grid, queries, 7)
 
 
-@pytest.mark.parametrize("engine", ["brute", "grid"])
+@pytest.mark.parametrize("engine", ["brute", "grid", "refined grid"])
 def test_radius_search_matches_ckdtree(engine):
     spatial = pytest.importorskip("scipy.spatial")
     rng = np.random.default_rng(9)
@@ -290,7 +292,8 @@ def test_radius_search_matches_ckdtree(engine):
     if engine == "brute":
         idx, d2, mask, overflow = radius_search(queries, points, radius, capacity)
     else:
-        grid = build_grid(points, radius, k=None)
+        grid = build_grid(points, radius, k=None, max_depth=2 if engine == "refined grid" else 0)
+        assert (grid.depth > 0) == (engine == "refined grid")
         idx, d2, mask, overflow = jax.jit(query_radius, static_argnums=2)(grid, queries, capacity)
     lists = spatial.cKDTree(points).query_ball_point(queries, radius)
     counts = np.array([len(x) for x in lists])
