@@ -26,11 +26,11 @@ import numpy as np
 from _timing import median_seconds, print_table
 from jaxlie import SE3, SO3
 
-from jaxreg.icp import icp
+from jaxreg.icp import icp, icp_covariance, init_spread
 from jaxreg.io import load_points
 from jaxreg.neighbors import build_grid, voxel_downsample
 from jaxreg.normals import estimate_normals
-from jaxreg.uncertainty import DepthNoise, icp_covariance, init_spread, pose_statistics
+from jaxreg.uncertainty import DepthNoise, pose_statistics
 
 DATA = Path(os.environ.get("JAXREG_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 

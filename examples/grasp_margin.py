@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxlie import SE3, SO3
 
-from jaxreg.icp import icp
+from jaxreg.icp import icp, icp_covariance
 from jaxreg.io import load_points
 from jaxreg.lie import adjoint_transport
 from jaxreg.neighbors import build_grid, voxel_downsample
@@ -30,7 +30,6 @@ from jaxreg.uncertainty import (
     error_budget,
     grasp_margin,
     grasp_success_probability,
-    icp_covariance,
     pose_statistics,
 )
 
@@ -74,7 +73,7 @@ stats = pose_statistics(base_T_object)
 # becomes a left perturbation of base_T_object (transported through base_T_camera, sign
 # flipped, which a covariance ignores), and moves the object origin t by v + w x t.
 cov = icp_covariance(
-    scans[0], model, SE3(results.pose.wxyz_xyz[0]), source_noise=noise, neighbors=grid, **options
+    scans[0], model, results[0].pose, source_noise=noise, neighbors=grid, **options
 )
 left = np.asarray(adjoint_transport(base_T_camera, cov))
 t = np.asarray(SE3(base_T_object.wxyz_xyz[0]).translation())

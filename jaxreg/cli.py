@@ -55,7 +55,7 @@ def run_demo() -> dict:
     import jax
     import jax.numpy as jnp
 
-    from jaxreg.icp import ICPStatus, icp, multistart_icp, rotation_inits, select_best
+    from jaxreg.icp import ICPStatus, best_index, icp, multistart_icp, rotation_inits
     from jaxreg.lie import SE3, geodesic_angle
 
     model, scene, truth = default_scene()
@@ -74,12 +74,13 @@ def run_demo() -> dict:
     start = time.perf_counter()
     results = jax.block_until_ready(multistart_icp(model, scene, inits, **options))
     multi_ms = (time.perf_counter() - start) * 1e3
-    best = int(select_best(results))
-    pose = SE3(results.pose.wxyz_xyz[best])
+    best = int(best_index(results))
+    chosen = results[best]
+    pose = chosen.pose
     t_err, r_err = errors(pose)
     single_t, single_r = errors(single.pose)
-    status = results.status_message()[best]
-    ok = bool(np.asarray(results.status == ICPStatus.success)[best])
+    status = chosen.status_message()
+    ok = bool(chosen.status == ICPStatus.success)
     return {
         "pose": np.asarray(pose.as_matrix()).tolist(),
         "failed_stage": None if ok else "register",
@@ -90,10 +91,10 @@ def run_demo() -> dict:
             "register": {
                 "ms": round(multi_ms, 1),
                 "method": "point_to_point, trimmed to 60%, 48 starts on an SO(3) grid",
-                "starts": len(results.inlier_rmse),
+                "starts": results.batch_shape[0],
                 "best_start": best,
                 "status": status,
-                "iterations": int(results.iterations[best]),
+                "iterations": int(chosen.iterations),
                 "single_start_from_centroid": {
                     "ms": round(single_ms, 1),
                     "rotation_error_deg": round(single_r, 2),
@@ -102,8 +103,8 @@ def run_demo() -> dict:
                 },
             },
         },
-        "inlier_rmse_mm": round(float(results.inlier_rmse[best]) * 1e3, 3),
-        "inlier_fraction": round(float(results.inlier_fraction[best]), 3),
+        "inlier_rmse_mm": round(float(chosen.inlier_rmse) * 1e3, 3),
+        "inlier_fraction": round(float(chosen.inlier_fraction), 3),
         "predicted_grasp_success": None,
         "translation_error_mm": round(t_err, 3),
         "rotation_error_deg": round(r_err, 3),

@@ -28,11 +28,11 @@ import matplotlib
 import numpy as np
 from jaxlie import SE3, SO3
 
-from jaxreg.icp import icp
+from jaxreg.icp import icp, icp_covariance
 from jaxreg.io import load_points
 from jaxreg.neighbors import build_grid, voxel_downsample
 from jaxreg.normals import estimate_normals
-from jaxreg.uncertainty import DepthNoise, icp_covariance, pose_statistics
+from jaxreg.uncertainty import DepthNoise, pose_statistics
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -62,7 +62,7 @@ def scan_to_model(scan, method, draws):
     run = jax.jit(jax.vmap(lambda s: icp(s, model, TRUTH, neighbors=grid, **opts)))
     results = run(scans)
     stats = pose_statistics(results.pose)
-    first = SE3(results.pose.wxyz_xyz[0])
+    first = results[0].pose
     cov = icp_covariance(scans[0], model, first, source_noise=noise, neighbors=grid, **opts)
     deviations = np.asarray((stats.mean.inverse() @ results.pose).log())
     return (
@@ -96,7 +96,7 @@ def model_to_scene(scan, draws):
     targets = jax.vmap(lambda k: noise.sample(k, target))(keys)
     results = jax.jit(jax.vmap(register))(targets)
     stats = pose_statistics(results.pose)
-    first = SE3(results.pose.wxyz_xyz[0])
+    first = results[0].pose
     normals0 = estimate_normals(targets[0], k=20, viewpoint=eye)
     cov = icp_covariance(
         source, targets[0], first, target_normals=normals0, target_noise=noise, **opts
