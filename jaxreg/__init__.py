@@ -6,7 +6,7 @@ conventions (poses map source/model into target/scene coordinates, tangents are 
 """
 
 from jaxreg import (
-    align as align,
+    alignment as alignment,
     io as io,
     kernels as kernels,
     lie as lie,
@@ -15,7 +15,13 @@ from jaxreg import (
     pnp as pnp,
     uncertainty as uncertainty,
 )
-from jaxreg.align import Alignment as Alignment, kabsch as kabsch, umeyama as umeyama
+from jaxreg.alignment import (
+    Alignment as Alignment,
+    AlignmentStatus as AlignmentStatus,
+    align as align,
+    kabsch as kabsch,
+    umeyama as umeyama,
+)
 from jaxreg.icp import (
     ICPStatus as ICPStatus,
     RegistrationResult as RegistrationResult,

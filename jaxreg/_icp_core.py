@@ -18,7 +18,7 @@ from jaxlie import SE3, SO3
 from jaxtyping import Array, Bool, Float, Int
 
 from jaxreg._result import AbstractResult
-from jaxreg.align import _fit
+from jaxreg.alignment import _fit
 from jaxreg.kernels import AbstractRobustKernel, trim_mask
 from jaxreg.lie import se3_exp
 from jaxreg.neighbors import NeighborGrid, knn, query_nearest
@@ -228,7 +228,7 @@ def pseudo_inverse(a: Float[Array, "6 6"]) -> tuple[Array, Array, Array]:
 
 def _increment(problem: Problem, opts: Options, moved: Array, pairs: Pairs):
     """Increment (left, target frame) from the ``pairs`` of the ``moved`` source; and
-    :func:`jaxreg.align.align`'s degeneracy flag (point-to-point) or rank loss (plane)."""
+    :func:`jaxreg.alignment.align`'s degeneracy flag (point-to-point) or rank loss (plane)."""
     if opts.method == "point_to_plane":
         return _plane_step(problem, moved, pairs)
     # align()'s closed form without its input checks: the weighted rows are finite by

@@ -13,7 +13,7 @@ Conventions:
   frame):
 
   - point-to-point: weighted Kabsch of the moved source onto its matches (the closed form
-    and degeneracy signal of :func:`jaxreg.align.align`); residual ``r = |T p - q|``.
+    and degeneracy signal of :func:`jaxreg.alignment.align`); residual ``r = |T p - q|``.
   - point-to-plane: one Gauss-Newton step on the residual ``r = n_q . (T p - q)`` with the
     small-angle linearisation ``exp(d) p ~ p + w x p + v`` about the weighted centroid of
     the moved source, then the exact update ``T <- exp(d) T`` (:func:`jaxreg.lie.se3_exp`:

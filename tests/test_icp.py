@@ -451,7 +451,7 @@ def test_point_to_point_step_is_align_of_the_pairs():
     align()'s pose and degeneracy flag, including the degenerate and weightless cases."""
     from jaxreg._icp_core import Pairs, _increment, fill_gather
     from jaxreg._icp_setup import Settings, prepare
-    from jaxreg.align import align
+    from jaxreg.alignment import align
 
     rng = np.random.default_rng(3)
     source = rng.normal(size=(37, 3)).astype(np.float32) * [0.05, 0.03, 0.02]
