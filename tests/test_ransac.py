@@ -1,0 +1,128 @@
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jaxlie import SE3, SO3
+
+from jaxreg.metrics import pose_error
+from jaxreg.ransac import RansacStatus, ransac_iterations, ransac_registration
+
+HERE = Path(__file__).resolve().parent
+
+TRUTH = SE3.from_rotation_and_translation(
+    SO3.from_rpy_radians(2.0, -0.7, 1.2), jnp.array([0.4, -0.3, 0.9])
+)
+
+
+def matched_clouds(n=300, outliers=0.6, seed=0):
+    """A 20 cm source cloud, its image under TRUTH with 1 mm noise, and 33-d descriptors whose
+    nearest match is right for ``1 - outliers`` of the points (the rest are shuffled)."""
+    rng = np.random.default_rng(seed)
+    source = rng.uniform(-0.1, 0.1, (n, 3)).astype(np.float32)
+    target = np.asarray(TRUTH.apply(jnp.asarray(source))) + rng.normal(0, 0.001, (n, 3))
+    features = rng.random((n, 33)).astype(np.float32)
+    target_features = features.copy()
+    wrong = rng.random(n) < outliers
+    target_features[wrong] = target_features[rng.permutation(np.flatnonzero(wrong))]
+    return source, target.astype(np.float32), features, target_features
+
+
+def solve(source, target, sf, tf, seed=0, **options):
+    options.setdefault("max_correspondence_distance", 0.005)
+    return ransac_registration(source, target, sf, tf, key=jax.random.PRNGKey(seed), **options)
+
+
+def test_budget_is_the_formula():
+    assert ransac_iterations(0.5, 3, 0.99) == 35
+    assert ransac_iterations(0.2, 3, 0.99) == 574
+    # log(0.01) / log(1 - 0.001) = 4602.8: the formula, not the lesson table's 2298
+    assert ransac_iterations(0.1, 3, 0.99) == 4603
+    assert ransac_iterations(1.0) == 1
+    assert ransac_iterations(0.5, 4, 0.999) == 108
+    for bad in ({"inlier_ratio": 0.0}, {"inlier_ratio": 0.5, "confidence": 1.0}):
+        with pytest.raises(ValueError):
+            ransac_iterations(**bad)
+
+
+def test_recovers_the_pose_from_matches_that_are_mostly_wrong():
+    result = solve(*matched_clouds(outliers=0.8))
+    assert result.status == RansacStatus.success and bool(result.converged)
+    t_err, r_err = pose_error(result.pose, TRUTH)
+    assert float(t_err) < 0.002 and float(r_err) < np.deg2rad(0.5)
+    assert 40 <= int(result.num_inliers) <= 80
+    assert float(result.inlier_fraction) == pytest.approx(int(result.num_inliers) / 300, rel=1e-6)
+    # stopped at the confidence: about ransac_iterations(0.2, 3, 0.999) samples, not 100,000
+    assert 0 < int(result.iterations) < 10 * ransac_iterations(0.2, 3, 0.999)
+    inliers = np.asarray(result.weights) > 0
+    assert inliers.sum() == int(result.num_inliers)
+    np.testing.assert_array_equal(
+        np.asarray(result.correspondences)[inliers], np.flatnonzero(inliers)
+    )
+
+
+def test_same_key_same_pose_bits_with_one_and_two_devices():
+    data = matched_clouds(outliers=0.7, seed=3)
+    first = solve(*data, seed=7)
+    again = solve(*data, seed=7)
+    bits = np.asarray(first.pose.wxyz_xyz).tobytes()
+    assert np.asarray(again.pose.wxyz_xyz).tobytes() == bits
+
+    script = textwrap.dedent(
+        """
+        import sys
+        import jax, numpy as np
+        sys.path.insert(0, sys.argv[1])
+        from test_ransac import matched_clouds, solve
+        assert len(jax.devices()) == 2, jax.devices()
+        result = solve(*matched_clouds(outliers=0.7, seed=3), seed=7)
+        print(np.asarray(result.pose.wxyz_xyz).tobytes().hex())
+        """
+    )
+    env = dict(
+        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", script, str(HERE)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split()[-1] == bits.hex()
+
+
+def test_bad_input_gives_a_status_never_a_random_pose():
+    source, target, sf, tf = matched_clouds(n=120, outliers=0.0)
+    identity = SE3.identity().wxyz_xyz
+
+    no_features = solve(source, target, np.zeros_like(sf), tf)
+    assert no_features.status == RansacStatus.too_few_features
+    assert not bool(no_features.converged) and int(no_features.iterations) == 0
+    np.testing.assert_array_equal(no_features.pose.wxyz_xyz, identity)
+
+    # every source descriptor alike: only one of them is any target's mutual match
+    same = np.repeat(sf[:1], len(sf), axis=0)
+    no_matches = solve(source, target, same, tf)
+    assert no_matches.status == RansacStatus.too_few_matches
+    np.testing.assert_array_equal(no_matches.pose.wxyz_xyz, identity)
+
+    # right descriptors, wrong points: every correspondence is an outlier
+    rng = np.random.default_rng(5)
+    scattered = rng.uniform(-0.5, 0.5, target.shape).astype(np.float32)
+    outliers = solve(source, scattered, sf, tf, max_iterations=3000)
+    assert outliers.status == RansacStatus.no_consensus and not bool(outliers.converged)
+    assert int(outliers.num_inliers) == 0 and not np.any(np.asarray(outliers.weights))
+    np.testing.assert_array_equal(outliers.pose.wxyz_xyz, identity)
+    assert "min_inliers" in outliers.status_message()
+
+    with pytest.raises(ValueError, match="one descriptor row per point"):
+        solve(source, target, sf[:10], tf)
+    with pytest.raises(ValueError, match="confidence"):
+        solve(source, target, sf, tf, confidence=1.0)
