@@ -402,6 +402,47 @@ def test_karcher_at_a_half_turn_and_with_zero_spread(dtype):
     assert np.all(np.isfinite(g))
 
 
+@pytest.mark.parametrize("group", [SO3, SE3])
+def test_non_finite_elements_are_ignored_like_zero_weight(group):
+    rng = np.random.default_rng(5)
+    _, x = _symmetric_set(group, rng, np.float32, spread=0.6)
+    holes = type(x)(x.parameters().at[:, 1].set(jnp.nan))  # weight 1, NaN parameters
+    weights = jnp.ones((2, 6)).at[:, 1].set(0.0)
+    _assert_same(karcher_mean(holes), karcher_mean(x, weights), 1e-5)
+    if group is SO3:
+        _assert_same(chordal_mean(holes), chordal_mean(x, weights), 1e-5)
+
+
+@pytest.mark.parametrize("group", [SO3, SE3])
+def test_means_of_sets_with_no_usable_element_raise_or_are_nan_under_jit(group):
+    rng = np.random.default_rng(6)
+    _, x = _symmetric_set(group, rng, np.float32, spread=0.6)
+    weights = jnp.ones((2, 6)).at[1].set(0.0)  # the second set has no positive weight
+    all_nan = type(x)(jnp.full_like(x.parameters(), jnp.nan))
+    means = [karcher_mean, chordal_mean] if group is SO3 else [karcher_mean]
+    for mean in means:
+        with pytest.raises(
+            ValueError, match=r"1 of 2 averaged sets \(first at batch index \(1,\)\)"
+        ):
+            mean(x, weights)
+        with pytest.raises(ValueError, match="2 of 2 averaged sets"):
+            mean(all_nan)
+        traced = jax.jit(mean)(x, weights)  # nothing can raise: the empty set's mean is NaN
+        assert np.all(np.isnan(traced.parameters()[1]))
+        assert np.all(np.isfinite(traced.parameters()[0]))
+
+
+def test_karcher_mean_stops_at_max_iterations_or_tolerance():
+    rng = np.random.default_rng(7)
+    _, x = _symmetric_set(SO3, rng, np.float32, spread=1.0)
+    x = SO3(x.wxyz.at[:, 0].set(SO3.exp(jnp.array([1.2, 0.0, 0.0])).wxyz))  # asymmetric now
+    converged = karcher_mean(x)
+    one_step = karcher_mean(x, max_iterations=1)
+    loose = karcher_mean(x, tolerance=10.0)  # the first step is already below it
+    assert float(geodesic_angle(one_step, converged).max()) > 1e-5
+    _assert_same(loose, one_step, 1e-6)
+
+
 def test_means_reject_unbatched_input():
     with pytest.raises(ValueError, match="last batch axis"):
         karcher_mean(SO3.identity())
