@@ -34,7 +34,7 @@ __all__ = ["NormalEstimate", "NormalStatus", "estimate_normals", "estimate_norma
 class NormalStatus(eqx.Enumeration):
     """Per-point outcome of normal estimation."""
 
-    successful = "normal estimated"
+    success = "normal estimated"
     invalid_point = "the point is masked out or not finite"
     too_few_neighbors = "fewer than 3 valid neighbours: increase k or check the mask"
     degenerate = "the neighbours are collinear or coincident: the normal is undefined"
@@ -47,7 +47,7 @@ class NormalEstimate(eqx.Module):
         normals: ``(N, 3)`` unit normals facing the viewpoint; zero where not ``valid``.
         curvature: ``(N,)`` surface variation ``l0 / (l0 + l1 + l2)`` in ``[0, 1/3]``;
             zero where not ``valid``.
-        valid: ``(N,)`` the normal is defined (``status == successful``).
+        valid: ``(N,)`` the normal is defined (``status == success``).
         status: ``(N,)`` :class:`NormalStatus` of each point.
         num_neighbors: ``(N,)`` valid neighbours used (the point itself included; 0 for
             invalid points).
@@ -87,7 +87,7 @@ def _one(point, point_ok, nbrs, nbr_ok, viewpoint):
         point_ok,
         NormalStatus.where(
             enough,
-            NormalStatus.where(flat, NormalStatus.degenerate, NormalStatus.successful),
+            NormalStatus.where(flat, NormalStatus.degenerate, NormalStatus.success),
             NormalStatus.too_few_neighbors,
         ),
         NormalStatus.invalid_point,

@@ -31,7 +31,7 @@ def test_plane_normals_face_the_camera(dtype):
     points, normal = plane_cloud(np.random.default_rng(0))
     est = estimate(points.astype(dtype), 12)
     assert est.normals.dtype == dtype and bool(est.valid.all())
-    assert bool((est.status == NormalStatus.successful).all())
+    assert bool((est.status == NormalStatus.success).all())
     # The camera at the origin sees the plane's side facing -z: normals point back to it.
     cos = np.asarray(est.normals) @ normal
     np.testing.assert_allclose(cos, -1.0, atol=1e-5)
