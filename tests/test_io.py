@@ -8,15 +8,8 @@ import pytest
 import trimesh
 from hypothesis import given, settings, strategies as st
 
-from jaxreg.io import (
-    PointCloud,
-    _lzf_compress,
-    _lzf_decompress,
-    load_points,
-    read_pcd,
-    write_pcd,
-    write_ply,
-)
+from jaxreg._lzf import compress as lzf_compress, decompress as lzf_decompress
+from jaxreg.io import PointCloud, load_points, read_pcd, write_pcd, write_ply
 
 
 def _open3d():
@@ -154,7 +147,7 @@ def test_lzf_decodes_hand_written_stream():
     # literal "abc"; back-reference length 5 at distance 3 (overlapping); long back-reference
     # of length 7 + 2 + 3 = 12 at distance 1; literal "Z".
     stream = b"\x02abc" + bytes([3 << 5, 2]) + bytes([7 << 5, 3, 0]) + b"\x00Z"
-    assert bytes(_lzf_decompress(stream, 21)) == b"abcabcab" + b"b" * 12 + b"Z"
+    assert bytes(lzf_decompress(stream, 21)) == b"abcabcab" + b"b" * 12 + b"Z"
 
 
 @settings(max_examples=60, deadline=None)
@@ -171,8 +164,8 @@ def test_lzf_decodes_hand_written_stream():
 )
 def test_lzf_round_trip(parts):
     raw = b"".join(parts)
-    packed = _lzf_compress(raw)
-    assert bytes(_lzf_decompress(packed, len(raw))) == raw
+    packed = lzf_compress(raw)
+    assert bytes(lzf_decompress(packed, len(raw))) == raw
     assert len(packed) <= len(raw) + (len(raw) + 31) // 32  # never worse than all literals
 
 
@@ -180,10 +173,10 @@ def test_lzf_compresses_runs_and_far_repeats():
     block = np.random.default_rng(0).bytes(3000)
     run = b"\x00\x00\xc0\x7f" * 20_000  # float32 NaN, as in organized clouds
     raw = run + block + block  # the second block repeats 3000 bytes back
-    packed = _lzf_compress(raw)
+    packed = lzf_compress(raw)
     assert len(packed) < 4_200  # 86000 bytes: 303 max-length references + 3000 literals
-    assert len(packed) - len(_lzf_compress(run + block)) < 50  # the repeat costs ~12 tokens
-    assert bytes(_lzf_decompress(packed, len(raw))) == raw
+    assert len(packed) - len(lzf_compress(run + block)) < 50  # the repeat costs ~12 tokens
+    assert bytes(lzf_decompress(packed, len(raw))) == raw
 
 
 @pytest.mark.parametrize(
@@ -197,18 +190,19 @@ def test_lzf_compresses_runs_and_far_repeats():
         (b"\x03abcd", 2, "beyond the declared"),
         (b"\x00a" + bytes([7 << 5, 255, 0]), 10, "beyond the declared"),
         (b"\x02abc", 10, "ends after 3"),
+        (b"\x00a", 200, "cannot expand 2 bytes to 200"),
     ],
 )
 def test_lzf_rejects_corrupt_streams(stream, out_len, match):
     with pytest.raises(ValueError, match=match):
-        _lzf_decompress(stream, out_len)
+        lzf_decompress(stream, out_len)
 
 
 @settings(max_examples=200, deadline=None)
 @given(st.binary(max_size=64), st.integers(0, 600))
 def test_lzf_garbage_decodes_exactly_or_raises(stream, out_len):
     try:
-        out = _lzf_decompress(stream, out_len)
+        out = lzf_decompress(stream, out_len)
     except ValueError:
         return
     assert len(out) == out_len
