@@ -126,3 +126,68 @@ def test_bad_input_gives_a_status_never_a_random_pose():
         solve(source, target, sf[:10], tf)
     with pytest.raises(ValueError, match="confidence"):
         solve(source, target, sf, tf, confidence=1.0)
+
+
+def test_fpfh_ransac_icp_recovers_the_carton_in_the_kinect_scene_like_open3d(pcl_dir):
+    """milk.pcd handed over in an arbitrary pose; the scene is the whole Kinect capture."""
+    o3d = pytest.importorskip("open3d", reason="open3d (peers extra, needs libusb) not importable")
+    from jaxreg.features import fpfh
+    from jaxreg.icp import icp
+    from jaxreg.io import load_points
+    from jaxreg.neighbors import voxel_downsample
+    from jaxreg.normals import estimate_normals
+
+    voxel, fine = 0.005, 0.003
+    handed = SE3.from_rotation_and_translation(
+        SO3.from_rpy_radians(1.0, -2.0, 0.5), jnp.array([0.3, -0.2, 0.5])
+    )
+    truth = handed.inverse()  # milk.pcd was cut from this scene: its own frame is the scene's
+    model = np.asarray(handed.apply(jnp.asarray(load_points(pcl_dir / "milk.pcd"))))
+    scene = load_points(pcl_dir / "milk_cartoon_all_small_clorox.pcd")
+    source, target = voxel_downsample(model, voxel), voxel_downsample(scene, voxel)
+    source_fine, target_fine = voxel_downsample(model, fine), voxel_downsample(scene, fine)
+    fine_normals = estimate_normals(target_fine, k=30)
+
+    features = [fpfh(c, estimate_normals(c, k=30), radius=5 * voxel) for c in (source, target)]
+    coarse = ransac_registration(
+        source,
+        target,
+        *features,
+        max_correspondence_distance=1.5 * voxel,
+        key=jax.random.PRNGKey(0),
+    )
+    assert coarse.status == RansacStatus.success
+    assert float(pose_error(coarse.pose, truth)[0]) < 0.03  # an initialiser: 1-3 cm
+    ours = icp(
+        source_fine, target_fine, coarse.pose, method="point_to_plane",
+        target_normals=fine_normals, max_correspondence_distance=2 * voxel, max_iterations=60,
+    )  # fmt: skip
+
+    reg = o3d.pipelines.registration
+    clouds = [o3d.geometry.PointCloud(o3d.utility.Vector3dVector(c)) for c in (source, target)]
+    for cloud in clouds:
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(30))
+    search = o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100)
+    o3d_features = [reg.compute_fpfh_feature(c, search) for c in clouds]
+    checkers = [
+        reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+        reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel),
+    ]
+    o3d_coarse = reg.registration_ransac_based_on_feature_matching(
+        *clouds, *o3d_features, True, 1.5 * voxel, reg.TransformationEstimationPointToPoint(False),
+        3, checkers, reg.RANSACConvergenceCriteria(100_000, 0.999),
+    )  # fmt: skip
+    fine_clouds = [
+        o3d.geometry.PointCloud(o3d.utility.Vector3dVector(c)) for c in (source_fine, target_fine)
+    ]
+    fine_clouds[1].normals = o3d.utility.Vector3dVector(np.asarray(fine_normals, np.float64))
+    o3d_fine = reg.registration_icp(
+        *fine_clouds, 2 * voxel, o3d_coarse.transformation,
+        reg.TransformationEstimationPointToPlane(), reg.ICPConvergenceCriteria(max_iteration=60),
+    )  # fmt: skip
+    o3d_pose = SE3.from_matrix(jnp.asarray(o3d_fine.transformation, jnp.float32))
+
+    t_ours, r_ours = (float(x) for x in pose_error(ours.pose, truth))
+    t_o3d, r_o3d = (float(x) for x in pose_error(o3d_pose, truth))
+    assert t_ours < max(2 * t_o3d, 0.0005) and r_ours < max(2 * r_o3d, np.deg2rad(0.05))
+    assert t_ours < 0.001 and r_ours < np.deg2rad(0.1)
