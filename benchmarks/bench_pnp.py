@@ -1,6 +1,6 @@
 """Planar PnP on thousands of tags: one batched jaxreg call against an OpenCV loop, same run.
 
-Usage: python benchmarks/bench_pnp.py [--sizes 1000 10000] [--repeats 3] [--max-steps 100 30]
+Usage: python benchmarks/bench_pnp.py [--sizes 1000 10000] [--repeats 3] [--max-iterations 100 30]
 
 Views: a 45 mm square tag facing the camera at 0.5-0.6 m, tilted up to 40 degrees, any in-plane
 spin, 0.2 px Gaussian corner noise, a 640x480 camera with f = 600 px; float32 (jaxreg's default).
@@ -10,8 +10,8 @@ whose time is reported separately. OpenCV runs ``solvePnPGeneric(SOLVEPNP_IPPE_S
 in a Python loop, which returns the two unrefined IPPE candidates; the refined OpenCV row adds
 ``solvePnPRefineLM`` on both. A vmapped Levenberg-Marquardt loop runs until its slowest lane
 stops (median ~12 steps, but a few candidates in flat valleys need up to 100), so the refined
-rows are repeated per ``--max-steps`` budget and count the candidates that ran out of steps
-(flagged ``PnPStatus.max_steps``).
+rows are repeated per ``--max-iterations`` budget and count the candidates that ran out of steps
+(flagged ``PnPStatus.max_iterations``).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import jax
 import numpy as np
 from _timing import median_seconds, print_table
 
-from jaxreg.pnp import PnPStatus, solve_pnp_planar_result, tag_object_points
+from jaxreg import PnPStatus, solve_pnp_planar, tag_object_points
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
 TAG = 0.045
@@ -63,7 +63,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000])
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--max-steps", type=int, nargs="+", default=[100, 30])
+    parser.add_argument("--max-iterations", type=int, nargs="+", default=[100, 30])
     args = parser.parse_args()
     try:
         import cv2
@@ -92,10 +92,10 @@ def main():
             ms = 1e3 * median_seconds(lambda: cv_loop(True), args.repeats)
             name = "OpenCV IPPE_SQUARE + RefineLM x2 loop"
             rows.append([n, name, f"{ms:.1f}", "-", f"{cv_ms / ms:.2f}", "-", "-"])
-        for refine, max_steps in [(False, 1)] + [(True, m) for m in args.max_steps]:
+        for refine, max_iterations in [(False, 1)] + [(True, m) for m in args.max_iterations]:
             solve = jax.jit(
-                lambda img, refine=refine, max_steps=max_steps: solve_pnp_planar_result(
-                    corners, img, K, refine=refine, max_steps=max_steps
+                lambda img, refine=refine, max_iterations=max_iterations: solve_pnp_planar(
+                    corners, img, K, refine=refine, max_iterations=max_iterations
                 )
             )
             start = time.perf_counter()
@@ -107,9 +107,13 @@ def main():
                 warmup=0,
             )
             c = result.candidates
-            name = f"jaxreg IPPE + LM x2 (max_steps={max_steps})" if refine else "jaxreg IPPE"
-            steps = int(np.max(c.num_steps)) if refine else "-"
-            flagged = int(np.sum(c.status == PnPStatus.max_steps)) if refine else "-"
+            name = (
+                f"jaxreg IPPE + LM x2 (max_iterations={max_iterations})"
+                if refine
+                else "jaxreg IPPE"
+            )
+            steps = int(np.max(c.iterations)) if refine else "-"
+            flagged = int(np.sum(c.status == PnPStatus.max_iterations)) if refine else "-"
             ratio = f"{cv_ms / ms:.2f}" if cv_ms else "-"
             rows.append(
                 [n, name + ", batched", f"{ms:.1f}", f"{compile_s:.1f}", ratio, steps, flagged]

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxlie import SE3, SO3
 
-from jaxreg.pnp import PnPStatus, detect_tags, solve_pnp_planar_result, tag_object_points
+from jaxreg import PnPStatus, detect_tags, solve_pnp_planar, tag_object_points
 
 try:
     import cv2
@@ -83,9 +83,7 @@ def main():
     pixels = corners[list(ids).index(TAG_ID)]
     print(f"detected tag {TAG_ID}; corners (px):\n{np.array2string(pixels, precision=2)}")
 
-    result = solve_pnp_planar_result(
-        tag_object_points(TAG_SIZE), pixels, K, sigma_px=CORNER_SIGMA_PX
-    )
+    result = solve_pnp_planar(tag_object_points(TAG_SIZE), pixels, K, sigma_px=CORNER_SIGMA_PX)
     print("\ncandidates (camera_T_tag), best first:")
     for i, candidate in enumerate((result.best, result.second)):
         rmse = float(candidate.reprojection_rmse_px)

@@ -7,12 +7,14 @@ conventions (poses map source/model into target/scene coordinates, tangents are 
 
 from jaxreg import (
     alignment as alignment,
+    camera as camera,
     io as io,
     kernels as kernels,
     lie as lie,
     neighbors as neighbors,
     normals as normals,
     pnp as pnp,
+    tags as tags,
     uncertainty as uncertainty,
 )
 from jaxreg.alignment import (
@@ -22,6 +24,7 @@ from jaxreg.alignment import (
     kabsch as kabsch,
     umeyama as umeyama,
 )
+from jaxreg.camera import project as project, reprojection_error as reprojection_error
 from jaxreg.icp import (
     ICPStatus as ICPStatus,
     RegistrationResult as RegistrationResult,
@@ -66,15 +69,10 @@ from jaxreg.pnp import (
     PlanarPnPResult as PlanarPnPResult,
     PnPResult as PnPResult,
     PnPStatus as PnPStatus,
-    detect_tags as detect_tags,
-    project as project,
-    reprojection_error as reprojection_error,
     solve_pnp as solve_pnp,
     solve_pnp_planar as solve_pnp_planar,
-    solve_pnp_planar_result as solve_pnp_planar_result,
-    solve_pnp_result as solve_pnp_result,
-    tag_object_points as tag_object_points,
 )
+from jaxreg.tags import detect_tags as detect_tags, tag_object_points as tag_object_points
 from jaxreg.uncertainty import (
     DepthNoise as DepthNoise,
     IsotropicNoise as IsotropicNoise,
