@@ -8,12 +8,16 @@ conventions (poses map source/model into target/scene coordinates, tangents are 
 from jaxreg import (
     alignment as alignment,
     camera as camera,
+    features as features,
     io as io,
     kernels as kernels,
     lie as lie,
+    metrics as metrics,
     neighbors as neighbors,
     normals as normals,
     pnp as pnp,
+    ransac as ransac,
+    robust as robust,
     tags as tags,
     uncertainty as uncertainty,
 )
@@ -24,7 +28,13 @@ from jaxreg.alignment import (
     kabsch as kabsch,
     umeyama as umeyama,
 )
-from jaxreg.camera import project as project, reprojection_error as reprojection_error
+from jaxreg.camera import (
+    Intrinsics as Intrinsics,
+    RGBDFrame as RGBDFrame,
+    project as project,
+    reprojection_error as reprojection_error,
+)
+from jaxreg.features import fpfh as fpfh, match_features as match_features
 from jaxreg.icp import (
     ICPStatus as ICPStatus,
     RegistrationResult as RegistrationResult,
@@ -58,6 +68,14 @@ from jaxreg.lie import (
     rotation_grid_around as rotation_grid_around,
     se3_exp as se3_exp,
 )
+from jaxreg.metrics import (
+    Symmetry as Symmetry,
+    add as add,
+    add_s as add_s,
+    canonicalise as canonicalise,
+    pose_error as pose_error,
+    rotation_error as rotation_error,
+)
 from jaxreg.neighbors import (
     NeighborGrid as NeighborGrid,
     build_grid as build_grid,
@@ -72,6 +90,16 @@ from jaxreg.pnp import (
     solve_pnp as solve_pnp,
     solve_pnp_planar as solve_pnp_planar,
 )
+from jaxreg.ransac import (
+    RansacStatus as RansacStatus,
+    ransac_iterations as ransac_iterations,
+    ransac_registration as ransac_registration,
+)
+from jaxreg.robust import (
+    RobustAlignment as RobustAlignment,
+    RobustStatus as RobustStatus,
+    robust_kabsch as robust_kabsch,
+)
 from jaxreg.tags import detect_tags as detect_tags, tag_object_points as tag_object_points
 from jaxreg.uncertainty import (
     DepthNoise as DepthNoise,
@@ -83,3 +111,12 @@ from jaxreg.uncertainty import (
     grasp_success_probability as grasp_success_probability,
     pose_statistics as pose_statistics,
 )
+
+
+def __getattr__(name: str):
+    # jaxreg.synth needs the ray caster (trimesh + Embree): imported on first use, not with jaxreg.
+    if name == "synth":
+        import importlib
+
+        return importlib.import_module("jaxreg.synth")
+    raise AttributeError(f"module 'jaxreg' has no attribute {name!r}")

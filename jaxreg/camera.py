@@ -1,7 +1,8 @@
 """The camera model: pinhole projection with Brown-Conrady distortion, and its inverse.
 
-Every pixel-space computation in jaxreg (PnP, tags, and the RGB-D frames still to come) goes
-through these functions, so the conventions live in one place:
+Every pixel-space computation in jaxreg (PnP, tags, RGB-D frames) goes through this module, so
+the conventions live in one place; `Intrinsics` and `RGBDFrame` (a depth image with its camera
+and hand-eye pose) are the objects the pipeline and the synthetic scenes pass around:
 
 * `camera_T_object` (a `jaxlie.SE3`) maps object coordinates into the camera frame:
   `X_cam = R @ X_obj + t`. The camera looks down +z, x right, y down (OpenCV).
@@ -19,14 +20,18 @@ differentiable; `undistort_points` is a fixed number of fixed-point steps.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxlie import SE3
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Shaped
 
-from jaxreg.lie import se3_exp
+from jaxreg.lie import se3_exp, se3_from_matrix
 
 __all__ = [
+    "Intrinsics",
+    "RGBDFrame",
     "apply_intrinsics",
     "canonical_dist_coeffs",
     "distort",
@@ -212,3 +217,218 @@ def undistort_points(
         return (distorted - tangential) / radial[..., None]
 
     return jax.lax.fori_loop(0, iterations, step, distorted)
+
+
+# --------------------------------------------------------------------------------------------
+# Intrinsics and RGB-D frames
+# --------------------------------------------------------------------------------------------
+
+
+def _positive_scalar(name: str, value) -> Array:
+    """`value` as a float array leaf; a concrete value must be finite and positive."""
+    array = jnp.asarray(value, dtype=jnp.result_type(float))
+    if array.shape != ():
+        raise ValueError(f"{name} must be a scalar, got shape {array.shape}")
+    if not isinstance(array, jax.core.Tracer) and not (np.isfinite(array) and array > 0):
+        raise ValueError(f"{name} must be finite and positive, got {float(array)}")
+    return array
+
+
+class Intrinsics(eqx.Module):
+    """Pinhole intrinsics of one image size, with optional Brown-Conrady distortion.
+
+    Pixel centres sit at integer coordinates (OpenCV): pixel `(u, v)` (column, row) of an
+    image `height` x `width` spans `[u - 0.5, u + 0.5]`, and the principal point `(cx, cy)` of
+    an ideal centred lens is `((width - 1) / 2, (height - 1) / 2)`. A camera-frame point
+    `(x, y, z)` (z forward, x right, y down; metres) projects to
+    `u = fx x'' + cx`, `v = fy y'' + cy`, where `(x'', y'')` is `(x / z, y / z)` distorted by
+    `dist_coeffs` (OpenCV order `(k1, k2, p1, p2, k3)`; `None` for none), exactly as `project`.
+
+    `fx, fy, cx, cy` (pixels) and `dist_coeffs` are array leaves: they can be differentiated,
+    and `jax.vmap` over a stack of intrinsics batches them. `width` and `height` (pixels) are
+    static: they fix array shapes.
+    """
+
+    fx: Float[Array, ""]
+    fy: Float[Array, ""]
+    cx: Float[Array, ""]
+    cy: Float[Array, ""]
+    dist_coeffs: Float[Array, "5"] | None
+    width: int = eqx.field(static=True)
+    height: int = eqx.field(static=True)
+
+    def __init__(
+        self,
+        fx: Float[ArrayLike, ""],
+        fy: Float[ArrayLike, ""],
+        cx: Float[ArrayLike, ""],
+        cy: Float[ArrayLike, ""],
+        width: int,
+        height: int,
+        dist_coeffs: Float[ArrayLike, "D"] | None = None,
+    ):
+        for name, size in (("width", width), ("height", height)):
+            if isinstance(size, bool) or not isinstance(size, int | np.integer) or size <= 0:
+                raise ValueError(f"{name} must be a positive int (pixels), got {size!r}")
+        self.fx = _positive_scalar("fx", fx)
+        self.fy = _positive_scalar("fy", fy)
+        self.cx = jnp.asarray(cx, dtype=self.fx.dtype)
+        self.cy = jnp.asarray(cy, dtype=self.fx.dtype)
+        self.dist_coeffs = None if dist_coeffs is None else canonical_dist_coeffs(dist_coeffs)
+        if self.dist_coeffs is not None and self.dist_coeffs.shape != (5,):
+            raise ValueError(
+                f"dist_coeffs must be one vector of 4 or 5, got {self.dist_coeffs.shape}"
+            )
+        self.width = int(width)
+        self.height = int(height)
+
+    @classmethod
+    def from_matrix(
+        cls,
+        K: Float[ArrayLike, "3 3"],
+        width: int,
+        height: int,
+        dist_coeffs: Float[ArrayLike, "D"] | None = None,
+    ) -> Intrinsics:
+        """Intrinsics from a `(3, 3)` camera matrix `[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`.
+
+        Raises `ValueError` for a matrix of another shape or with skew (`K[0, 1] != 0`: not
+        representable here; use `project` with the full `K`).
+        """
+        K = jnp.asarray(K)
+        if K.shape != (3, 3):
+            raise ValueError(f"K must be (3, 3), got {K.shape}")
+        if not isinstance(K, jax.core.Tracer) and (
+            K[0, 1] != 0 or K[1, 0] != 0 or np.any(np.asarray(K[2]) != (0.0, 0.0, 1.0))
+        ):
+            raise ValueError(f"K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}")
+        return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height, dist_coeffs)
+
+    @property
+    def K(self) -> Float[Array, "3 3"]:
+        """The `(3, 3)` camera matrix."""
+        zero, one = jnp.zeros_like(self.fx), jnp.ones_like(self.fx)
+        return jnp.stack(
+            [
+                jnp.stack([self.fx, zero, self.cx]),
+                jnp.stack([zero, self.fy, self.cy]),
+                jnp.stack([zero, zero, one]),
+            ]
+        )
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """`(height, width)`: the shape of a depth image of this camera."""
+        return (self.height, self.width)
+
+    def project(self, points_cam: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 2"]:
+        """Pixels `(..., 2)` (u, v) of camera-frame points `(..., 3)` (metres, z > 0)."""
+        points_cam = jnp.asarray(points_cam)
+        flat = points_cam.reshape(-1, 3)
+        return project(flat, self.K, self.dist_coeffs).reshape(*points_cam.shape[:-1], 2)
+
+    def rays(self, pixels: Float[ArrayLike, "*batch 2"]) -> Float[Array, "*batch 3"]:
+        """Unit-depth rays `(x/z, y/z, 1)` `(..., 3)` of pixels `(..., 2)` (u, v), undistorted.
+
+        A pixel with depth `z` lifts to the camera-frame point `z * rays(pixel)`.
+        """
+        pixels = jnp.asarray(pixels)
+        flat = pixels.reshape(-1, 2).astype(self.fx.dtype)
+        xy = undistort_points(flat, self.K, self.dist_coeffs)
+        rays = jnp.concatenate([xy, jnp.ones_like(xy[:, :1])], axis=-1)
+        return rays.reshape(*pixels.shape[:-1], 3)
+
+    def pixel_grid(self) -> Float[Array, "H W 2"]:
+        """`(height, width, 2)` pixel-centre coordinates `(u, v)` of every pixel."""
+        v, u = jnp.meshgrid(
+            jnp.arange(self.height, dtype=self.fx.dtype),
+            jnp.arange(self.width, dtype=self.fx.dtype),
+            indexing="ij",
+        )
+        return jnp.stack([u, v], axis=-1)
+
+    def pixel_rays(self) -> Float[Array, "H W 3"]:
+        """`(height, width, 3)` unit-depth rays of every pixel centre (`rays(pixel_grid())`)."""
+        return self.rays(self.pixel_grid())
+
+
+class RGBDFrame(eqx.Module):
+    """One depth image (with optional colour) of a calibrated camera on a robot.
+
+    Attributes:
+        depth: `(H, W)` z-depth in metres along the camera's optical axis (not the range
+            along the ray), NaN where the sensor has no return. The constructor turns 0,
+            negative and non-finite values (the file conventions for holes) into NaN.
+        intrinsics: `Intrinsics` with `(height, width) == (H, W)`.
+        rgb: `(H, W, 3)` uint8 colour registered to the depth pixels, or `None`.
+        base_T_camera: `SE3` hand-eye transform mapping camera coordinates into the robot's
+            base frame (identity: the base is the camera).
+
+    `points` and `camera_points` are differentiable in `intrinsics` and `base_T_camera`
+    (holes give NaN values but zero, never NaN, gradients).
+    """
+
+    depth: Float[Array, "H W"]
+    intrinsics: Intrinsics
+    rgb: Shaped[Array, "H W 3"] | None
+    base_T_camera: SE3
+
+    def __init__(
+        self,
+        depth: Float[ArrayLike, "H W"],
+        intrinsics: Intrinsics,
+        rgb: Shaped[ArrayLike, "H W 3"] | None = None,
+        base_T_camera: SE3 | Float[ArrayLike, "4 4"] | None = None,
+    ):
+        depth = jnp.asarray(depth)
+        if depth.shape != intrinsics.shape:
+            raise ValueError(
+                f"depth has shape {depth.shape} but the intrinsics are for "
+                f"(height, width) = {intrinsics.shape}: pass the intrinsics of this image size"
+            )
+        depth = depth.astype(jnp.result_type(depth, float))
+        self.depth = jnp.where(jnp.isfinite(depth) & (depth > 0), depth, jnp.nan)
+        self.intrinsics = intrinsics
+        if rgb is not None:
+            rgb = jnp.asarray(rgb)
+            if rgb.shape != (*intrinsics.shape, 3):
+                raise ValueError(
+                    f"rgb must be (H, W, 3) = {(*intrinsics.shape, 3)} registered to the depth "
+                    f"image, got {rgb.shape}"
+                )
+        self.rgb = rgb
+        if base_T_camera is None:
+            base_T_camera = SE3(jnp.array([1.0, 0, 0, 0, 0, 0, 0], self.depth.dtype))
+        elif not isinstance(base_T_camera, SE3):
+            base_T_camera = se3_from_matrix(base_T_camera)
+        self.base_T_camera = base_T_camera
+
+    @property
+    def valid(self) -> Bool[Array, "H W"]:
+        """`(H, W)` True where the depth is a measurement (not a hole)."""
+        return jnp.isfinite(self.depth)
+
+    def _lift(self, mask) -> tuple[Array, Array]:
+        """Camera-frame points with holes and masked pixels at the origin, and the kept mask."""
+        keep = self.valid
+        if mask is not None:
+            mask = jnp.asarray(mask, dtype=bool)
+            if mask.shape != self.depth.shape:
+                raise ValueError(f"mask must be (H, W) = {self.depth.shape}, got {mask.shape}")
+            keep = keep & mask
+        safe_depth = jnp.where(keep, self.depth, 0.0)  # holes give zero gradients, not NaN
+        return safe_depth[..., None] * self.intrinsics.pixel_rays(), keep
+
+    def camera_points(self, mask: Bool[ArrayLike, "H W"] | None = None) -> Float[Array, "H W 3"]:
+        """`(H, W, 3)` camera-frame points (metres) of every pixel; NaN at holes and where the
+        optional `(H, W)` bool `mask` is False."""
+        points, keep = self._lift(mask)
+        return jnp.where(keep[..., None], points, jnp.nan)
+
+    def points(self, mask: Bool[ArrayLike, "H W"] | None = None) -> Float[Array, "H W 3"]:
+        """`(H, W, 3)` base-frame points `base_T_camera @ camera_points(mask)` (metres); NaN at
+        holes and outside `mask`."""
+        points, keep = self._lift(mask)
+        rotation = self.base_T_camera.rotation().as_matrix()
+        points = points @ rotation.T + self.base_T_camera.translation()
+        return jnp.where(keep[..., None], points, jnp.nan)

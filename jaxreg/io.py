@@ -31,7 +31,15 @@ import numpy as np
 
 from . import _lzf
 
-__all__ = ["PointCloud", "load_points", "read_pcd", "write_pcd", "write_ply"]
+__all__ = [
+    "PointCloud",
+    "load_points",
+    "read_frame",
+    "read_pcd",
+    "write_frame",
+    "write_pcd",
+    "write_ply",
+]
 
 _IDENTITY_VIEWPOINT = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # jaxlie wxyz_xyz
 _HEADER_KEYS = frozenset(
@@ -623,3 +631,8 @@ def write_ply(path: str | Path, points, *, colors=None, normals=None, data: str 
     else:
         body = _binary_table(columns)
     Path(path).write_bytes(header + body)
+
+
+# RGB-D frames (organized PCD, depth PNG + intrinsics JSON) are read with read_pcd above, so
+# their module imports this one; they are re-exported here, where users look for file input.
+from jaxreg._frames import read_frame, write_frame  # noqa: E402
