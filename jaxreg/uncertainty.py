@@ -32,6 +32,7 @@ from jaxlie import SE3
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxreg.lie import geodesic_angle, karcher_mean
+from jaxreg.metrics import Symmetry
 
 __all__ = [
     "AbstractPointNoise",
@@ -410,16 +411,19 @@ def pose_statistics(
     poses: SE3,
     *,
     reference: SE3 | None = None,
-    symmetries: SE3 | None = None,
+    symmetry: Symmetry | SE3 | None = None,
+    symmetry_steps: int = 360,
     groups: Int[ArrayLike, " K"] | None = None,
     weights: Float[ArrayLike, " K"] | None = None,
     num_groups: int | None = None,
 ) -> PoseStatistics:
     """Statistics of ``K`` repeated estimates of one pose (a repeatability study).
 
-    1. **Symmetry.** With ``symmetries`` (object-frame transforms ``S`` that map the object
+    1. **Symmetry.** With ``symmetry`` (the object-frame transforms ``S`` that map the object
        onto itself, e.g. a square container's rotations by 0, 90, 180 and 270 degrees about
-       its axis; the identity is always added), each pose ``T_k`` is replaced by the
+       its axis: a :class:`jaxreg.metrics.Symmetry`, the description the metrics and the
+       synthetic scenes use, or an ``SE3`` batch for transforms about an axis off the object
+       origin; the identity is always included), each pose ``T_k`` is replaced by the
        equivalent ``T_k @ S`` whose rotation is closest to an anchor: first ``reference``
        (or the first pose), then twice the Karcher mean of the canonical set. Without this,
        estimates that hop between equally good branches average to an invalid pose and
@@ -442,7 +446,10 @@ def pose_statistics(
     Args:
         poses: ``SE3`` batch ``(K,)`` mapping object into base coordinates.
         reference: optional ``SE3`` (unbatched) in the same sense.
-        symmetries: optional ``SE3`` batch ``(S,)`` of object-frame symmetry transforms.
+        symmetry: optional :class:`jaxreg.metrics.Symmetry`, or an ``SE3`` batch ``(S,)`` of
+            object-frame symmetry transforms.
+        symmetry_steps: turns a continuous symmetry axis is discretised into (static;
+            360 is 1-degree steps, so canonical rotations are within 0.5 degrees).
         groups: optional ``(K,)`` integer labels ``0 .. G-1``.
         weights: optional ``(K,)`` non-negative weights; 0 drops a pose (padding).
         num_groups: ``G``, static; inferred from concrete ``groups`` when omitted.
@@ -468,12 +475,16 @@ def pose_statistics(
             raise ValueError("reference must be one (unbatched) jaxlie.SE3")
         reference = SE3(reference.wxyz_xyz.astype(dtype))
     identity = SE3.identity().wxyz_xyz.astype(dtype)[None]
-    if symmetries is None:
+    if isinstance(symmetry, Symmetry):
+        symmetry = symmetry.transforms(steps=symmetry_steps)
+    if symmetry is None:
         sym = SE3(identity)
     else:
-        if not isinstance(symmetries, SE3) or len(symmetries.get_batch_axes()) != 1:
-            raise ValueError("symmetries must be a jaxlie.SE3 batch of shape (S,)")
-        sym = SE3(jnp.concatenate([identity, symmetries.wxyz_xyz.astype(dtype)]))
+        if not isinstance(symmetry, SE3) or len(symmetry.get_batch_axes()) != 1:
+            raise ValueError(
+                "symmetry must be a jaxreg.metrics.Symmetry or a jaxlie.SE3 batch of shape (S,)"
+            )
+        sym = SE3(jnp.concatenate([identity, symmetry.wxyz_xyz.astype(dtype)]))
     onehot = None
     if groups is not None:
         labels = jnp.asarray(groups)
