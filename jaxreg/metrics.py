@@ -108,8 +108,8 @@ class Symmetry(eqx.Module):
     def transforms(self, *, steps: int | None = None) -> SE3:
         """The symmetry as an ``SE3`` batch ``(S,)`` of pure rotations, the identity first.
 
-        This is the form :func:`jaxreg.pose_statistics` takes as ``symmetries``. A
-        continuous axis is discretised into ``steps`` turns (:meth:`discretised`).
+        :func:`jaxreg.pose_statistics` calls it with its ``symmetry_steps``. A continuous
+        axis is discretised into ``steps`` turns (:meth:`discretised`).
 
         Raises:
             ValueError: the symmetry has a continuous axis and ``steps`` is not given.
