@@ -258,13 +258,7 @@ class FeatureMatches(eqx.Module):
 
 def _usable(features: Array, mask) -> Bool[Array, " N"]:
     """Rows that are finite, not all zero and, when given, set in ``mask``."""
-    ok = jnp.all(jnp.isfinite(features), axis=-1) & jnp.any(features != 0, axis=-1)
-    if mask is None:
-        return ok
-    mask = jnp.asarray(mask)
-    if mask.shape != ok.shape:
-        raise ValueError(f"mask must be ({ok.shape[0]},), got {mask.shape}")
-    return ok & mask
+    return valid_rows(features, mask) & jnp.any(features != 0, axis=-1)
 
 
 @functools.partial(jax.jit, static_argnames="second")
