@@ -1,0 +1,388 @@
+"""Synthetic RGB-D tabletop scenes whose truth is known exactly, with a real sensor's noise.
+
+`tabletop_scene(seed)` builds a table, a target object (`box`, `mug`, `cylinder` or
+`container`, see `object_mesh`) and distractors, places a camera 0.5-0.7 m from the target
+looking down at the table, ray casts every pixel of an 848x480 depth image (Embree), shades an
+RGB image, and passes the exact depth through a stereo sensor model (`StereoSensor`, an Intel
+RealSense D435 by default; its docstring describes the model and names the source of every
+coefficient). The same seed gives the same scene, noise included; the geometry and the noise
+draw from separate streams, so `noise=False` renders the same scene exactly.
+
+Frames: the base frame is the robot's, z up, with the table top at z = 0 and the table centred
+on the origin; `base_T_camera` maps camera coordinates (OpenCV: z forward, x right, y down)
+into it, and `truth = base_T_object` maps the object's mesh frame into it. Depth is z-depth in
+metres (NaN holes); all host-side arrays are numpy, the frame's are JAX.
+
+Ray casting uses Embree (through embreex): it picks the triangle each ray hits first, and the
+depth is solved in float64 on that triangle's plane, so noise-free pixels lie on the meshes to
+float64 precision. A noisy frame casts a second set of rays, from the right imager, to find
+the pixels it cannot see. `benchmarks/bench_render.py` times both.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import numpy as np
+import trimesh
+from embreex import rtcore_scene
+from embreex.mesh_construction import TriangleMesh
+from jaxlie import SE3
+
+from jaxreg._depth_noise import StereoSensor
+from jaxreg._meshes import OBJECTS, distractor_mesh, object_mesh
+from jaxreg.camera import Intrinsics, RGBDFrame
+from jaxreg.lie import se3_from_matrix
+from jaxreg.metrics import Symmetry
+
+__all__ = [
+    "OBJECTS",
+    "Rendering",
+    "StereoSensor",
+    "TabletopScene",
+    "look_at",
+    "object_mesh",
+    "render",
+    "tabletop_scene",
+]
+
+_TABLE_SIZE = (1.2, 0.8, 0.04)  # metres; the top face is z = 0 in the base frame
+_TABLE_COLOR = (0.55, 0.42, 0.30)  # light wood
+_BACKGROUND_RGB = (40, 40, 46)
+_AMBIENT = 0.35
+_LIGHT_BASE = np.array([0.3, -0.4, 1.0]) / np.linalg.norm([0.3, -0.4, 1.0])  # toward the light
+_PLACEMENT_REACH = 0.34  # metres from the target: the table is 0.8 m deep, the target within 5 cm
+_LUMA = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 luminance of linear RGB
+
+
+class _RayCaster:
+    """First hits of rays on a triangle soup: Embree (float32, through embreex) picks the
+    triangle, the hit distance is solved in float64 on that triangle's plane.
+
+    Index arrays returned by `first_hit` use -1 for a miss; the per-face arrays here carry one
+    extra row at the end (NaN plane), so indexing them with -1 reads "no surface".
+    """
+
+    def __init__(self, mesh: trimesh.Trimesh):
+        self.centre = mesh.bounds.mean(axis=0)  # float32 coordinates are relative to it
+        self.scene = rtcore_scene.EmbreeScene()
+        TriangleMesh(
+            scene=self.scene,
+            vertices=(mesh.vertices - self.centre).astype(np.float32),
+            indices=mesh.faces.astype(np.int32),
+        )
+        self.normals = np.concatenate([mesh.face_normals, np.full((1, 3), np.nan)])
+        offsets = np.einsum("ij,ij->i", mesh.face_normals, mesh.triangles[:, 0] - self.centre)
+        self.offsets = np.append(offsets, np.nan)  # plane n . (x - centre) = offset
+
+    def first_hit(self, origin: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """`(N,)` int32 index of the first face hit by rays from `origin` `(3,)` along
+        `directions` `(N, 3)` (any length), -1 on a miss."""
+        start = np.broadcast_to((origin - self.centre).astype(np.float32), directions.shape)
+        return self.scene.run(np.ascontiguousarray(start), directions.astype(np.float32))
+
+    def along(self, faces: np.ndarray, origin: np.ndarray, directions: np.ndarray):
+        """`(N,)` parameter `s` where `origin + s * directions` meets the plane of `faces`
+        (`first_hit`'s indices; NaN on a miss)."""
+        offsets = self.offsets[faces] - self.normals[faces] @ (origin - self.centre)
+        return offsets / np.einsum("ij,ij->i", self.normals[faces], directions)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Rendering:
+    """The exact image of a set of meshes: what every pixel's ray hits first. Host numpy.
+
+    Attributes:
+        intrinsics: the camera's `Intrinsics` (shape `(H, W)`).
+        base_T_camera: `(4, 4)` float64 camera -> base.
+        depth: `(H, W)` float64 exact z-depth in metres, NaN where the ray hits nothing.
+        labels: `(H, W)` int32 index of the mesh hit (order of `render`'s `meshes`), -1 none.
+        normals: `(H, W, 3)` camera-frame unit normals of the faces hit, turned toward the
+            camera; NaN where nothing is hit.
+        rays: `(H, W, 3)` float64 unit-depth rays `(x/z, y/z, 1)` of the pixel centres.
+        albedo: `(H, W)` luminance in [0, 1] of the mesh hit (NaN where nothing is hit).
+        colors: `(M, 3)` float linear RGB in [0, 1] of every mesh.
+    """
+
+    intrinsics: Intrinsics
+    base_T_camera: np.ndarray
+    depth: np.ndarray
+    labels: np.ndarray
+    normals: np.ndarray
+    rays: np.ndarray
+    albedo: np.ndarray
+    colors: np.ndarray
+    _caster: _RayCaster = dataclasses.field(repr=False)
+
+    def camera_points(self) -> np.ndarray:
+        """`(H, W, 3)` exact camera-frame hit points (metres), NaN where nothing is hit."""
+        return self.depth[..., None] * self.rays
+
+    def visible_from(self, origin_camera: np.ndarray) -> np.ndarray:
+        """`(H, W)` bool: the pixel's hit point is seen, unobstructed, from `origin_camera`
+        `(3,)` (camera frame, metres), e.g. a stereo pair's second imager. False on misses."""
+        surface = np.isfinite(self.depth)
+        rotation, translation = self.base_T_camera[:3, :3], self.base_T_camera[:3, 3]
+        origin = rotation @ origin_camera + translation
+        # in the base frame, the segment from the origin to each hit point: s = 1 at the point
+        segments = (self.camera_points()[surface] - origin_camera) @ rotation.T
+        faces = self._caster.first_hit(origin, segments)
+        reach = self._caster.along(faces, origin, segments)
+        slack = 1e-5 / np.linalg.norm(segments, axis=-1)  # 10 um for the hit point itself
+        visible = np.zeros(self.depth.shape, dtype=bool)
+        visible[surface] = (faces < 0) | (reach >= 1 - slack)
+        return visible
+
+    def shade(self) -> np.ndarray:
+        """`(H, W, 3)` uint8 RGB: Lambertian shading of each mesh's colour under one distant
+        light above the table plus ambient light; background where nothing is hit."""
+        light_camera = self.base_T_camera[:3, :3].T @ _LIGHT_BASE
+        lambert = np.clip(np.nan_to_num(self.normals @ light_camera), 0.0, None)
+        shading = _AMBIENT + (1 - _AMBIENT) * lambert
+        # display gamma: (colour * shading)^g = colour^g * shading^g, one power per pixel
+        gamma = 1 / 2.2
+        palette = np.vstack([np.clip(self.colors, 0.0, 1.0) ** gamma, np.zeros(3)])
+        srgb = np.minimum(palette[self.labels] * (shading**gamma)[..., None], 1.0)
+        rgb = np.rint(255 * srgb).astype(np.uint8)
+        rgb[self.labels < 0] = _BACKGROUND_RGB
+        return rgb
+
+
+def render(
+    meshes: Sequence[trimesh.Trimesh],
+    intrinsics: Intrinsics,
+    base_T_camera: SE3 | np.ndarray,
+    colors: np.ndarray | None = None,
+) -> Rendering:
+    """Ray cast `meshes` (base frame, metres) from a camera: the exact depth image.
+
+    Args:
+        meshes: M triangle meshes in the base frame.
+        intrinsics: the camera; distortion, if any, is honoured (each pixel casts its
+            undistorted ray).
+        base_T_camera: `SE3` or `(4, 4)` camera -> base.
+        colors: `(M, 3)` linear RGB in [0, 1] per mesh (for `shade` and the sensor's dark-
+            surface holes); default mid grey.
+
+    Returns:
+        A `Rendering`.
+    """
+    if len(meshes) == 0:
+        raise ValueError("render needs at least one mesh")
+    colors = np.full((len(meshes), 3), 0.5) if colors is None else np.asarray(colors, float)
+    if colors.shape != (len(meshes), 3):
+        raise ValueError(f"colors must be (M, 3) = ({len(meshes)}, 3), got {colors.shape}")
+    pose = base_T_camera.as_matrix() if isinstance(base_T_camera, SE3) else base_T_camera
+    pose = np.asarray(pose, dtype=np.float64)
+    if pose.shape != (4, 4):
+        raise ValueError(f"base_T_camera must be an SE3 or (4, 4), got shape {pose.shape}")
+    caster = _RayCaster(trimesh.util.concatenate(list(meshes)))
+    rays = np.asarray(intrinsics.pixel_rays(), dtype=np.float64)
+    flat = rays.reshape(-1, 3)
+    rotation, origin = pose[:3, :3], pose[:3, 3]
+    directions = flat @ rotation.T
+    faces = caster.first_hit(origin, directions)
+    depth = caster.along(faces, origin, directions)  # a unit-depth ray's parameter is z
+
+    face_counts = [len(mesh.faces) for mesh in meshes]
+    face_labels = np.append(np.repeat(np.arange(len(meshes), dtype=np.int32), face_counts), -1)
+    face_albedo = np.append((colors @ _LUMA)[face_labels[:-1]], np.nan)
+    normals = caster.normals[faces] @ rotation  # rows R^T n: camera frame
+    away = np.einsum("ij,ij->i", normals, flat) > 0
+    normals[away] *= -1
+    shape = rays.shape[:2]
+    return Rendering(
+        intrinsics=intrinsics,
+        base_T_camera=pose,
+        depth=depth.reshape(shape),
+        labels=face_labels[faces].reshape(shape),
+        normals=normals.reshape(*shape, 3),
+        rays=rays,
+        albedo=face_albedo[faces].reshape(shape),
+        colors=colors,
+        _caster=caster,
+    )
+
+
+def look_at(eye, target) -> np.ndarray:
+    """`(4, 4)` `base_T_camera` of a camera at `eye` `(3,)` looking at `target` `(3,)` (base
+    frame, metres): optical axis (z) toward the target, image x horizontal (the roll of a camera
+    held level), y pointing down the image. The view must not be vertical."""
+    eye, target = np.asarray(eye, float), np.asarray(target, float)
+    forward = target - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, (0.0, 0.0, 1.0))
+    if np.linalg.norm(right) < 1e-6:
+        raise ValueError("look_at: the view is vertical; tilt the camera")
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([right, down, forward], axis=1)
+    pose[:3, 3] = eye
+    return pose
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class TabletopScene:
+    """A rendered tabletop scene with its truth.
+
+    Attributes:
+        frame: the `RGBDFrame` (depth with the sensor's noise unless `noise=False`, shaded
+            RGB, the scene's intrinsics and `base_T_camera`).
+        model: the target's `trimesh.Trimesh` in its own frame (see `object_mesh`).
+        model_points: `(N, 3)` float32 points sampled uniformly on `model`'s surface.
+        truth: `SE3` `base_T_object` (float32, like the frame).
+        mask: `(H, W)` bool, the pixels where the target is the first surface hit (the exact
+            segmentation; noisy depth may still have holes inside it).
+        symmetry: the target's `Symmetry`.
+        exact_depth: `(H, W)` float64 noise-free z-depth (metres, NaN where nothing is hit).
+        labels: `(H, W)` int32 per pixel: 0 table, 1 target, 2... distractors, -1 nothing.
+    """
+
+    frame: RGBDFrame
+    model: trimesh.Trimesh
+    model_points: np.ndarray
+    truth: SE3
+    mask: np.ndarray
+    symmetry: Symmetry
+    exact_depth: np.ndarray
+    labels: np.ndarray
+
+
+def _placed(mesh: trimesh.Trimesh, pose: np.ndarray) -> trimesh.Trimesh:
+    return mesh.copy().apply_transform(pose)
+
+
+def _resting_pose(xy, yaw: float, half_height: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    pose = np.eye(4)
+    pose[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    pose[:3, 3] = (xy[0], xy[1], half_height)
+    return pose
+
+
+def _random_color(rng: np.random.Generator, lo: float, hi: float) -> np.ndarray:
+    """A saturated-ish random colour whose luminance (albedo) lies in [lo, hi]."""
+    color = rng.uniform(0.1, 1.0, 3)
+    return color * rng.uniform(lo, hi) / (color @ _LUMA)
+
+
+def _footprint_radius(mesh: trimesh.Trimesh) -> float:
+    """Radius (metres) of the smallest vertical cylinder about the mesh's z axis holding it."""
+    return float(np.linalg.norm(mesh.vertices[:, :2], axis=1).max())
+
+
+def _distractors(rng, count: int, toward_camera: np.ndarray, target_radius: float):
+    """`count` clutter meshes and their table positions relative to the target's, each at
+    least 1 cm clear of the target and of each other, on the table, and never between the
+    camera and the target: every distractor nearer the camera than the target's centre keeps
+    its footprint out of the band of half-width `target_radius` about the horizontal line of
+    sight `toward_camera` `(2,)` (unit), so no ray to the target can meet it."""
+    placed: list[tuple[trimesh.Trimesh, np.ndarray, float]] = []
+    for _ in range(count):
+        for _attempt in range(200):
+            mesh = distractor_mesh(rng)
+            radius = _footprint_radius(mesh)
+            azimuth = rng.uniform(0, 2 * np.pi)
+            reach = rng.uniform(target_radius + radius + 0.01, _PLACEMENT_REACH - radius)
+            spot = reach * np.array([np.cos(azimuth), np.sin(azimuth)])
+            along = spot @ toward_camera
+            across = abs(spot @ (-toward_camera[1], toward_camera[0]))
+            blocks_view = along > -radius and across < target_radius + radius + 0.01
+            apart = all(np.linalg.norm(spot - xy) > radius + r + 0.01 for _, xy, r in placed)
+            if apart and not blocks_view:
+                placed.append((mesh, spot, radius))
+                break
+        else:
+            raise ValueError(f"no room on the table for {count} distractors: ask for fewer")
+    return [(mesh, spot) for mesh, spot, _ in placed]
+
+
+def tabletop_scene(
+    seed: int = 0,
+    *,
+    object: str = "box",
+    noise: bool = True,
+    distractors: int = 2,
+    sensor: StereoSensor | None = None,
+    intrinsics: Intrinsics | None = None,
+    distance: tuple[float, float] = (0.5, 0.7),
+    elevation_deg: tuple[float, float] = (35.0, 70.0),
+    model_points: int = 2048,
+) -> TabletopScene:
+    """A random tabletop scene, reproducible from `seed`.
+
+    The target stands upright at a random spot within 5 cm of the table's centre with a
+    random yaw; `distractors` clutter objects (boxes, cans, balls) stand around it, never on
+    the line of sight. The camera, held level, looks at the target's centre from a random
+    `distance` (metres) and `elevation_deg` above the table plane, at a random azimuth.
+
+    Args:
+        seed: the scene (geometry, colours, camera) and its noise draw.
+        object: the target, one of `OBJECTS`.
+        noise: pass the exact depth through `sensor`; False keeps the exact render.
+        distractors: number of clutter objects (0-8).
+        sensor: the depth camera (default `StereoSensor.d435()`).
+        intrinsics: default `sensor.intrinsics(848, 480)`.
+        distance, elevation_deg: `(min, max)` of the uniform draws of the view.
+        model_points: number of surface samples in `model_points`.
+
+    Returns:
+        A `TabletopScene`.
+    """
+    if object not in OBJECTS:
+        raise ValueError(f"unknown object {object!r}: choose one of {', '.join(OBJECTS)}")
+    if not 0 <= distractors <= 8:
+        raise ValueError(f"distractors must be 0..8 (room on the table), got {distractors}")
+    sensor = StereoSensor.d435() if sensor is None else sensor
+    intrinsics = sensor.intrinsics() if intrinsics is None else intrinsics
+    rng = np.random.default_rng([seed, 0])  # geometry; noise draws from [seed, 1]
+
+    model, symmetry = object_mesh(object)
+    half_height = model.bounds[1, 2]
+    target_xy = rng.uniform(-0.05, 0.05, 2)
+    truth = _resting_pose(target_xy, rng.uniform(0, 2 * np.pi), half_height)
+    azimuth = rng.uniform(0, 2 * np.pi)
+    elevation = np.radians(rng.uniform(*elevation_deg))
+    view = rng.uniform(*distance) * np.array(
+        [
+            np.cos(elevation) * np.cos(azimuth),
+            np.cos(elevation) * np.sin(azimuth),
+            np.sin(elevation),
+        ]
+    )
+    centre = truth[:3, 3]
+    base_T_camera = look_at(centre + view, centre)
+
+    table = trimesh.creation.box(_TABLE_SIZE)
+    table.apply_translation((0.0, 0.0, -_TABLE_SIZE[2] / 2))
+    meshes = [table, _placed(model, truth)]
+    colors = [np.array(_TABLE_COLOR), _random_color(rng, 0.25, 0.8)]
+    toward_camera = np.array([np.cos(azimuth), np.sin(azimuth)])
+    for clutter, spot in _distractors(rng, distractors, toward_camera, _footprint_radius(model)):
+        pose = _resting_pose(target_xy + spot, rng.uniform(0, 2 * np.pi), clutter.bounds[1, 2])
+        meshes.append(_placed(clutter, pose))
+        colors.append(_random_color(rng, 0.05, 0.8))
+
+    rendering = render(meshes, intrinsics, base_T_camera, np.stack(colors))
+    depth = rendering.depth
+    if noise:
+        depth = sensor.measure(rendering, np.random.default_rng([seed, 1]))
+    frame = RGBDFrame(
+        depth.astype(np.float32),
+        intrinsics,
+        rgb=rendering.shade(),
+        base_T_camera=se3_from_matrix(base_T_camera.astype(np.float32)),
+    )
+    samples, _ = trimesh.sample.sample_surface(model, model_points, seed=seed)
+    return TabletopScene(
+        frame=frame,
+        model=model,
+        model_points=samples.astype(np.float32),
+        truth=se3_from_matrix(truth.astype(np.float32)),
+        mask=rendering.labels == 1,
+        symmetry=symmetry,
+        exact_depth=rendering.depth,
+        labels=rendering.labels,
+    )
