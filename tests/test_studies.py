@@ -193,3 +193,25 @@ def test_same_answer_on_one_device_two_devices_and_two_processes(sweep):
         np.testing.assert_allclose(
             got["rotation_error_deg"], expected["rotation_error_deg"], atol=1e-3
         )
+
+
+def run_cli(argv):
+    import argparse
+
+    from jaxreg._basin_cli import add_basin_parser, run_basin
+
+    parser = argparse.ArgumentParser(prog="jaxreg")
+    add_basin_parser(parser.add_subparsers(dest="command", required=True))
+    return run_basin(parser.parse_args(argv))
+
+
+def test_basin_command_prints_the_sweep_and_rejects_bad_input(capsys):
+    assert run_cli(["basin", "--samples", "4", "--angles", "10,120", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["processes"] == 1 and report["samples_per_angle"] == 4
+    assert report["success_rate"][0] == [1.0]
+    assert len(report["success_rate"]) == len(report["median_rotation_error_deg"]) == 2
+    assert run_cli(["basin", "--angles", "30,10"]) == 1
+    assert "increasing" in capsys.readouterr().err
+    assert run_cli(["basin", "--num-processes", "2"]) == 1
+    assert "--coordinator" in capsys.readouterr().err
