@@ -58,35 +58,34 @@ _LUMA = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 luminance of linear RGB
 
 class _RayCaster:
     """First hits of rays on a triangle soup: Embree (float32, through embreex) picks the
-    triangle, the hit distance is solved in float64 on that triangle's plane.
+    triangle, the hit distance is solved in float64 on that triangle's plane."""
 
-    Index arrays returned by `first_hit` use -1 for a miss; the per-face arrays here carry one
-    extra row at the end (NaN plane), so indexing them with -1 reads "no surface".
-    """
-
-    def __init__(self, mesh: trimesh.Trimesh):
-        self.centre = mesh.bounds.mean(axis=0)  # float32 coordinates are relative to it
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        self.centre = (vertices.min(axis=0) + vertices.max(axis=0)) / 2  # float32 origin
         self.scene = rtcore_scene.EmbreeScene()
         TriangleMesh(
             scene=self.scene,
-            vertices=(mesh.vertices - self.centre).astype(np.float32),
-            indices=mesh.faces.astype(np.int32),
+            vertices=(vertices - self.centre).astype(np.float32),
+            indices=faces.astype(np.int32),
         )
-        self.normals = np.concatenate([mesh.face_normals, np.full((1, 3), np.nan)])
-        offsets = np.einsum("ij,ij->i", mesh.face_normals, mesh.triangles[:, 0] - self.centre)
-        self.offsets = np.append(offsets, np.nan)  # plane n . (x - centre) = offset
+        corners = vertices[faces]
+        normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        # one extra row, read by the miss index -1: no plane
+        self.normals = np.vstack([normals, np.full((1, 3), np.nan)])
+        self.anchors = np.vstack([corners[:, 0], np.full((1, 3), np.nan)])
 
-    def first_hit(self, origin: np.ndarray, directions: np.ndarray) -> np.ndarray:
-        """`(N,)` int32 index of the first face hit by rays from `origin` `(3,)` along
-        `directions` `(N, 3)` (any length), -1 on a miss."""
+    def cast(self, origin: np.ndarray, directions: np.ndarray):
+        """Rays from `origin` `(3,)` along `directions` `(N, 3)` (any length): the `(N,)`
+        index of the first face hit (-1 on a miss), the `(N,)` parameter `s` where
+        `origin + s * direction` meets that face's plane and its `(N, 3)` unit normal (NaN
+        on a miss)."""
         start = np.broadcast_to((origin - self.centre).astype(np.float32), directions.shape)
-        return self.scene.run(np.ascontiguousarray(start), directions.astype(np.float32))
-
-    def along(self, faces: np.ndarray, origin: np.ndarray, directions: np.ndarray):
-        """`(N,)` parameter `s` where `origin + s * directions` meets the plane of `faces`
-        (`first_hit`'s indices; NaN on a miss)."""
-        offsets = self.offsets[faces] - self.normals[faces] @ (origin - self.centre)
-        return offsets / np.einsum("ij,ij->i", self.normals[faces], directions)
+        faces = self.scene.run(np.ascontiguousarray(start), directions.astype(np.float32))
+        normals = np.take(self.normals, faces, axis=0)
+        offsets = np.einsum("ij,ij->i", self.normals, self.anchors - origin)
+        along = np.take(offsets, faces) / np.einsum("ij,ij->i", normals, directions)
+        return faces, along, normals
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -123,12 +122,8 @@ class Rendering:
         """`(H, W)` bool: the pixel's hit point is seen, unobstructed, from `origin_camera`
         `(3,)` (camera frame, metres), e.g. a stereo pair's second imager. False on misses."""
         surface = np.isfinite(self.depth)
-        rotation, translation = self.base_T_camera[:3, :3], self.base_T_camera[:3, 3]
-        origin = rotation @ origin_camera + translation
-        # in the base frame, the segment from the origin to each hit point: s = 1 at the point
-        segments = (self.camera_points()[surface] - origin_camera) @ rotation.T
-        faces = self._caster.first_hit(origin, segments)
-        reach = self._caster.along(faces, origin, segments)
+        segments = self.camera_points()[surface] - origin_camera  # s = 1 at the hit point
+        faces, reach, _ = self._caster.cast(np.asarray(origin_camera, float), segments)
         slack = 1e-5 / np.linalg.norm(segments, axis=-1)  # 10 um for the hit point itself
         visible = np.zeros(self.depth.shape, dtype=bool)
         visible[surface] = (faces < 0) | (reach >= 1 - slack)
@@ -177,29 +172,28 @@ def render(
     pose = np.asarray(pose, dtype=np.float64)
     if pose.shape != (4, 4):
         raise ValueError(f"base_T_camera must be an SE3 or (4, 4), got shape {pose.shape}")
-    caster = _RayCaster(trimesh.util.concatenate(list(meshes)))
+    # cast in the camera frame: the meshes move (few vertices), the rays (every pixel) do not
+    merged = trimesh.util.concatenate(list(meshes))
+    camera_T_base = np.linalg.inv(pose)
+    vertices = merged.vertices @ camera_T_base[:3, :3].T + camera_T_base[:3, 3]
+    caster = _RayCaster(vertices, merged.faces)
     rays = np.asarray(intrinsics.pixel_rays(), dtype=np.float64)
     flat = rays.reshape(-1, 3)
-    rotation, origin = pose[:3, :3], pose[:3, 3]
-    directions = flat @ rotation.T
-    faces = caster.first_hit(origin, directions)
-    depth = caster.along(faces, origin, directions)  # a unit-depth ray's parameter is z
+    faces, depth, normals = caster.cast(np.zeros(3), flat)  # unit-depth rays: s is z
+    normals *= np.where(np.einsum("ij,ij->i", normals, flat) > 0, -1.0, 1.0)[:, None]  # to camera
 
     face_counts = [len(mesh.faces) for mesh in meshes]
     face_labels = np.append(np.repeat(np.arange(len(meshes), dtype=np.int32), face_counts), -1)
     face_albedo = np.append((colors @ _LUMA)[face_labels[:-1]], np.nan)
-    normals = caster.normals[faces] @ rotation  # rows R^T n: camera frame
-    away = np.einsum("ij,ij->i", normals, flat) > 0
-    normals[away] *= -1
     shape = rays.shape[:2]
     return Rendering(
         intrinsics=intrinsics,
         base_T_camera=pose,
         depth=depth.reshape(shape),
-        labels=face_labels[faces].reshape(shape),
+        labels=np.take(face_labels, faces).reshape(shape),
         normals=normals.reshape(*shape, 3),
         rays=rays,
-        albedo=face_albedo[faces].reshape(shape),
+        albedo=np.take(face_albedo, faces).reshape(shape),
         colors=colors,
         _caster=caster,
     )
