@@ -270,9 +270,9 @@ def _footprint_radius(mesh: trimesh.Trimesh) -> float:
 def _distractors(rng, count: int, toward_camera: np.ndarray, target_radius: float):
     """`count` clutter meshes and their table positions relative to the target's, each at
     least 1 cm clear of the target and of each other, on the table, and never between the
-    camera and the target: every distractor nearer the camera than the target's centre keeps
-    its footprint out of the band of half-width `target_radius` about the horizontal line of
-    sight `toward_camera` `(2,)` (unit), so no ray to the target can meet it."""
+    camera and the target: a distractor reaching nearer the camera than the target's centre
+    keeps its footprint out of the band of half-width `target_radius` about the horizontal
+    line of sight `toward_camera` `(2,)` (unit), so no ray to the target can meet it."""
     placed: list[tuple[trimesh.Trimesh, np.ndarray, float]] = []
     for _ in range(count):
         for _attempt in range(200):

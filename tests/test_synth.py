@@ -230,7 +230,7 @@ def test_too_near_and_left_band_are_holes():
     assert np.isnan(near).all()  # nearer than the 126-disparity search reaches
     for z in (0.2, 0.4):
         _, depth = measured([plane(z)], intrinsics, grey(0.8))
-        band = focal_baseline / z - 0.5 + (intrinsics.width - 1) / 2 - float(intrinsics.cx)
+        band = focal_baseline / z - 0.5  # the right imager sees column u at u - fx B / z
         columns = np.arange(intrinsics.width)
         assert np.isnan(depth[:, columns < band]).all()
         assert np.isfinite(depth[:, columns > band + 1]).all()
