@@ -154,11 +154,11 @@ class StereoSensor:
         depth jump of an exact `(H, W)` depth image (metres); 0 where no neighbour has a depth.
         Pixels with `|edge_jump| > flying_min_jump_m` are the flying-pixel candidates."""
         padded = np.pad(depth, 1, constant_values=np.nan)
-        neighbours = np.stack(
-            [padded[:-2, 1:-1], padded[2:, 1:-1], padded[1:-1, :-2], padded[1:-1, 2:]]
-        )
-        jumps = np.nan_to_num(neighbours - depth, nan=0.0)
-        return np.take_along_axis(jumps, np.abs(jumps).argmax(axis=0)[None], axis=0)[0]
+        jump = np.zeros_like(depth)
+        for neighbour in (padded[:-2, 1:-1], padded[2:, 1:-1], padded[1:-1, :-2], padded[1:-1, 2:]):
+            difference = neighbour - depth
+            jump = np.where(np.abs(difference) > np.abs(jump), difference, jump)  # NaN: never
+        return jump
 
     def measure(self, rendering: Rendering, rng: np.random.Generator) -> np.ndarray:
         """The `(H, W)` depth (metres, NaN holes) this sensor reports for an exact render."""
@@ -170,7 +170,7 @@ class StereoSensor:
 
         # 1. lateral error on the tangent plane (kept where the shifted ray still meets it well)
         shift = rng.normal(0.0, self.lateral_sigma_px, (*shape, 2))
-        facing = np.sum(n * rays, axis=-1)
+        facing = np.einsum("...i,...i->...", n, rays)
         shifted = facing + n[..., 0] * shift[..., 0] / fx + n[..., 1] * shift[..., 1] / fy
         stable = surface & (shifted * facing > 0.25 * facing**2)
         z = np.where(stable, z0 * facing / np.where(stable, shifted, 1.0), z0)
