@@ -60,18 +60,21 @@ def _counting_sort(key: np.ndarray, num_keys: int):
 
 
 @numba.njit(**_CACHE)
-def self_knn(x: np.ndarray, k: int):
-    """Exact ``k`` nearest points of every point of ``x`` (itself included), nearest first.
+def self_knn(x: np.ndarray, k: int, max_distance: float = np.inf):
+    """Exact ``k`` nearest points of every point of ``x`` (itself included), nearest first,
+    among those closer than ``max_distance`` (a hybrid search, as Open3D's and PCL's radius
+    search with a neighbour cap; the default has no radius).
 
     Points are hashed into cubic cells about as wide as a sampled median ``k``-th neighbour
-    distance; each point scans rings of cells around its own, outward, until the cells
-    scanned hold every point within its current ``k``-th distance. Returns
-    ``indices (n, k)`` and squared distances ``(n, k)``; with fewer than ``k`` points the
-    missing slots hold the sentinel ``n`` and ``inf``. Ties are broken by scan order.
+    distance (at most ``max_distance``); each point scans rings of cells around its own,
+    outward, until the cells scanned hold every point within its current ``k``-th distance
+    (or ``max_distance``, when nearer). Returns ``indices (n, k)`` and squared distances
+    ``(n, k)``; slots without a point (fewer than ``k`` points, or within ``max_distance``)
+    hold the sentinel ``n`` and ``inf``. Ties are broken by scan order.
     """
     n = x.shape[0]
     idx = np.full((n, k), n, np.int64)
-    best = np.full((n, k), np.inf)
+    best = np.full((n, k), max_distance * max_distance)
     if n == 0:
         return idx, best
     lo = np.empty(3)
@@ -88,7 +91,7 @@ def self_knn(x: np.ndarray, k: int):
         for b in range(n):
             d[b] = (x[a, 0] - x[b, 0]) ** 2 + (x[a, 1] - x[b, 1]) ** 2 + (x[a, 2] - x[b, 2]) ** 2
         kth[s] = np.sqrt(np.partition(d, min(k, n) - 1)[min(k, n) - 1])
-    size = max(np.median(kth), extent / (1 << 20), 1e-30)
+    size = max(min(np.median(kth), max_distance), extent / (1 << 20), 1e-30)
     span = np.empty(3, np.int64)
     while True:  # a bounded table
         for i in range(3):
@@ -142,6 +145,10 @@ def self_knn(x: np.ndarray, k: int):
                     reach_sq = min(reach_sq, (lo[i] + high * size - x[p, i]) ** 2)
             if best[p, k - 1] <= reach_sq:
                 break
+    for p in range(n):
+        for j in range(k):
+            if idx[p, j] == n:
+                best[p, j] = np.inf
     return idx, best
 
 

@@ -210,10 +210,10 @@ def compute_fpfh(
     norm_sq = jnp.sum(normals * normals, axis=-1)
     ok = valid_rows(points, mask) & jnp.isfinite(norm_sq) & (jnp.abs(norm_sq - 1) < 1e-2)
     if concrete:
-        # One extra neighbour tells whether the neighbourhood overflowed.
+        # Hybrid search (the nearest within the radius); one extra neighbour tells whether the
+        # neighbourhood overflowed.
         host = np.asarray(points, np.float64)
-        idx, nbr_ok = _host_knn(host, np.asarray(ok), max_neighbors + 1)
-        nbr_ok &= np.sum((host[np.minimum(idx, n - 1)] - host[:, None]) ** 2, -1) < radius**2
+        idx, nbr_ok = _host_knn(host, np.asarray(ok), max_neighbors + 1, radius)
         overflow = nbr_ok[:, -1]
         idx, nbr_ok = idx[:, :-1], nbr_ok[:, :-1]
     else:

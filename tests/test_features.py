@@ -99,3 +99,21 @@ def test_match_features_agrees_with_a_kd_tree():
     with pytest.raises(ValueError, match="ratio"):
         match_features(a, b, ratio=1.5)
     assert jnp.all(jax.jit(match_features)(a, b).mask == mutual.mask)
+
+
+def test_hybrid_host_search_is_cKDTree_radius_capped_knn():
+    """FPFH's neighbourhoods come from the compiled host kNN capped at the radius: the same
+    neighbours, in the same order, as cKDTree's k nearest with the ones beyond the radius
+    dropped, on a flat cloud where most neighbourhoods are cut by the radius."""
+    from scipy.spatial import cKDTree
+
+    from jaxreg._octree import self_knn
+
+    x = np.random.default_rng(0).uniform(size=(4000, 3)) * [1.0, 1.0, 0.05]
+    idx, sq = self_knn(x, 30, 0.04)
+    dist, ref = cKDTree(x).query(x, 30)
+    inside = dist < 0.04
+    assert 0.2 < inside.mean() < 0.9
+    np.testing.assert_array_equal(np.isfinite(sq), inside)
+    np.testing.assert_allclose(np.sqrt(sq[inside]), dist[inside], rtol=1e-12)
+    np.testing.assert_array_equal(idx[~inside], len(x))
