@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.experimental import multihost_utils
-from jaxlie import SE3, SO3
+from jaxlie import SE3
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxreg._icp_core import ICPStatus, run
@@ -97,7 +97,7 @@ def basin_starts(
     ``init = Trans(d u) @ truth @ Trans(c) @ Rot(axis, angle) @ Trans(-c)``. Its geodesic
     rotation error is exactly the angle and its source centroid lies exactly the offset
     away from where the truth puts it. Axes and directions are drawn independently for
-    every start from ``key``.
+    every start by numpy's generator seeded with ``key``'s data (no compilation).
     """
     angles = np.asarray(angles_deg, np.float64).reshape(-1)
     offsets = np.zeros(1) if translation_offsets is None else np.asarray(translation_offsets)
@@ -105,18 +105,54 @@ def basin_starts(
     src = np.asarray(source, np.float64)
     c = src[np.all(np.isfinite(src), -1)].mean(0)
     shape = (angles.size, offsets.size, samples_per_angle)
-    axis_key, direction_key = jax.random.split(key)
-    axes = _unit_vectors(axis_key, shape)
-    directions = _unit_vectors(direction_key, shape)
-    rotvec = axes * np.deg2rad(angles)[:, None, None, None]
-    turn = SE3.from_translation(c) @ SE3.from_rotation(SO3.exp(rotvec)) @ SE3.from_translation(-c)
-    shift = SE3.from_translation(directions * offsets[None, :, None, None])
-    return shift @ truth @ turn
+    rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).ravel().tolist())
+    axes = _unit_vectors(rng, shape)
+    directions = _unit_vectors(rng, shape)
+    # Host arithmetic in float64 (nothing to compile): the turn about c is the rotation q
+    # with translation c - q c; composed with the truth, then shifted.
+    half = np.deg2rad(angles)[:, None, None, None] / 2
+    q = np.concatenate([np.broadcast_to(np.cos(half), (*shape, 1)), np.sin(half) * axes], -1)
+    params = np.asarray(truth.wxyz_xyz, np.float64)
+    rotation = _quaternion_matrix(params[:4])
+    offset = c - np.einsum("...ij,j->...i", _quaternion_matrix(q), c)
+    translation = offset @ rotation.T + params[4:] + directions * offsets[None, :, None, None]
+    wxyz = _quaternion_product(params[:4], q)
+    wxyz *= np.where(wxyz[..., :1] < 0, -1.0, 1.0)
+    dtype = jnp.asarray(truth.wxyz_xyz).dtype
+    return SE3(jnp.asarray(np.concatenate([wxyz, translation], -1), dtype))
 
 
-def _unit_vectors(key: Array, shape: tuple[int, ...]) -> np.ndarray:
-    """Uniform random unit vectors ``(*shape, 3)`` on the host."""
-    v = np.asarray(jax.random.normal(key, (*shape, 3)), np.float64)
+def _quaternion_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product ``a b`` of quaternions ``(..., 4)`` (``wxyz``)."""
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+    )
+
+
+def _quaternion_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``(..., 3, 3)`` of unit quaternions ``(..., 4)`` (``wxyz``)."""
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def _unit_vectors(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    """Uniform random unit vectors ``(*shape, 3)``."""
+    v = rng.normal(size=(*shape, 3))
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
