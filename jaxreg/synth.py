@@ -244,6 +244,13 @@ class TabletopScene:
     labels: np.ndarray
 
 
+def _as_matrix(pose: SE3 | np.ndarray, name: str) -> np.ndarray:
+    matrix = np.asarray(pose.as_matrix() if isinstance(pose, SE3) else pose, dtype=np.float64)
+    if matrix.shape != (4, 4):
+        raise ValueError(f"{name} must be an SE3 or (4, 4), got shape {matrix.shape}")
+    return matrix
+
+
 def _placed(mesh: trimesh.Trimesh, pose: np.ndarray) -> trimesh.Trimesh:
     return mesh.copy().apply_transform(pose)
 
@@ -304,6 +311,9 @@ def tabletop_scene(
     distance: tuple[float, float] = (0.5, 0.7),
     elevation_deg: tuple[float, float] = (35.0, 70.0),
     model_points: int = 2048,
+    base_T_object: SE3 | np.ndarray | None = None,
+    base_T_camera: SE3 | np.ndarray | None = None,
+    noise_seed: int | None = None,
 ) -> TabletopScene:
     """A random tabletop scene, reproducible from `seed`.
 
@@ -321,6 +331,14 @@ def tabletop_scene(
         intrinsics: default `sensor.intrinsics(848, 480)`.
         distance, elevation_deg: `(min, max)` of the uniform draws of the view.
         model_points: number of surface samples in `model_points`.
+        base_T_object: `SE3` or `(4, 4)`: put the target here instead of at the seed's spot
+            (a repeatability study's re-placements); distractors keep their positions
+            relative to it. The seed's random draws are made either way, so colours and
+            clutter stay the seed's.
+        base_T_camera: `SE3` or `(4, 4)`: put the camera here instead of at the seed's view
+            (a study's viewpoints); distractors stay off its line of sight.
+        noise_seed: seed of the sensor-noise draw (default `seed`): the same scene
+            re-measured, as a frozen scene is by repeated captures.
 
     Returns:
         A `TabletopScene`.
@@ -346,14 +364,22 @@ def tabletop_scene(
             np.sin(elevation),
         ]
     )
+    if base_T_object is not None:
+        truth = _as_matrix(base_T_object, "base_T_object")
+        target_xy = truth[:2, 3]
     centre = truth[:3, 3]
-    base_T_camera = look_at(centre + view, centre)
+    if base_T_camera is None:
+        base_T_camera = look_at(centre + view, centre)
+        toward_camera = np.array([np.cos(azimuth), np.sin(azimuth)])
+    else:
+        base_T_camera = _as_matrix(base_T_camera, "base_T_camera")
+        toward_camera = base_T_camera[:2, 3] - centre[:2]
+        toward_camera /= max(np.linalg.norm(toward_camera), 1e-9)
 
     table = trimesh.creation.box(_TABLE_SIZE)
     table.apply_translation((0.0, 0.0, -_TABLE_SIZE[2] / 2))
     meshes = [table, _placed(model, truth)]
     colors = [np.array(_TABLE_COLOR), _random_color(rng, 0.25, 0.8)]
-    toward_camera = np.array([np.cos(azimuth), np.sin(azimuth)])
     for clutter, spot in _distractors(rng, distractors, toward_camera, _footprint_radius(model)):
         pose = _resting_pose(target_xy + spot, rng.uniform(0, 2 * np.pi), clutter.bounds[1, 2])
         meshes.append(_placed(clutter, pose))
@@ -362,7 +388,8 @@ def tabletop_scene(
     rendering = render(meshes, intrinsics, base_T_camera, np.stack(colors))
     depth = rendering.depth
     if noise:
-        depth = sensor.measure(rendering, np.random.default_rng([seed, 1]))
+        noise_seed = seed if noise_seed is None else noise_seed
+        depth = sensor.measure(rendering, np.random.default_rng([noise_seed, 1]))
     frame = RGBDFrame(
         depth.astype(np.float32),
         intrinsics,
