@@ -12,9 +12,11 @@ valid neighbours, or whose neighbours are collinear or coincident (``l1`` neglig
 ``l2``: the normal is undefined) get a zero normal and zero curvature, never NaN.
 
 Neighbours are the exact ``k`` nearest: from compiled host loops over a hash grid when the
-cloud is a concrete array, from blocked brute force :func:`jaxreg.neighbors.knn` when it is
-traced (under ``jit``, ``vmap`` or ``grad``), or passed in. The PCA is one compiled
-function. Timings: ``benchmarks/bench_neighbors.py``.
+cloud is a concrete array (which also sum each neighbourhood's covariance, in float64), from
+blocked brute force :func:`jaxreg.neighbors.knn` when it is traced (under ``jit``, ``vmap``
+or ``grad``), or passed in. The 3x3 eigenproblems are solved in closed form, elementwise
+over the points (:func:`_eigh3`), in one compiled function. Timings:
+``benchmarks/bench_neighbors.py``.
 """
 
 from __future__ import annotations
@@ -25,7 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from ._octree import self_knn
+from ._octree import neighbor_moments, self_knn
+from ._result import select_status
 from .neighbors import knn, valid_rows
 
 __all__ = ["NormalEstimate", "NormalStatus", "estimate_normals", "estimate_normals_with_curvature"]
@@ -60,71 +63,228 @@ class NormalEstimate(eqx.Module):
     num_neighbors: Int[Array, " N"]
 
 
-def _one(point, point_ok, nbrs, nbr_ok, viewpoint):
-    """Normal, curvature and status of one point from its ``(k, 3)`` neighbours."""
-    dtype = nbrs.dtype
-    w = nbr_ok.astype(dtype)
-    count = nbr_ok.sum()
-    # Centre at the point first (no cancellation far from the origin), then at the mean.
-    rel = jnp.where(nbr_ok[:, None], nbrs - point, 0)
-    mean = (w[:, None] * rel).sum(0) / jnp.maximum(w.sum(), 1)
-    dev = jnp.where(nbr_ok[:, None], rel - mean, 0)
-    cov = dev.T @ dev / jnp.maximum(w.sum(), 1)
-    evals, evecs = jnp.linalg.eigh(cov)
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _unit(v, fallback):
+    """``v`` normalised, or ``fallback`` where ``v`` is zero."""
+    n2 = _dot(v, v)
+    ok = n2 > 0
+    inv = 1 / jnp.sqrt(jnp.where(ok, n2, 1))
+    return tuple(jnp.where(ok, vi * inv, f) for vi, f in zip(v, fallback, strict=True))
+
+
+def _null_vector(rows, fallback):
+    """Unit vector orthogonal to the rows of a rank-2 symmetric 3x3 matrix: the longest of
+    the three row cross products, normalised (``fallback`` where all vanish)."""
+    r0, r1, r2 = rows
+    c = [_cross(r0, r1), _cross(r0, r2), _cross(r1, r2)]
+    d = [_dot(ci, ci) for ci in c]
+    best = tuple(jnp.where(d[0] >= d[1], a, b) for a, b in zip(c[0], c[1], strict=True))
+    best = tuple(
+        jnp.where(d[2] > jnp.maximum(d[0], d[1]), a, b) for a, b in zip(c[2], best, strict=True)
+    )
+    return _unit(best, fallback)
+
+
+def _eigh3(c: Float[Array, "... 6"]) -> tuple[Array, Array]:
+    """Eigenvalues ``(..., 3)`` and unit eigenvectors ``(..., 3, 3)`` (columns, matching) of
+    symmetric 3x3 matrices given by their entries ``(a00, a01, a02, a11, a12, a22)``.
+
+    Closed form, elementwise over the batch (XLA's batched ``eigh`` of 3x3 matrices is
+    ~10x slower on CPU). Eberly's robust scheme: the matrix is scaled by its largest entry;
+    the eigenvalues come from the trigonometric solution of the characteristic cubic; the
+    eigenvector of the eigenvalue farther from the middle one is the longest cross product
+    of two rows of ``A - lambda I`` (rank 2 even when the other two eigenvalues repeat);
+    the middle one solves a 2x2 problem in the plane orthogonal to it, and the third
+    completes the frame. The eigenvalues are then recomputed as Rayleigh quotients: the
+    cubic's roots lose half the digits where two of them repeat (collinear neighbours),
+    the quotients do not. A zero matrix gives zeros and the identity frame; eigenvalues are
+    ascending up to rounding where they repeat.
+    """
+    dtype = c.dtype
+    raw = [c[..., i] for i in range(6)]
+    scale = jnp.max(jnp.abs(c), axis=-1)
+    live = scale > jnp.finfo(dtype).tiny
+    inv_scale = 1 / jnp.where(live, scale, 1)
+    a00, a01, a02, a11, a12, a22 = (jnp.where(live, x * inv_scale, 0) for x in raw)
+    q = (a00 + a11 + a22) / 3
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6
+    iso = p2 <= 0  # a multiple of the identity
+    p = jnp.sqrt(jnp.where(iso, 1, p2))
+    det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02)
+    det = det + a02 * (a01 * a12 - b11 * a02)
+    half_det = jnp.clip(det / (2 * p * p * p), -1, 1)
+    angle = jnp.arccos(jnp.where(iso, 0, half_det)) / 3
+    beta2 = 2 * jnp.cos(angle)
+    beta0 = 2 * jnp.cos(angle + 2 * np.pi / 3)
+    roots = [q + p * b for b in (beta0, -(beta0 + beta2), beta2)]
+    zero, one = jnp.zeros_like(q), jnp.ones_like(q)
+    low_first = half_det < 0  # the smallest root is the isolated one
+    lam = jnp.where(low_first, roots[0], roots[2])
+    first = _null_vector(
+        ((a00 - lam, a01, a02), (a01, a11 - lam, a12), (a02, a12, a22 - lam)),
+        (one, zero, zero),
+    )
+    w = first
+    big0 = jnp.abs(w[0]) > jnp.abs(w[1])
+    u = _unit(
+        (jnp.where(big0, -w[2], 0), jnp.where(big0, 0, w[2]), jnp.where(big0, w[0], -w[1])),
+        (zero, zero, one),
+    )
+    v = _cross(w, u)
+
+    def times_a(x):
+        return (
+            a00 * x[0] + a01 * x[1] + a02 * x[2],
+            a01 * x[0] + a11 * x[1] + a12 * x[2],
+            a02 * x[0] + a12 * x[1] + a22 * x[2],
+        )
+
+    au, av = times_a(u), times_a(v)
+    m00, m01, m11 = _dot(u, au) - roots[1], _dot(u, av), _dot(v, av) - roots[1]
+    use00 = jnp.abs(m00) >= jnp.abs(m11)
+    x, y = jnp.where(use00, m01, m11), jnp.where(use00, m00, m01)
+    mid = _unit(tuple(x * ui - y * vi for ui, vi in zip(u, v, strict=True)), u)
+    # Re-orthogonalise: where the 2x2 block is ~0 (repeated roots) mid is rounding noise.
+    along = _dot(mid, first)
+    mid = _unit(tuple(m - along * f for m, f in zip(mid, first, strict=True)), u)
+    last = _unit(_cross(first, mid), v)
+    v0 = tuple(jnp.where(low_first, f, t) for f, t in zip(first, last, strict=True))
+    v2 = tuple(jnp.where(low_first, t, f) for f, t in zip(first, last, strict=True))
+    evals = jnp.stack([_dot(e, times_a(e)) for e in (v0, mid, v2)], -1)
+    vecs = jnp.stack([jnp.stack(e, -1) for e in (v0, mid, v2)], -1)
+    return evals * jnp.where(live, scale, 0)[..., None], vecs
+
+
+@jax.custom_jvp
+def _smallest_eigenpair(c: Float[Array, "... 6"]) -> tuple[Array, Array]:
+    """Eigenvalues ``(..., 3)`` and the unit eigenvector ``(..., 3)`` of the smallest, from
+    :func:`_eigh3`, with a derivative that is finite where the larger two repeat (a round
+    patch of a plane) and zero along a repeated smallest one (collinear neighbours)."""
+    evals, vecs = _eigh3(c)
+    return evals, vecs[..., 0]
+
+
+@_smallest_eigenpair.defjvp
+def _smallest_eigenpair_jvp(primals, tangents):
+    # d lambda_i = v_i^T dA v_i; d v_0 = sum_{j > 0} v_j (v_j^T dA v_0) / (lambda_0 - lambda_j).
+    (c,), (dc,) = primals, tangents
+    evals, vecs = _eigh3(c)
+    d00, d01, d02, d11, d12, d22 = (dc[..., i] for i in range(6))
+    da = jnp.stack(
+        [jnp.stack(r, -1) for r in ((d00, d01, d02), (d01, d11, d12), (d02, d12, d22))], -2
+    )
+    proj = jnp.einsum("...ji,...jk,...kl->...il", vecs, da, vecs)  # V^T dA V
+    d_evals = jnp.diagonal(proj, axis1=-2, axis2=-1)
+    gap = evals[..., :1] - evals
+    tol = 100 * jnp.finfo(c.dtype).eps * jnp.abs(evals).max(-1, keepdims=True)
+    live = (jnp.abs(gap) > tol) & (jnp.arange(3) > 0)
+    coeff = jnp.where(live, proj[..., :, 0] / jnp.where(live, gap, 1), 0)
+    d_normal = jnp.einsum("...ij,...j->...i", vecs, coeff)
+    return (evals, vecs[..., 0]), (d_evals, d_normal)
+
+
+def _from_moments(points, ok, cov, count, viewpoint) -> NormalEstimate:
+    """Normals, curvature and status from each point's neighbourhood covariance ``(N, 6)``
+    (entries ``xx, xy, xz, yy, yz, zz``) and valid neighbour count ``(N,)``."""
+    dtype = points.dtype
+    safe = jnp.where(ok[:, None], points, 0)
+    evals, normal = _smallest_eigenpair(cov.astype(dtype))
     evals = jnp.maximum(evals, 0)
-    total = evals.sum()
     enough = count >= 3
     # Collinear or coincident neighbours: the middle eigenvalue vanishes next to the largest.
-    tol = 100 * jnp.finfo(dtype).eps
-    flat = evals[1] <= tol * evals[2]
-    ok = point_ok & enough & ~flat
-    normal = evecs[:, 0]
-    normal = jnp.where(jnp.dot(normal, viewpoint - point) < 0, -normal, normal)
-    normal = jnp.where(ok, normal, 0)
-    safe_total = jnp.where(ok, total, 1)
-    curvature = jnp.where(ok, evals[0] / safe_total, 0)
-    status = NormalStatus.where(
-        point_ok,
-        NormalStatus.where(
-            enough,
-            NormalStatus.where(flat, NormalStatus.degenerate, NormalStatus.success),
-            NormalStatus.too_few_neighbors,
-        ),
-        NormalStatus.invalid_point,
+    flat = evals[:, 1] <= 100 * jnp.finfo(dtype).eps * evals[:, 2]
+    valid = ok & enough & ~flat
+    facing = jnp.sum(normal * (viewpoint - safe), -1) >= 0
+    normal = jnp.where((valid & facing)[:, None], normal, jnp.where(valid[:, None], -normal, 0))
+    total = jnp.where(valid, evals.sum(-1), 1)
+    curvature = jnp.where(valid, evals[:, 0] / total, 0)
+    status = select_status(
+        [
+            (~ok, NormalStatus.invalid_point),
+            (~enough, NormalStatus.too_few_neighbors),
+            (flat, NormalStatus.degenerate),
+        ],
+        NormalStatus.success,
     )
-    return normal, curvature, ok, status, count
+    return NormalEstimate(normal, curvature, valid, status, count.astype(jnp.int32))
+
+
+_finish = jax.jit(_from_moments)
 
 
 @jax.jit
 def _pca(points, ok, idx, nbr_ok, viewpoint) -> NormalEstimate:
-    """Per-point PCA from neighbour indices (one compiled function per shape)."""
+    """Per-point PCA from neighbour indices ``(N, K)`` (one compiled function per shape)."""
+    dtype = points.dtype
     # Invalid points have no neighbourhood; invalid neighbours do not count.
     nbr_ok = nbr_ok & ok[:, None] & ok.at[idx].get(mode="fill", fill_value=False)
-    nbrs = points.at[idx].get(mode="fill", fill_value=0)
     safe = jnp.where(ok[:, None], points, 0)
-    normal, curvature, valid, status, count = jax.vmap(_one, in_axes=(0, 0, 0, 0, None))(
-        safe, ok, nbrs, nbr_ok, viewpoint
-    )
-    return NormalEstimate(normal, curvature, valid, status, count.astype(jnp.int32))
+    count = nbr_ok.sum(-1)
+    inv_count = 1 / jnp.maximum(count, 1).astype(dtype)
+
+    # Centre at the point first (no cancellation far from the origin), then at the mean.
+    # Sums run over the neighbour slots in a fixed order (unrolled), so a cloud gets the
+    # same bits alone and inside a vmapped batch: the normal of an elongated neighbourhood
+    # amplifies rounding in the moments by l2 / l1.
+    def slot_sum(x):
+        total = x[..., 0]
+        for j in range(1, x.shape[-1]):
+            total = total + x[..., j]
+        return total
+
+    dev = []
+    for i in range(3):
+        rel = jnp.where(nbr_ok, safe[:, i].at[idx].get(mode="fill", fill_value=0), 0)
+        rel = jnp.where(nbr_ok, rel - safe[:, i, None], 0)
+        mean = slot_sum(rel) * inv_count
+        dev.append(jnp.where(nbr_ok, rel - mean[:, None], 0))
+    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    cov = jnp.stack([slot_sum(dev[i] * dev[j]) * inv_count for i, j in pairs], -1)
+    return _from_moments(points, ok, cov, count, viewpoint)
 
 
 def _is_concrete(*arrays) -> bool:
     return not any(isinstance(a, jax.core.Tracer) for a in arrays)
 
 
-def _host_knn(points: np.ndarray, ok: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Exact ``k`` nearest valid points of every valid point of a concrete cloud, by compiled
-    host loops (:func:`jaxreg._octree.self_knn`). Returns ``(indices (N, k), valid (N, k))``
-    with the sentinel ``N``."""
+def _host_knn(
+    points: np.ndarray, ok: np.ndarray, k: int, max_distance: float = np.inf
+) -> tuple[np.ndarray, np.ndarray]:
+    """Exact ``k`` nearest valid points (closer than ``max_distance``) of every valid point of
+    a concrete cloud, by compiled host loops (:func:`jaxreg._octree.self_knn`). Returns
+    ``(indices (N, k), valid (N, k))`` with the sentinel ``N``."""
     n = len(points)
     rows = np.flatnonzero(ok)
-    idx, sq = self_knn(points[rows].astype(np.float64), k)
+    idx, sq = self_knn(points[rows].astype(np.float64), k, max_distance)
     valid = np.isfinite(sq)
     out = np.full((n, k), n, np.int64)
     out[rows] = np.where(valid, rows[np.minimum(idx, len(rows) - 1)], n)
     out_valid = np.zeros((n, k), bool)
     out_valid[rows] = valid
     return out, out_valid
+
+
+def _host_pca(points: Array, ok: Array, k: int, viewpoint) -> NormalEstimate:
+    """:func:`estimate_normals_with_curvature` of a concrete cloud: the exact kNN and each
+    neighbourhood's covariance (float64) by compiled host loops, the eigenproblems jitted."""
+    host = np.asarray(points, np.float64)
+    ok_host = np.asarray(ok)
+    rows = np.flatnonzero(ok_host)
+    x = np.ascontiguousarray(host[rows])
+    idx, sq = self_knn(x, k)
+    cov = np.zeros((len(host), 6))
+    count = np.zeros(len(host), np.int32)
+    cov[rows], count[rows] = neighbor_moments(x, idx, sq)
+    vp = jnp.zeros(3, points.dtype) if viewpoint is None else jnp.asarray(viewpoint, points.dtype)
+    return _finish(points, ok, cov.astype(points.dtype), count, vp)
 
 
 def estimate_normals_with_curvature(
@@ -166,7 +326,7 @@ def estimate_normals_with_curvature(
         if k < 1:
             raise ValueError(f"k must be positive, got {k}")
         if concrete:
-            idx, nbr_ok = _host_knn(np.asarray(points), np.asarray(ok), k)
+            return _host_pca(points, ok, k, viewpoint)
         else:
             idx, _, nbr_ok = knn(points, points, k, mask=ok)
     else:
