@@ -32,8 +32,10 @@ test: $(STAMP) system-libs
 bench: $(STAMP) system-libs
 	cd benchmarks && for f in bench_*.py; do echo "== $$f"; ../$(PY) $$f || exit 1; done
 
+# Every paper figure: PNG, its numbers (CSV) and its caption (TXT) in paper_figs/out/.
 figs: $(STAMP)
-	cd paper_figs && for f in fig_*.py; do echo "== $$f"; ../$(PY) $$f || exit 1; done
+	cd paper_figs && for f in fig_*.py; do echo "== $$f"; MPLBACKEND=Agg ../$(PY) $$f || exit 1; done
+	@ls paper_figs/out/*.png
 
 lint: $(STAMP)
 	$(PY) -m ruff check jaxreg tests benchmarks examples paper_figs

@@ -80,7 +80,10 @@ def main():
         ax.set_title(title, fontsize=9)
         ax.legend(fontsize=7, title="method: 90% radius", title_fontsize=7)
     fig.tight_layout()
-    measured = "; ".join(f"{m} on {t.split(',')[0]}: {r:.0f} deg" for (t, m), r in radii.items())
+    measured = "; ".join(
+        f"{m} on {'the cube' if 'cube' in t else 'milk.pcd'}: {r:.0f} deg"
+        for (t, m), r in radii.items()
+    )
     caption = (
         "ICP basin of attraction (success = within 5 deg and 1 cm; 2 cm correspondence "
         f"distance, 40 iterations, {args.samples} random axes per angle). Lesson's claim: "
