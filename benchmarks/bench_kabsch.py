@@ -3,8 +3,9 @@
 Usage: python benchmarks/bench_kabsch.py [--problems 10000] [--points 1000]
 
 Every solver gets the same float32 problems (random rotations, 1 mm noise); the table gives
-the median time per call, problems per second, the ratio to jaxreg, and the worst rotation
-error against the truth, so a fast-but-wrong peer is visible.
+the median time per call over interleaved rounds (each round times every solver once, so a
+shared machine's load falls on all alike), problems per second, the ratio to jaxreg, and the
+worst rotation error against the truth, so a fast-but-wrong peer is visible.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import platform
 
 import jax
 import numpy as np
-from _timing import median_seconds, print_table
+from _timing import interleaved_medians, print_table
 
 import jaxreg as jr
 
@@ -50,6 +51,7 @@ def main():
         default=1_000,
         help="problems timed in the per-problem Python loops (then scaled)",
     )
+    parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
     b, n = args.problems, args.points
 
@@ -65,17 +67,31 @@ def main():
 
     solve = jax.jit(lambda s, d, ww: jr.kabsch(s, d, ww).rotation().as_matrix())
     r_jax = np.asarray(solve(src_d, dst_d, w_d))
-    t_jax = median_seconds(lambda: solve(src_d, dst_d, w_d).block_until_ready())
-
     m = min(args.loop_problems, b)
-    t_loop = (
-        median_seconds(lambda: [numpy_kabsch(src[i], dst[i], w[i]) for i in range(m)], repeats=3)
-        * b
-        / m
-    )
     r_loop = np.stack([numpy_kabsch(src[i], dst[i], w[i]) for i in range(m)])
-    t_np = median_seconds(lambda: numpy_batched_kabsch(src, dst, w), repeats=3)
     r_np = numpy_batched_kabsch(src, dst, w)
+    contenders = {
+        "jax": lambda: solve(src_d, dst_d, w_d).block_until_ready(),
+        "loop": lambda: [numpy_kabsch(src[i], dst[i], w[i]) for i in range(m)],
+        "batched": lambda: numpy_batched_kabsch(src, dst, w),
+    }
+    try:
+        from scipy.spatial.transform import Rotation
+
+        def scipy_loop():
+            return [
+                Rotation.align_vectors(dst[i] - dst[i].mean(0), src[i] - src[i].mean(0))[0]
+                for i in range(m)
+            ]
+
+        contenders["scipy"] = scipy_loop
+    except ImportError:
+        print("scipy not installed (peers extra): its row is skipped")
+    # Interleaved rounds: every contender is timed once per round (shared, loaded machine).
+    t = interleaved_medians(contenders, args.repeats)
+    t_jax = t["jax"]
+    t_loop = t["loop"] * b / m
+    t_np = t["batched"]
 
     rows = []
 
@@ -96,20 +112,9 @@ def main():
     row("jaxreg.kabsch (jit, batched)", t_jax, r_jax)
     row(f"numpy SVD loop (timed on {m}, scaled)", t_loop, r_loop)
     row("numpy batched SVD", t_np, r_np)
-    try:
-        from scipy.spatial.transform import Rotation
-
-        def scipy_loop():
-            return [
-                Rotation.align_vectors(dst[i] - dst[i].mean(0), src[i] - src[i].mean(0))[0]
-                for i in range(m)
-            ]
-
-        t_sp = median_seconds(scipy_loop, repeats=3) * b / m
-        r_sp = np.stack([r.as_matrix() for r in scipy_loop()])
-        row(f"scipy align_vectors loop (timed on {m}, scaled)", t_sp, r_sp)
-    except ImportError:
-        print("scipy not installed (peers extra): its row is skipped")
+    if "scipy" in t:
+        r_sp = np.stack([r.as_matrix() for r in contenders["scipy"]()])
+        row(f"scipy align_vectors loop (timed on {m}, scaled)", t["scipy"] * b / m, r_sp)
 
     print_table(
         f"Kabsch throughput: {b:,} problems x {n:,} points, float32, "

@@ -1,28 +1,31 @@
 """Planar PnP on thousands of tags: one batched jaxreg call against an OpenCV loop, same run.
 
-Usage: python benchmarks/bench_pnp.py [--sizes 1000 10000] [--repeats 3] [--max-iterations 100 30]
+Usage: python benchmarks/bench_pnp.py [--sizes 2000] [--repeats 3] [--max-iterations 100 30]
 
 Views: a 45 mm square tag facing the camera at 0.5-0.6 m, tilted up to 40 degrees, any in-plane
 spin, 0.2 px Gaussian corner noise, a 640x480 camera with f = 600 px; float32 (jaxreg's default).
 jaxreg solves all tags in one jitted call (both IPPE candidates per tag; with refinement, both
-are polished by Levenberg-Marquardt), timed as the median over repeats after a compile call
-whose time is reported separately. OpenCV runs ``solvePnPGeneric(SOLVEPNP_IPPE_SQUARE)`` per tag
-in a Python loop, which returns the two unrefined IPPE candidates; the refined OpenCV row adds
-``solvePnPRefineLM`` on both. A vmapped Levenberg-Marquardt loop runs until its slowest lane
-stops (median ~12 steps, but a few candidates in flat valleys need up to 100), so the refined
-rows are repeated per ``--max-iterations`` budget and count the candidates that ran out of steps
-(flagged ``PnPStatus.max_iterations``).
+are polished by Levenberg-Marquardt); its compile time is reported separately. Every contender
+is timed in interleaved rounds (each round calls each once) and the medians are reported, with
+the ratio to the OpenCV loop of the same stage (unrefined to unrefined, refined to refined).
+OpenCV runs ``solvePnPGeneric(SOLVEPNP_IPPE_SQUARE)`` per tag in a Python loop, which returns
+the two unrefined IPPE candidates; the refined OpenCV row adds ``solvePnPRefineLM`` on both.
+A vmapped Levenberg-Marquardt loop runs until its slowest lane stops (median ~12 steps, but a
+few candidates in flat valleys need up to 100), so the refined rows are repeated per
+``--max-iterations`` budget and count the candidates that ran out of steps (flagged
+``PnPStatus.max_iterations``).
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import platform
 import time
 
 import jax
 import numpy as np
-from _timing import median_seconds, print_table
+from _timing import interleaved_medians, print_table
 
 from jaxreg import PnPStatus, solve_pnp_planar, tag_object_points
 
@@ -61,7 +64,7 @@ def rodrigues(rotvec) -> np.ndarray:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[2000])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--max-iterations", type=int, nargs="+", default=[100, 30])
     args = parser.parse_args()
@@ -75,7 +78,7 @@ def main():
     rows = []
     for n in args.sizes:
         images = tag_views(n)
-        cv_ms = None
+        contenders, compile_s, results = {}, {}, {}
         if cv2 is not None:
 
             def cv_loop(refine, images=images):
@@ -87,37 +90,38 @@ def main():
                         for r, t in zip(rvecs, tvecs, strict=True):
                             cv2.solvePnPRefineLM(corners, img, K, None, r, t)
 
-            cv_ms = 1e3 * median_seconds(lambda: cv_loop(False), args.repeats)
-            rows.append([n, "OpenCV IPPE_SQUARE loop", f"{cv_ms:.1f}", "-", "1.00", "-", "-"])
-            ms = 1e3 * median_seconds(lambda: cv_loop(True), args.repeats)
-            name = "OpenCV IPPE_SQUARE + RefineLM x2 loop"
-            rows.append([n, name, f"{ms:.1f}", "-", f"{cv_ms / ms:.2f}", "-", "-"])
+            contenders["OpenCV IPPE_SQUARE loop"] = functools.partial(cv_loop, False)
+            contenders["OpenCV IPPE_SQUARE + RefineLM x2 loop"] = functools.partial(cv_loop, True)
         for refine, max_iterations in [(False, 1)] + [(True, m) for m in args.max_iterations]:
             solve = jax.jit(
                 lambda img, refine=refine, max_iterations=max_iterations: solve_pnp_planar(
                     corners, img, K, refine=refine, max_iterations=max_iterations
                 )
             )
-            start = time.perf_counter()
-            result = jax.block_until_ready(solve(images))
-            compile_s = time.perf_counter() - start
-            ms = 1e3 * median_seconds(
-                lambda solve=solve, images=images: jax.block_until_ready(solve(images)),
-                args.repeats,
-                warmup=0,
-            )
-            c = result.candidates
             name = (
-                f"jaxreg IPPE + LM x2 (max_iterations={max_iterations})"
+                f"jaxreg IPPE + LM x2 (max_iterations={max_iterations}), batched"
                 if refine
-                else "jaxreg IPPE"
+                else "jaxreg IPPE, batched"
             )
-            steps = int(np.max(c.iterations)) if refine else "-"
-            flagged = int(np.sum(c.status == PnPStatus.max_iterations)) if refine else "-"
-            ratio = f"{cv_ms / ms:.2f}" if cv_ms else "-"
-            rows.append(
-                [n, name + ", batched", f"{ms:.1f}", f"{compile_s:.1f}", ratio, steps, flagged]
+            start = time.perf_counter()
+            results[name] = jax.block_until_ready(solve(images))
+            compile_s[name] = time.perf_counter() - start
+            contenders[name] = lambda solve=solve, images=images: jax.block_until_ready(
+                solve(images)
             )
+        # Interleaved rounds: each contender timed once per round, so load falls on all alike.
+        t = interleaved_medians(contenders, args.repeats)
+        for name, seconds in t.items():
+            refined = "LM" in name or "Refine" in name
+            peer = "OpenCV IPPE_SQUARE + RefineLM x2 loop" if refined else "OpenCV IPPE_SQUARE loop"
+            ratio = f"{t[peer] / seconds:.2f}" if peer in t else "-"
+            steps, flagged = "-", "-"
+            if name in results and refined:
+                c = results[name].candidates
+                steps = int(np.max(c.iterations))
+                flagged = int(np.sum(c.status == PnPStatus.max_iterations))
+            comp = f"{compile_s[name]:.1f}" if name in compile_s else "-"
+            rows.append([n, name, f"{seconds * 1e3:.1f}", comp, ratio, steps, flagged])
     device = jax.devices()[0]
     print_table(
         f"Planar PnP, 45 mm tag at 0.5-0.6 m, 0.2 px noise; jax {jax.__version__} on "
@@ -128,7 +132,7 @@ def main():
             "method",
             "ms (median)",
             "compile s",
-            "speed vs OpenCV IPPE",
+            "speed vs OpenCV (same stage)",
             "max LM steps",
             "candidates out of steps",
         ],
