@@ -1,0 +1,315 @@
+"""The register stage's pieces for :mod:`jaxreg.pipeline`: the model prepared once (voxelled,
+normals, neighbour grid), multi-start registration of every candidate cluster in one compiled
+call, and the depth image's evidence about a model pose (:func:`visibility`).
+
+Conventions of :mod:`jaxreg.pipeline`: the segment (source, base frame) is registered into the
+model (target, object frame), so ICP's poses are ``object_T_base``; tangents are jaxlie's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxlie import SE3
+from jaxtyping import Array, Float
+
+from jaxreg._icp_core import run
+from jaxreg._icp_setup import Settings, prepare
+from jaxreg.camera import RGBDFrame
+from jaxreg.icp import multistart_icp, pca_inits, rotation_inits
+from jaxreg.neighbors import NeighborGrid, build_grid, query_nearest, voxel_downsample
+from jaxreg.normals import estimate_normals
+from jaxreg.segment import TablePlane
+
+__all__ = ["visibility"]
+
+# --------------------------------------------------------------------------------------------
+# The model, prepared once per distinct model array.
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Model:
+    points: np.ndarray  # (M, 3) object frame, voxelled
+    normals: np.ndarray  # (M, 3)
+    grid: NeighborGrid
+    radius: float  # largest distance from the centroid
+    centroid: np.ndarray
+    axes: np.ndarray  # (3, 3) principal axes as columns, largest extent first
+    extents: np.ndarray  # (3,) full extent along each axis
+
+
+_MODELS: dict[tuple, _Model] = {}
+
+
+def _voxel_normals(points: np.ndarray, normals: np.ndarray, voxel: float):
+    """Voxel centroids of ``points`` and the normalised mean normal of each voxel (zero
+    where the normals cancel, as on the two faces of a thin wall)."""
+    key = np.floor((points - points.min(0)) / voxel).astype(np.int64)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    sums = np.zeros((len(counts), 6))
+    np.add.at(sums, inverse, np.concatenate([points, normals], axis=1))
+    mean_normal = sums[:, 3:] / counts[:, None]
+    length = np.linalg.norm(mean_normal, axis=1, keepdims=True)
+    unit = np.where(length > 0.5, mean_normal / np.maximum(length, 1e-12), 0.0)
+    return sums[:, :3] / counts[:, None], unit
+
+
+def _prepare_model(model_points, model_normals, voxel_size: float, grid_distance: float):
+    arrays = [model_points] + ([] if model_normals is None else [model_normals])
+    digest = hashlib.sha1(b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)).hexdigest()
+    key = (digest, model_points.shape, voxel_size, grid_distance)
+    if key in _MODELS:
+        return _MODELS[key]
+    if model_normals is None:
+        points = voxel_downsample(model_points, voxel_size)
+    else:
+        points, normals = _voxel_normals(model_points, model_normals, voxel_size)
+    if len(points) < 10:
+        raise ValueError(
+            f"the model has {len(points)} points at a {voxel_size * 1e3:g} mm voxel: give at "
+            "least a few hundred points on its surface (metres)"
+        )
+    points = points.astype(np.float32)
+    centroid = points.mean(0)
+    if model_normals is None:
+        normals = np.asarray(estimate_normals(points, k=20, viewpoint=centroid))
+    grid = build_grid(points, grid_distance, mask=np.linalg.norm(normals, axis=1) > 0.5)
+    _, vectors = np.linalg.eigh(np.cov((points - centroid).T))
+    axes = vectors[:, ::-1]
+    along = (points - centroid) @ axes
+    model = _Model(
+        points=points,
+        normals=normals.astype(np.float32),
+        grid=grid,
+        radius=float(np.linalg.norm(points - centroid, axis=1).max()),
+        centroid=centroid,
+        axes=axes,
+        extents=along.max(0) - along.min(0),
+    )
+    if len(_MODELS) > 8:
+        _MODELS.clear()
+    _MODELS[key] = model
+    return model
+
+
+# --------------------------------------------------------------------------------------------
+# Visibility of the model in the depth image at a pose.
+
+
+@eqx.filter_jit
+def visibility(
+    frame: RGBDFrame,
+    base_T_object: SE3,
+    model_points: Float[Array, "M 3"],
+    tolerance: Float[Array, ""],
+    plane: TablePlane | None = None,
+    cell: int = 4,
+) -> Float[Array, " 5"]:
+    """How the depth image judges the model at a pose: counts ``(confirmed, contradicted,
+    occluded, unknown, self_hidden)`` of the model points (jittable).
+
+    With a table ``plane``, every model point more than ``tolerance`` below it is
+    contradicted, facing the camera or not: an object cannot stand in the table.
+
+    The model points are moved into the camera and z-buffered among themselves on a grid of
+    ``cell`` x ``cell`` pixels: a point more than ``tolerance`` behind the nearest model
+    point of its cell is hidden by the model itself (its far side). Each point the camera
+    could see is compared with the depth measured at its pixel: within ``tolerance``
+    (metres) it is confirmed; measured farther, the camera sees through where the surface
+    should be (contradicted, evidence against the pose or the object's presence); measured
+    nearer, something else hides it (occluded); a hole or a pixel outside the image is
+    unknown.
+    """
+    camera_T_object = frame.base_T_camera.inverse() @ base_T_object
+    cam = camera_T_object @ jnp.asarray(model_points, frame.depth.dtype)
+    pix = frame.intrinsics.project(cam)
+    col = jnp.round(pix[:, 0]).astype(jnp.int32)
+    row = jnp.round(pix[:, 1]).astype(jnp.int32)
+    h, w = frame.depth.shape
+    inside = (cam[:, 2] > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    row, col = jnp.clip(row, 0, h - 1), jnp.clip(col, 0, w - 1)
+    hc, wc = -(-h // cell), -(-w // cell)
+    code = (row // cell) * wc + col // cell
+    zbuf = jnp.full(hc * wc, jnp.inf, cam.dtype).at[code].min(jnp.where(inside, cam[:, 2], jnp.inf))
+    facing = inside & (cam[:, 2] <= zbuf[code] + tolerance)
+    measured = frame.depth[row, col]
+    known = facing & jnp.isfinite(measured)
+    diff = measured - cam[:, 2]
+    confirmed = known & (jnp.abs(diff) <= tolerance)
+    contradicted = known & (diff > tolerance)
+    if plane is not None:
+        below = plane.height(base_T_object @ jnp.asarray(model_points, cam.dtype)) < -tolerance
+        contradicted = contradicted | below  # seen or hidden, it cannot be there
+        known = known | below
+        confirmed = confirmed & ~below
+    occluded = known & (diff < -tolerance) & ~contradicted
+    unknown = ~known & (facing | ~inside)
+    return jnp.stack(
+        [
+            confirmed.sum(),
+            contradicted.sum(),
+            occluded.sum(),
+            unknown.sum(),
+            (inside & ~facing).sum(),
+        ]
+    )
+
+
+def _confirmed_share(counts: Array) -> Array:
+    """Confirmed over judged (confirmed, contradicted, occluded) model points, ``(...)``."""
+    return counts[..., 0] / jnp.maximum(counts[..., 0] + counts[..., 1] + counts[..., 2], 1)
+
+
+def _support(counts: np.ndarray) -> tuple[float, float]:
+    """(confirmed share, contradicted share) of the model points facing the camera that the
+    image can judge (confirmed, contradicted or occluded)."""
+    confirmed, contradicted, occluded = (float(c) for c in counts[:3])
+    judged = max(confirmed + contradicted + occluded, 1.0)
+    return confirmed / judged, contradicted / judged
+
+
+# --------------------------------------------------------------------------------------------
+# Register.
+
+
+class _Coarse(eqx.Module):
+    """Coarse registration of every candidate, starts ranked best first (by the fraction
+    of the cloud the model explains times the confirmed share of the model's visible
+    surface): ``poses`` ``(C, S, 7)`` object_T_base wxyz_xyz, ``explained`` ``(C, S)``,
+    ``visibility`` ``(C, S, 5)``."""
+
+    poses: Array
+    explained: Array
+    visibility: Array
+
+
+def _coarse_problem(model: _Model, size: int, distances: np.ndarray):
+    """ICP's problem and options for ``size``-point sources against the model (the source
+    rows are replaced per candidate)."""
+    settings = Settings(
+        "point_to_plane", model.normals, distances, len(distances), 1e-5, None, None, None,
+        model.grid,
+    )  # fmt: skip
+    problem, opts, _ = prepare(np.zeros((size, 3), np.float32), model.points, settings)
+    return problem, opts
+
+
+def _front_aligned(inits: SE3, cloud, ok, model_points, eye) -> SE3:
+    """Starts (object_T_base) slid along the line of sight so that the model's nearest
+    point to the camera lies as near as the cloud's (its 5th percentile): a partial view's
+    centroid sits on the visible surface, in front of the object's centre."""
+    centroid = jnp.sum(jnp.where(ok[:, None], cloud, 0.0), 0) / jnp.maximum(ok.sum(), 1)
+    view = (centroid - eye) / jnp.linalg.norm(centroid - eye)
+    depth = jnp.where(ok, jnp.where(ok[:, None], cloud, 0.0) @ view, jnp.nan)
+    front = jnp.nanpercentile(depth, 5.0)
+    placed = inits.inverse()  # base_T_object
+    model_front = (
+        jnp.min(
+            jnp.einsum("sij,mj->smi", placed.rotation().as_matrix(), model_points) @ view, axis=1
+        )
+        + placed.translation() @ view
+    )
+    moved = SE3.from_rotation_and_translation(
+        placed.rotation(), placed.translation() + (front - model_front)[:, None] * view
+    )
+    return moved.inverse()
+
+
+@eqx.filter_jit
+def _score_candidates(
+    frame, plane, problem, opts, clouds, used, model_points, tolerance, num_starts
+):
+    """Multi-start ICP of every candidate cloud ``(C, N, 3)`` (NaN padding) into the model,
+    its ranked starts, and the evidence for each; slots where ``used`` ``(C,)`` is False are
+    skipped (zeros), so one compiled shape serves any number of candidates up to C."""
+
+    def one(cloud):
+        ok = jnp.all(jnp.isfinite(cloud), -1)
+        grid = rotation_inits(cloud, model_points, num_starts)
+        inits = SE3(jnp.concatenate([grid.wxyz_xyz, pca_inits(cloud, model_points).wxyz_xyz]))
+        inits = _front_aligned(inits, cloud, ok, model_points, frame.base_T_camera.translation())
+        source = (
+            jnp.zeros_like(problem.source)
+            .at[: cloud.shape[0]]
+            .set(jnp.where(ok[:, None], cloud, 0.0))
+        )
+        weights = jnp.zeros_like(problem.source_weights).at[: cloud.shape[0]].set(ok)
+        p = eqx.tree_at(lambda q: (q.source, q.source_weights), problem, (source, weights))
+        results = jax.vmap(run, in_axes=(None, None, 0))(p, opts, inits)
+        cloud0 = jnp.where(ok[:, None], cloud, 0.0)
+
+        def evidence(pose):
+            _, _, near = query_nearest(problem.grid, pose @ cloud0, 0.006)
+            explained = jnp.sum(near & ok) / jnp.maximum(ok.sum(), 1)
+            seen = visibility(frame, pose.inverse(), model_points, tolerance, plane)
+            return explained, seen
+
+        explained, seen = jax.vmap(evidence)(results.pose)
+        score = explained * _confirmed_share(seen)
+        order = jnp.argsort(-score)
+        return results.pose.wxyz_xyz[order], explained[order], seen[order]
+
+    starts = num_starts + 4
+    dtype = clouds.dtype
+
+    def skip(cloud):
+        return (
+            jnp.zeros((starts, 7), dtype), jnp.zeros(starts, dtype),
+            jnp.zeros((starts, 5), jnp.int32),
+        )  # fmt: skip
+
+    def slot(args):
+        cloud, live = args
+        return jax.lax.cond(live, one, skip, cloud)
+
+    poses, explained, seen = jax.lax.map(slot, (clouds, used))
+    return _Coarse(poses, explained, seen)
+
+
+@eqx.filter_jit
+def _near_model(grid, object_T_base, points, distance):
+    """``(h, w)`` bool: grid points within ``distance`` of the model at a pose."""
+    flat = points.reshape(-1, 3)
+    ok = jnp.all(jnp.isfinite(flat), -1)
+    moved = SE3(object_T_base) @ jnp.where(ok[:, None], flat, 0.0)
+    _, _, near = query_nearest(grid, moved, distance)
+    return (near & ok).reshape(points.shape[:-1])
+
+
+@eqx.filter_jit
+def _judge(frame, plane, object_T_base, model_points, tolerance):
+    """:func:`visibility` counts ``(S, 5)`` of a batch of object_T_base ``(S, 7)``."""
+    return jax.vmap(lambda q: visibility(frame, SE3(q).inverse(), model_points, tolerance, plane))(
+        object_T_base
+    )
+
+
+def _register_starts(source, model: _Model, inits, distances, trim, iterations):
+    return multistart_icp(
+        source, model.points, inits, method="point_to_plane", target_normals=model.normals,
+        max_correspondence_distance=distances, max_iterations=iterations, trim_fraction=trim,
+        neighbors=model.grid, tolerance=1e-5,
+    )  # fmt: skip
+
+
+def _distinct(poses: np.ndarray, count: int, min_distance: float) -> list[int]:
+    """The first ``count`` rows of ``poses`` (``(S, 7)`` wxyz_xyz, best first) that differ
+    from every earlier pick by ``min_distance`` metres or 0.2 rad."""
+    quats, trans = poses[:, :4], poses[:, 4:]
+    chosen: list[int] = []
+    for i in range(len(poses)):
+        if all(
+            np.linalg.norm(trans[i] - trans[j]) > min_distance
+            or 2 * np.arccos(min(1.0, abs(float(quats[i] @ quats[j])))) > 0.2
+            for j in chosen
+        ):
+            chosen.append(i)
+        if len(chosen) == count:
+            break
+    return chosen

@@ -1,0 +1,559 @@
+"""Pixels to pose: segment -> lift -> register, with the evidence for each stage and the stage
+to blame when one fails.
+
+:func:`estimate_pose` takes one :class:`~jaxreg.camera.RGBDFrame` and a model (points in the
+object's own frame) and returns a :class:`PoseEstimate`: ``base_T_object``, the registration's
+fit, the covariance of the pose under the depth camera's noise, and per-stage milliseconds and
+diagnostics. The stages:
+
+1. **Segment** (:func:`jaxreg.segment.segment_frame`): the table plane by RANSAC and the
+   clusters standing on it, on a strided grid. Every cluster whose size is compatible with
+   the model (its radius at most the model's plus ``cluster_margin``) is a candidate, up to
+   ``max_candidates`` largest; a ``pixel`` or ``box`` prompt picks one instead. Each
+   candidate is scored by registration (below, on its grid points): the fraction of its
+   points the model explains, times the fraction of the model's predicted visible surface
+   that the depth image confirms (:func:`visibility`). The best candidate wins; clusters
+   whose centroid lies within the model's radius of its estimated centre join it (one object
+   split by a thin rim or a shadow).
+2. **Lift**: the winning clusters' footprint at full resolution (their pixels and the depth
+   holes between them), its valid-depth fraction, the pixels above the table band, flying
+   pixels removed (a pixel needs ``min_consistent_neighbors`` of its 8 neighbours within the
+   depth tolerance; a mixed-depth pixel floating between two surfaces has none), lifted
+   through the intrinsics and ``base_T_camera`` into the base frame, voxel-downsampled, and
+   isolated points removed (fewer than 2 occupied voxels among the 26 around theirs).
+3. **Register**: the segment (source, base frame) is registered into the model (target,
+   object frame), so the overlap is the whole segment less its strays, whatever part of the
+   object is visible. Starts: the four PCA frames (their sign ambiguities) and a near-uniform
+   grid of rotations about the centroids (``num_starts``), multi-start point-to-plane ICP on
+   the grid points with a shrinking correspondence distance, then the best distinct starts
+   refined on the lifted points, trimmed to the inlier fraction the coarse fit measured
+   (the visible overlap). Among refined poses that fit equally well the choice is
+   symmetry-aware: with a ``symmetry`` the poses are compared (and the answer reported) on
+   one symmetry branch; without one, equally good poses that differ are reported as an
+   ambiguity in the diagnostics. The covariance is :func:`jaxreg.icp_covariance` of the
+   final registration with the depth noise (:class:`~jaxreg.uncertainty.DepthNoise`) on the
+   segment, moved to the right perturbation of ``base_T_object``.
+
+A stage fails on its own evidence, and the estimate then makes no pose claim (``pose`` is
+``None``): no plane or nothing on it, or no cluster of the model's size (segment); too few
+pixels with depth in the footprint, or too few points left after filtering (lift); too small
+a fraction of the segment explained by the model, too large a residual, or a model that the
+depth image contradicts (surface predicted where the camera sees through it) (register).
+
+Host-side entry point: bad arguments raise ``ValueError``. The compiled pieces have static
+shapes: the segment grid is fixed by the image size and stride, and the clouds given to ICP
+are padded (or subsampled) to ``max_points``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxlie import SE3
+from jaxtyping import Array, Float
+
+from jaxreg._icp_setup import _bucket
+from jaxreg._register_stage import (
+    _coarse_problem,
+    _confirmed_share,
+    _distinct,
+    _judge,
+    _near_model,
+    _prepare_model,
+    _register_starts,
+    _score_candidates,
+    _support,
+    visibility as visibility,
+)
+from jaxreg.camera import RGBDFrame
+from jaxreg.icp import icp_covariance
+from jaxreg.lie import adjoint_transport, geodesic_angle
+from jaxreg.metrics import Symmetry, canonicalise
+from jaxreg.neighbors import voxel_downsample
+from jaxreg.segment import SegmentStatus, choose_cluster, segment_frame
+from jaxreg.uncertainty import DepthNoise
+
+__all__ = ["PoseEstimate", "estimate_pose", "visibility"]
+
+STAGES = ("segment", "lift", "register")
+
+
+@dataclasses.dataclass(frozen=True)
+class PoseEstimate:
+    """The result of :func:`estimate_pose` (host values).
+
+    Attributes:
+        pose: ``SE3`` ``base_T_object`` (object/model frame -> base frame), or ``None`` when a
+            stage failed (no pose claim).
+        inlier_rmse: RMS distance (metres) of the segment points matched to the model at the
+            final pose (NaN when registration did not run).
+        inlier_fraction: fraction of the segment points within the final correspondence
+            distance of the model.
+        covariance: ``(6, 6)`` covariance of the right perturbation of ``pose``
+            (``T_true = pose @ exp(delta)``, tangent ``(vx, vy, vz, wx, wy, wz)`` in the
+            object frame; metres and radians) from the depth noise through the final
+            registration; NaN without a pose.
+        failed_stage: ``None``, ``"segment"``, ``"lift"`` or ``"register"``.
+        reason: why that stage failed, or a one-line summary of a success.
+        stages: ``{stage: {"ms": float, ...diagnostics}}`` for the stages that ran.
+        mask: ``(H, W)`` bool pixels of the lifted segment (all False if lift did not run).
+        points: ``(K, 3)`` base-frame points that were registered (empty if none).
+    """
+
+    pose: SE3 | None
+    inlier_rmse: float
+    inlier_fraction: float
+    covariance: np.ndarray
+    failed_stage: str | None
+    reason: str
+    stages: dict[str, dict[str, Any]]
+    mask: np.ndarray
+    points: np.ndarray
+
+    @property
+    def success(self) -> bool:
+        """True when every stage passed and ``pose`` is a claim."""
+        return self.failed_stage is None
+
+
+# --------------------------------------------------------------------------------------------
+# Lift.
+
+
+def _flying(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray, tolerance: np.ndarray, need):
+    """Bool per pixel: fewer than ``need`` of its 8 neighbours have depth within
+    ``tolerance`` of its own."""
+    h, w = depth.shape
+    z = depth[rows, cols]
+    consistent = np.zeros(len(rows), np.int32)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy == 0 and dx == 0:
+                continue
+            r, c = np.clip(rows + dy, 0, h - 1), np.clip(cols + dx, 0, w - 1)
+            inside = (rows + dy >= 0) & (rows + dy < h) & (cols + dx >= 0) & (cols + dx < w)
+            consistent += inside & (np.abs(depth[r, c] - z) <= tolerance)
+    return consistent < need
+
+
+def _isolated(points: np.ndarray, voxel: float, need: int = 2) -> np.ndarray:
+    """Bool per point: fewer than ``need`` other points' voxels among the 26 around its own."""
+    keys = np.floor(points / voxel).astype(np.int64)
+    keys -= keys.min(0) - 1
+    dims = keys.max(0) + 2
+    code = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+    occupied = np.unique(code)
+    count = np.zeros(len(points), np.int32)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                if dx == dy == dz == 0:
+                    continue
+                other = ((keys[:, 0] + dx) * dims[1] + keys[:, 1] + dy) * dims[2] + keys[:, 2] + dz
+                idx = np.searchsorted(occupied, other)
+                count += (idx < len(occupied)) & (
+                    occupied[np.minimum(idx, len(occupied) - 1)] == other
+                )
+    return count < need
+
+
+@eqx.filter_jit
+def _lift_pixels(frame: RGBDFrame, rows, cols):
+    """Base-frame points ``(P, 3)`` of the given pixels (padded index arrays)."""
+    pixels = jnp.stack([cols, rows], -1).astype(frame.depth.dtype)
+    z = frame.depth[rows, cols]
+    camera = jnp.where(jnp.isfinite(z), z, 0.0)[:, None] * frame.intrinsics.rays(pixels)
+    pose = frame.base_T_camera
+    base = camera @ pose.rotation().as_matrix().T + pose.translation()
+    return jnp.where(jnp.isfinite(z)[:, None], base, jnp.nan)
+
+
+def _padded(points: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarray:
+    """``(size, 3)`` float32: ``points`` subsampled (without replacement) when longer, NaN
+    rows (ignored by ICP) after them when shorter."""
+    if len(points) > size:
+        points = points[np.sort(rng.choice(len(points), size, replace=False))]
+    out = np.full((size, 3), np.nan, np.float32)
+    out[: len(points)] = points
+    return out
+
+
+def _ms(start: float) -> float:
+    return round((time.perf_counter() - start) * 1e3, 2)
+
+
+def estimate_pose(
+    frame: RGBDFrame,
+    model_points: Float[Any, "M 3"],
+    *,
+    model_normals: Float[Any, "M 3"] | None = None,
+    symmetry: Symmetry | None = None,
+    depth_noise: DepthNoise | None = None,
+    key: Array | None = None,
+    pixel: tuple[float, float] | None = None,
+    box: tuple[float, float, float, float] | None = None,
+    voxel_size: float = 0.004,
+    stride: int = 4,
+    plane_distance: float = 0.008,
+    min_height: float = 0.01,
+    lift_min_height: float = 0.003,
+    cluster_distance: float = 0.015,
+    cluster_margin: float = 0.02,
+    max_candidates: int = 4,
+    num_starts: int = 24,
+    coarse_points: int = 128,
+    max_points: int = 1024,
+    min_segment_points: int = 30,
+    min_valid_fraction: float = 0.5,
+    min_consistent_neighbors: int = 3,
+    min_inlier_fraction: float = 0.7,
+    max_inlier_rmse: float = 0.004,
+    max_contradicted: float = 0.25,
+    progress: Callable[[str], object] | None = None,
+) -> PoseEstimate:
+    """Estimate ``base_T_object`` of a model in one depth frame (see the module docstring).
+
+    Args:
+        frame: the depth frame; points are expressed in its base frame.
+        model_points: ``(M, 3)`` points on the model's surface in its own frame (metres),
+            e.g. :func:`jaxreg.io.load_points` of a mesh or scan.
+        model_normals: ``(M, 3)`` unit normals of the model points (a mesh's face normals),
+            used instead of normals estimated from the points; give them for thin-walled
+            objects, whose two faces a point neighbourhood mixes.
+        symmetry: the model's :class:`~jaxreg.metrics.Symmetry`, if any.
+        depth_noise: the camera's noise as a :class:`~jaxreg.uncertainty.DepthNoise` in the
+            camera frame (its ``base_T_camera`` is replaced by the frame's); default a
+            structured-light / stereo camera with ``sigma_z = 2.5e-3 z^2`` (metres).
+        key: PRNG key of the plane hypotheses (default ``PRNGKey(0)``).
+        pixel, box: optional prompt ``(u, v)`` or ``(u0, v0, u1, v1)`` (pixels) naming the
+            object's cluster instead of scoring every candidate.
+        voxel_size: voxel of the lifted segment and the model (metres).
+        stride, plane_distance, min_height, cluster_distance: see
+            :func:`jaxreg.segment.segment_frame`.
+        lift_min_height: the lifted segment keeps points this high above the plane (metres;
+            lower than ``min_height``: the table is no longer a cluster's neighbour here,
+            and a low part such as a tray's floor pins the object's height).
+        cluster_margin: a candidate cluster's radius may exceed the model's by this (metres).
+        max_candidates: clusters scored by registration.
+        num_starts: rotation-grid starts of the coarse registration (plus 4 PCA starts).
+        coarse_points: grid points of a candidate given to the coarse registration (static).
+        max_points: cloud size given to ICP (static; larger segments are subsampled).
+        min_segment_points: fewest lifted points worth registering.
+        min_valid_fraction: fewest pixels with depth in the footprint, as a fraction.
+        min_consistent_neighbors: flying-pixel test (of 8 neighbours).
+        min_inlier_fraction, max_inlier_rmse, max_contradicted: the registration's evidence
+            that the model is there (fraction of segment points explained, their RMS
+            distance in metres, share of the model's judged surface the image sees through).
+        progress: called with each stage's name as it starts (a command line's progress).
+
+    Returns:
+        :class:`PoseEstimate`.
+
+    Raises:
+        ValueError: a frame that is not an ``RGBDFrame``, a model that is not ``(M, 3)``
+            finite points, or both prompts.
+    """
+    if not isinstance(frame, RGBDFrame):
+        raise ValueError(f"frame must be a jaxreg.RGBDFrame, got {type(frame).__name__}")
+    model_points = np.asarray(model_points, dtype=np.float32)
+    if model_points.ndim != 2 or model_points.shape[1] != 3:
+        raise ValueError(f"model_points must be (M, 3), got shape {model_points.shape}")
+    finite = np.all(np.isfinite(model_points), axis=1)
+    if model_normals is not None:
+        model_normals = np.asarray(model_normals, dtype=np.float32)
+        if model_normals.shape != model_points.shape:
+            raise ValueError(
+                f"model_normals must match model_points {model_points.shape}, got "
+                f"{model_normals.shape}"
+            )
+        model_normals = model_normals[finite]
+    model_points = model_points[finite]
+    if len(model_points) == 0:
+        raise ValueError("model_points holds no finite point")
+    if pixel is not None and box is not None:
+        raise ValueError("give at most one prompt: pixel=(u, v) or box=(u0, v0, u1, v1)")
+    key = jax.random.PRNGKey(0) if key is None else key
+    progress = progress or (lambda stage: None)
+    coarse_distances = np.geomspace(0.04, 0.01, 20).astype(np.float32)
+    fine_distances = np.geomspace(0.015, 1.5 * voxel_size, 30).astype(np.float32)
+    model = _prepare_model(model_points, model_normals, voxel_size, float(coarse_distances[0]))
+    shape = frame.depth.shape
+    stages: dict[str, dict[str, Any]] = {}
+    rng = np.random.default_rng(0)
+
+    def failed(stage: str, reason: str, mask=None, points=None) -> PoseEstimate:
+        return PoseEstimate(
+            None, float("nan"), float("nan"), np.full((6, 6), np.nan), stage, reason, stages,
+            np.zeros(shape, bool) if mask is None else mask,
+            np.zeros((0, 3), np.float32) if points is None else points,
+        )  # fmt: skip
+
+    # ---- segment: plane, clusters, candidates scored by registration ----------------------
+    progress("segment")
+    start = time.perf_counter()
+    seg = jax.block_until_ready(
+        segment_frame(
+            frame,
+            key=key,
+            stride=stride,
+            plane_distance=plane_distance,
+            min_height=min_height,
+            cluster_distance=cluster_distance,
+        )  # fmt: skip
+    )
+    sizes = np.asarray(seg.clusters.sizes)
+    radii = np.asarray(seg.radii)
+    diag = stages["segment"] = {
+        "ms": None,
+        "plane_inliers": int(seg.plane.num_inliers),
+        "plane_inlier_fraction": round(float(seg.plane.inlier_fraction), 3),
+        "valid_grid_points": int(seg.valid_points),
+        "above_plane": int(seg.above_plane),
+        "cluster_sizes": [int(s) for s in sizes if s > 0],
+        "cluster_radii_mm": [
+            round(float(r) * 1e3, 1) for r, s in zip(radii, sizes, strict=True) if s > 0
+        ],
+        "overflow": bool(seg.clusters.overflow),
+    }
+    if seg.status != SegmentStatus.success:
+        diag["ms"] = _ms(start)
+        return failed("segment", seg.status_message())
+    grid_points = np.asarray(seg.points)
+    labels = np.asarray(seg.clusters.labels)
+    live = [k for k in range(len(sizes)) if sizes[k] > 0]
+    if pixel is not None or box is not None:
+        chosen = choose_cluster(seg, pixel=pixel, box=box)
+        if chosen is None:
+            diag["ms"] = _ms(start)
+            return failed("segment", f"the prompt {pixel or box} touches no cluster")
+        seeds = [chosen]
+    else:
+        seeds = live
+    centroids = np.asarray(seg.centroids)
+    groups: list[tuple[int, ...]] = []
+    for k in seeds:  # a cluster, and with the pieces near it (one object split by a rim)
+        near = np.linalg.norm(centroids[live] - centroids[k], axis=1) < 1.2 * model.radius
+        for group in ((k,), tuple(sorted({k, *np.asarray(live)[near].tolist()}))):
+            if group not in groups:
+                groups.append(group)
+    candidates = []
+    for group in groups:
+        cloud = grid_points[np.isin(labels, group)]
+        radius = float(np.linalg.norm(cloud - cloud.mean(0), axis=1).max())
+        if radius <= model.radius + cluster_margin:
+            candidates.append((group, cloud))
+    candidates.sort(key=lambda item: -len(item[1]))
+    candidates = candidates[:max_candidates]
+    if not candidates:
+        diag["ms"] = _ms(start)
+        return failed(
+            "segment",
+            f"no cluster of the model's size: cluster radii {diag['cluster_radii_mm']} mm, "
+            f"model radius {model.radius * 1e3:.0f} mm (+{cluster_margin * 1e3:.0f} mm allowed)",
+        )
+    tolerance = jnp.float32(0.01)
+    clouds = np.full((max_candidates, coarse_points, 3), np.nan, np.float32)
+    for i, (_, cloud) in enumerate(candidates):
+        clouds[i] = _padded(cloud, coarse_points, rng)
+    used = np.arange(max_candidates) < len(candidates)
+    problem, opts = _coarse_problem(model, coarse_points, coarse_distances)
+    coarse = jax.block_until_ready(
+        _score_candidates(
+            frame,
+            seg.plane,
+            problem,
+            opts,
+            jnp.asarray(clouds),
+            jnp.asarray(used),
+            jnp.asarray(model.points),
+            tolerance,
+            num_starts,
+        )  # fmt: skip
+    )
+    scored = []
+    for i, (group, _) in enumerate(candidates):
+        counts = np.asarray(coarse.visibility[i, 0])
+        confirmed, contradicted = _support(counts)
+        explained = float(coarse.explained[i, 0])
+        score = explained * confirmed
+        scored.append((score, group, i, explained, contradicted))
+    scored.sort(key=lambda item: -item[0])
+    _, group, chosen, coarse_fraction, _ = scored[0]
+    coarse_poses = np.asarray(coarse.poses[chosen])  # object_T_base per start, best first
+    # pieces of the object the clustering split off: clusters the coarse pose explains
+    explained = np.asarray(
+        _near_model(model.grid, jnp.asarray(coarse_poses[0]), jnp.asarray(grid_points), 0.01)
+    )
+    joined = sorted({*group, *(k for k in live if explained[labels == k].mean() >= 0.6)})
+    diag.update(
+        candidates=[
+            {
+                "clusters": list(g),
+                "score": round(sc, 3),
+                "explained": round(f, 3),
+                "contradicted": round(c, 3),
+            }
+            for sc, g, _, f, c in scored
+        ],  # fmt: skip
+        chosen_clusters=list(joined),
+        ms=_ms(start),
+    )
+
+    # ---- lift -------------------------------------------------------------------------------
+    progress("lift")
+    start = time.perf_counter()
+    footprint = np.isin(np.asarray(seg.footprint), joined)
+    s = seg.stride
+    full = np.repeat(np.repeat(footprint, s, axis=0), s, axis=1)[: shape[0], : shape[1]]
+    region = np.zeros(shape, bool)
+    region[: full.shape[0], : full.shape[1]] = full
+    depth = np.asarray(frame.depth)
+    rows, cols = np.nonzero(region)
+    has_depth = np.isfinite(depth[rows, cols])
+    valid_fraction = float(has_depth.mean()) if len(rows) else 0.0
+    rows, cols = rows[has_depth], cols[has_depth]
+    diag = stages["lift"] = {
+        "ms": None,
+        "footprint_pixels": int(region.sum()),
+        "valid_depth_fraction": round(valid_fraction, 3),
+    }
+    if valid_fraction < min_valid_fraction:
+        diag["ms"] = _ms(start)
+        return failed(
+            "lift",
+            f"too little valid depth: {valid_fraction:.0%} of the segment's {int(region.sum())} "
+            f"pixels have depth (need {min_valid_fraction:.0%}); dark, shiny or grazing "
+            "surfaces, or the object too near the camera",
+            mask=region,
+        )
+    z = depth[rows, cols]
+    noise = _noise(depth_noise, frame)
+    sigma = np.asarray(noise.axial_sigma(jnp.asarray(z)))
+    flying = _flying(depth, rows, cols, np.maximum(0.004, 4 * sigma), min_consistent_neighbors)
+    rows, cols = rows[~flying], cols[~flying]
+    padded = _bucket(max(len(rows), 1))
+    r_pad = np.zeros(padded, np.int32)
+    c_pad = np.zeros(padded, np.int32)
+    r_pad[: len(rows)], c_pad[: len(cols)] = rows, cols
+    lifted = np.asarray(_lift_pixels(frame, jnp.asarray(r_pad), jnp.asarray(c_pad)))[: len(rows)]
+    plane_normal, plane_offset = np.asarray(seg.plane.normal), float(seg.plane.offset)
+    height = lifted @ plane_normal + plane_offset
+    band = (height > lift_min_height) & (height < 0.5)
+    rows, cols, lifted = rows[band], cols[band], lifted[band]
+    mask = np.zeros(shape, bool)
+    mask[rows, cols] = True
+    points = voxel_downsample(lifted, voxel_size) if len(lifted) else np.zeros((0, 3))
+    isolated = _isolated(points, voxel_size) if len(points) else np.zeros(0, bool)
+    points = points[~isolated].astype(np.float32)
+    diag.update(
+        pixels=int(len(rows)),
+        flying_pixels_removed=int(flying.sum()),
+        below_band_removed=int((~band).sum()),
+        isolated_points_removed=int(isolated.sum()),
+        points=int(len(points)),
+        ms=_ms(start),
+    )
+    if len(points) < min_segment_points:
+        return failed(
+            "lift",
+            f"only {len(points)} points left after filtering (need {min_segment_points}): "
+            "the segment is too small or too noisy to register",
+            mask=mask,
+            points=points,
+        )
+
+    # ---- register -----------------------------------------------------------------------------
+    progress("register")
+    start = time.perf_counter()
+    source = _padded(points, max_points, rng)
+    picks = _distinct(coarse_poses, 4, 0.01)
+    inits = SE3(jnp.asarray(coarse_poses[picks]))
+    trim = float(np.clip(coarse_fraction, 0.6, 0.95))
+    results = _register_starts(source, model, inits, fine_distances, trim, 30)
+    fractions = np.asarray(results.inlier_fraction)
+    rmses = np.nan_to_num(np.asarray(results.inlier_rmse), nan=np.inf)
+    seen = np.asarray(
+        _judge(frame, seg.plane, results.pose.wxyz_xyz, jnp.asarray(model.points), tolerance)
+    )
+    scores = fractions * np.asarray(_confirmed_share(seen))
+    ranked = np.lexsort((rmses, -np.round(scores, 2)))
+    best = results[int(ranked[0])]
+    fraction, rmse = float(fractions[ranked[0]]), float(rmses[ranked[0]])
+    confirmed, contradicted = _support(seen[ranked[0]])
+    pose = best.pose.inverse()
+    equal = [
+        int(i)
+        for i in ranked
+        if scores[i] >= scores[ranked[0]] - 0.02 and rmses[i] <= rmse * 1.1 + 1e-4
+    ]
+    spread_mm, spread_deg = 0.0, 0.0
+    for i in equal[1:]:
+        other = results[i].pose.inverse()
+        if symmetry is not None:
+            other = canonicalise(other, pose, symmetry)
+        offset = float(jnp.linalg.norm(other.translation() - pose.translation()))
+        angle = float(jnp.degrees(geodesic_angle(other.rotation(), pose.rotation())))
+        spread_mm, spread_deg = max(spread_mm, offset), max(spread_deg, angle)
+    if symmetry is not None:  # report one branch: the equivalent nearest the base axes
+        pose = canonicalise(pose, SE3.from_translation(pose.translation()), symmetry)
+    object_T_base = best.pose
+    cov_object_T_base = icp_covariance(
+        source, model.points, object_T_base, method="point_to_plane",
+        target_normals=model.normals, max_correspondence_distance=fine_distances[-1],
+        trim_fraction=trim, neighbors=model.grid, source_noise=noise,
+    )  # fmt: skip
+    # right perturbation of base_T_object = object_T_base^-1: Ad_{object_T_base} Sigma Ad^T;
+    # the symmetry branch re-anchors the object frame (pose = found @ S): Ad_{S^-1}
+    covariance = adjoint_transport(object_T_base, cov_object_T_base)
+    covariance = np.asarray(adjoint_transport((object_T_base @ pose).inverse(), covariance))
+    diag = stages["register"] = {
+        "ms": _ms(start),
+        "starts": int(coarse_poses.shape[0]),
+        "refined_starts": len(picks),
+        "trim_fraction": round(trim, 3),
+        "iterations": int(best.iterations),
+        "icp_status": str(best.status_message()),
+        "inlier_rmse_mm": round(rmse * 1e3, 3),
+        "inlier_fraction": round(fraction, 3),
+        "equally_good_starts": len(equal),
+        "start_agreement_mm": round(spread_mm * 1e3, 3),
+        "start_agreement_deg": round(spread_deg, 3),
+        "model_confirmed": round(confirmed, 3),
+        "model_contradicted": round(contradicted, 3),
+    }
+    problems = []
+    if fraction < min_inlier_fraction:
+        problems.append(
+            f"the model explains only {fraction:.0%} of the segment (need "
+            f"{min_inlier_fraction:.0%})"
+        )
+    if not rmse <= max_inlier_rmse:
+        problems.append(f"the residual is {rmse * 1e3:.1f} mm (at most {max_inlier_rmse * 1e3:g})")
+    if contradicted > max_contradicted:
+        problems.append(
+            f"the camera sees through {contradicted:.0%} of the model's surface facing it (at "
+            f"most {max_contradicted:.0%})"
+        )
+    if problems:
+        return failed(
+            "register", "the model is not there: " + "; ".join(problems), mask=mask, points=points
+        )
+    reason = (
+        f"found: {fraction:.0%} of {len(points)} segment points within "
+        f"{fine_distances[-1] * 1e3:.0f} mm of the model, residual {rmse * 1e3:.2f} mm"
+    )
+    return PoseEstimate(pose, rmse, fraction, covariance, None, reason, stages, mask, points)
+
+
+def _noise(depth_noise: DepthNoise | None, frame: RGBDFrame) -> DepthNoise:
+    """The depth noise in the frame's base frame."""
+    if depth_noise is None:
+        return DepthNoise((0.0, 0.0, 2.5e-3), frame.base_T_camera)
+    return eqx.tree_at(lambda n: n.base_T_camera, depth_noise, frame.base_T_camera)

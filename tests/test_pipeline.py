@@ -1,0 +1,132 @@
+"""estimate_pose on a rendered tabletop frame, and each stage's failure signature built into it:
+a stray table slab, depth holes over the object, phantom edge points, the object missing."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from jaxreg.camera import RGBDFrame
+from jaxreg.metrics import Symmetry, add_s
+from jaxreg.pipeline import estimate_pose
+
+
+@pytest.fixture(scope="module")
+def scene():
+    from jaxreg.synth import tabletop_scene
+
+    scene = tabletop_scene(4, object="box", distractors=0)
+    samples, _ = trimesh.sample.sample_surface(scene.model, 20_000, seed=0)
+    symmetry = Symmetry(scene.symmetry.rotations, scene.symmetry.axis)
+    return scene, samples.astype(np.float32), symmetry
+
+
+def _with_depth(frame: RGBDFrame, depth: np.ndarray) -> RGBDFrame:
+    return RGBDFrame(depth.astype(np.float32), frame.intrinsics, frame.rgb, frame.base_T_camera)
+
+
+def _height_depth(frame: RGBDFrame, height: float) -> np.ndarray:
+    """(H, W) z-depth at which every pixel's ray meets the plane z = height (base frame)."""
+    rays = np.asarray(frame.intrinsics.pixel_rays(), np.float64)
+    pose = frame.base_T_camera
+    rotation, origin = np.asarray(pose.rotation().as_matrix()), np.asarray(pose.translation())
+    return (height - origin[2]) / (rays @ rotation.T)[..., 2]
+
+
+def _centre(mask):
+    rows, cols = np.nonzero(mask)
+    return float(cols.mean()), float(rows.mean())
+
+
+def test_finds_the_box_with_error_bars_and_stage_diagnostics(scene):
+    scene, model, symmetry = scene
+    est = estimate_pose(scene.frame, model, symmetry=symmetry)
+    assert est.failed_stage is None and est.success
+    assert float(add_s(scene.model_points, est.pose, scene.truth)) < 0.005
+    assert set(est.stages) == {"segment", "lift", "register"}
+    assert all(stage["ms"] > 0 for stage in est.stages.values())
+    assert est.stages["lift"]["valid_depth_fraction"] > 0.8
+    # the covariance is a finite, positive definite error bar of sub-millimetre order
+    eig = np.linalg.eigvalsh(est.covariance)
+    assert np.all(np.isfinite(eig)) and eig.min() > 0
+    assert np.sqrt(np.diag(est.covariance)[:3]).max() < 0.002
+    assert 0.5 < est.inlier_fraction <= 1 and est.inlier_rmse < 0.004
+    # the mask covers the target's pixels, little else
+    assert np.mean(est.mask[scene.mask]) > 0.6 and np.mean(scene.mask[est.mask]) > 0.9
+
+
+def test_a_stray_table_slab_is_a_candidate_the_registration_rejects(scene):
+    scene, model, symmetry = scene
+    # a 2 cm board on the table beside the box, about its size in the image
+    u, v = _centre(scene.mask)
+    rows, cols = np.nonzero(scene.mask)
+    width = cols.max() - cols.min()
+    board = np.zeros_like(scene.mask)
+    side = int(u + 1.2 * width) if u < scene.mask.shape[1] / 2 else int(u - 1.2 * width)
+    board[int(v) - width // 2 : int(v) + width // 2, side - width // 2 : side + width // 2] = True
+    board &= scene.labels == 0
+    depth = np.where(board, _height_depth(scene.frame, 0.02), np.asarray(scene.frame.depth))
+    est = estimate_pose(_with_depth(scene.frame, depth), model, symmetry=symmetry)
+    assert est.failed_stage is None
+    assert float(add_s(scene.model_points, est.pose, scene.truth)) < 0.005
+    assert np.mean(est.mask[board]) < 0.05  # the board is not in the lifted segment
+    # without the box, the board alone is not taken for it
+    depth = np.where(scene.mask, _height_depth(scene.frame, 0.0), depth)
+    missing = estimate_pose(_with_depth(scene.frame, depth), model, symmetry=symmetry)
+    assert missing.pose is None and missing.failed_stage == "register"
+    assert "the model is not there" in missing.reason
+
+
+def test_depth_holes_over_the_object_fail_the_lift(scene):
+    scene, model, symmetry = scene
+    rng = np.random.default_rng(0)
+    holes = scene.mask & (rng.random(scene.mask.shape) < 0.85)
+    depth = np.where(holes, np.nan, np.asarray(scene.frame.depth))
+    est = estimate_pose(_with_depth(scene.frame, depth), model, pixel=_centre(scene.mask))
+    assert est.failed_stage == "lift" and est.pose is None
+    assert "valid depth" in est.reason
+    assert est.stages["lift"]["valid_depth_fraction"] < 0.5
+
+
+def test_phantom_edge_points_are_removed_as_flying_pixels(scene):
+    scene, model, symmetry = scene
+    depth = np.asarray(scene.frame.depth).copy()
+    mask = scene.mask
+    edge_depth = np.full(depth.shape, np.nan)
+    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0), (0, 2), (0, -2), (2, 0), (-2, 0)):
+        shifted = np.roll(np.where(mask, depth, np.nan), (dy, dx), axis=(0, 1))
+        edge_depth = np.where(np.isnan(edge_depth), shifted, edge_depth)
+    band = ~mask & np.isfinite(edge_depth) & np.isfinite(depth) & (depth > edge_depth + 0.03)
+    rng = np.random.default_rng(1)
+    mix = rng.uniform(0.2, 0.8, depth.shape)
+    phantom = np.where(band, edge_depth + mix * (depth - edge_depth), depth)
+    clean = estimate_pose(scene.frame, model, symmetry=symmetry)
+    est = estimate_pose(_with_depth(scene.frame, phantom), model, symmetry=symmetry)
+    added = (
+        est.stages["lift"]["flying_pixels_removed"] - clean.stages["lift"]["flying_pixels_removed"]
+    )
+    # the phantoms in the segment's footprint are removed as flying pixels; none is lifted
+    assert band.sum() > 100 and added > 20
+    assert np.mean(est.mask[band]) < 0.1
+    assert est.failed_stage is None
+    assert float(add_s(scene.model_points, est.pose, scene.truth)) < 0.005
+
+
+def test_the_object_missing_makes_no_pose_claim(scene):
+    scene, model, symmetry = scene
+    rng = np.random.default_rng(2)
+    table = _height_depth(scene.frame, 0.0) + rng.normal(0, 0.001, scene.mask.shape)
+    depth = np.where(scene.mask, table, np.asarray(scene.frame.depth))
+    est = estimate_pose(_with_depth(scene.frame, depth), model, symmetry=symmetry)
+    assert est.pose is None and est.failed_stage == "segment"
+    assert "nothing stands on the table" in est.reason
+    assert np.isnan(est.covariance).all()
+
+
+def test_bad_arguments_raise_clear_errors(scene):
+    scene, model, _ = scene
+    with pytest.raises(ValueError, match="RGBDFrame"):
+        estimate_pose(np.zeros((480, 848)), model)
+    with pytest.raises(ValueError, match=r"\(M, 3\)"):
+        estimate_pose(scene.frame, model[:, :2])
+    with pytest.raises(ValueError, match="at most one prompt"):
+        estimate_pose(scene.frame, model, pixel=(1, 2), box=(0, 0, 5, 5))
