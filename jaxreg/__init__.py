@@ -83,6 +83,7 @@ from jaxreg.neighbors import (
     voxel_downsample as voxel_downsample,
 )
 from jaxreg.normals import estimate_normals as estimate_normals
+from jaxreg.pipeline import PoseEstimate as PoseEstimate, estimate_pose as estimate_pose
 from jaxreg.pnp import (
     PlanarPnPResult as PlanarPnPResult,
     PnPResult as PnPResult,
