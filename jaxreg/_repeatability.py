@@ -103,6 +103,12 @@ def stack_frames(frames: Sequence[RGBDFrame]) -> RGBDFrame:
     shapes = {f.depth.shape for f in frames}
     if len(shapes) != 1:
         raise ValueError(f"frames must share one image size, got {sorted(shapes)}")
+    first, structure = jax.tree.flatten(frames[0].intrinsics)
+    for f in frames[1:]:
+        leaves, other = jax.tree.flatten(f.intrinsics)
+        same = other == structure and all(map(np.array_equal, first, leaves))
+        if not same:
+            raise ValueError("frames must share one camera's intrinsics")
     frames = [eqx.tree_at(lambda f: f.rgb, f, None, is_leaf=lambda x: x is None) for f in frames]
     return jax.tree.map(lambda *xs: jnp.stack(xs), *frames)
 

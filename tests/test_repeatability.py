@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 from jaxlie import SE3
 
-from jaxreg._repeatability import estimate_hand_eye_correction, repeatability
+import jaxreg as jr
+from jaxreg._repeatability import estimate_hand_eye_correction, repeatability, stack_frames
 from jaxreg.icp import ICPStatus
 from jaxreg.lie import se3_exp
+from jaxreg.synth import tabletop_scene
 
 # The planted hand-eye error: 4.9 mm and 1.0 degree (right perturbation of base_T_camera).
 BIAS = np.r_[[0.004, -0.002, 0.002], np.radians(1.0) * np.array([0.6, -0.8, 0.0])]
@@ -134,6 +136,11 @@ def test_bad_requests_raise(study):
             study.frames, np.zeros(study.masks.shape, bool), study.model_points,
             study.model_normals, inits,
         )  # fmt: skip
+    small = jr.Intrinsics(200.0, 200.0, 79.5, 59.5, 160, 120)
+    wider = jr.Intrinsics(150.0, 150.0, 79.5, 59.5, 160, 120)
+    frames = [tabletop_scene(0, noise=False, intrinsics=k).frame for k in (small, wider)]
+    with pytest.raises(ValueError, match="intrinsics"):
+        stack_frames(frames)
     with pytest.raises(ValueError, match="inits"):
         estimate_hand_eye_correction(
             study.frames, study.masks, study.model_points, study.model_normals, study.nominal
