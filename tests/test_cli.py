@@ -1,38 +1,92 @@
 import json
 
+import jax.numpy as jnp
 import numpy as np
+import pytest
+from jaxlie import SE3, SO3
 
 from jaxreg.cli import main
 
+KEYS = (
+    "pose",
+    "failed_stage",
+    "reason",
+    "stages",
+    "inlier_rmse_mm",
+    "inlier_fraction",
+    "predicted_grasp_success",
+)
 
-def test_demo_json_report(capsys, tmp_path):
-    assert main(["demo", "--json", "--out", str(tmp_path)]) == 0
+
+@pytest.fixture(autouse=True)
+def no_compilation_cache(monkeypatch):
+    # the commands enable JAX's persistent cache; tests leave the user's cache alone
+    monkeypatch.setenv("JAXREG_CACHE_DIR", "")
+
+
+def test_demo_reports_stages_error_vs_truth_error_bars_grasp_and_pictures(capsys, tmp_path):
+    assert main(["demo", "--json", "--out", str(tmp_path), "--seed", "4", "--object", "box"]) == 0
     report = json.loads(capsys.readouterr().out)
-    for key in (
-        "pose",
-        "failed_stage",
-        "reason",
-        "stages",
-        "inlier_rmse_mm",
-        "inlier_fraction",
-        "predicted_grasp_success",
-        "translation_error_mm",
-        "rotation_error_deg",
-        "add_s_mm",
-    ):
+    for key in (*KEYS, "translation_error_mm", "rotation_error_deg", "add_s_mm"):
         assert key in report
     pose = np.array(report["pose"])
     assert pose.shape == (4, 4) and np.allclose(pose[3], [0, 0, 0, 1])
     assert report["failed_stage"] is None
-    assert report["rotation_error_deg"] < 1.0 and report["translation_error_mm"] < 2.0
-    # the single start outside the basin is confidently wrong, which the demo shows
-    assert report["stages"]["register"]["single_start_from_centroid"]["rotation_error_deg"] > 20
-    assert json.loads((tmp_path / "demo.json").read_text()) == report
+    assert report["add_s_mm"] < 5.0
+    assert set(report["stages"]) == {"segment", "lift", "register"}
+    assert all(report["stages"][s]["ms"] > 0 for s in report["stages"])
+    assert len(report["error_bars"]["translation_sigma_mm"]) == 3
+    grasp = report["grasp"]
+    assert grasp["object_width_mm"] == pytest.approx(50, abs=3)  # the box's narrow side
+    assert 0 <= report["predicted_grasp_success"] <= 1
+    assert json.loads((tmp_path / "report.json").read_text())["pose"] == report["pose"]
+    for name in ("depth.png", "segmentation.png", "model_overlay.png"):
+        assert (tmp_path / name).stat().st_size > 1000
+
+
+def test_pose_finds_the_carton_and_makes_no_claim_where_it_is_not(pcl_dir, tmp_path, capsys):
+    from jaxreg.io import load_points, write_pcd
+
+    handed = SE3.from_rotation_and_translation(
+        SO3.from_rpy_radians(1.0, -2.0, 0.5), jnp.array([0.3, -0.2, 0.5])
+    )
+    model = np.asarray(handed @ jnp.asarray(load_points(pcl_dir / "milk.pcd")))
+    write_pcd(tmp_path / "model.pcd", model.astype(np.float32))
+    truth = np.asarray(handed.inverse().as_matrix())  # milk.pcd was cut from this capture
+    scene = pcl_dir / "milk_cartoon_all_small_clorox.pcd"
+    assert (
+        main(["pose", "--scene", str(scene), "--model", str(tmp_path / "model.pcd"), "--json"]) == 0
+    )
+    report = json.loads(capsys.readouterr().out)
+    assert report["failed_stage"] is None
+    pose = np.array(report["pose"])
+    assert np.linalg.norm(pose[:3, 3] - truth[:3, 3]) < 0.005
+    cos = (np.trace(pose[:3, :3].T @ truth[:3, :3]) - 1) / 2
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 2.0
+    mug = pcl_dir / "table_scene_mug_stereo_textured.pcd"
+    assert (
+        main(["pose", "--scene", str(mug), "--model", str(tmp_path / "model.pcd"), "--json"]) == 0
+    )
+    report = json.loads(capsys.readouterr().out)
+    assert report["failed_stage"] is not None and report["pose"] is None
+    assert report["reason"] and report["predicted_grasp_success"] is None
+
+
+def test_a_garbage_scene_file_is_one_clear_error(capsys, tmp_path):
+    garbage = tmp_path / "scene.pcd"
+    garbage.write_bytes(b"VERSION .7\nFIELDS x y\x00\xff garbage")
+    model = tmp_path / "model.pcd"
+    model.write_text("not a model")
+    assert main(["pose", "--scene", str(garbage), "--model", str(model)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("jaxreg pose: ") and len(err.splitlines()) == 1
+    assert "Traceback" not in err
+    assert main(["demo", "--object", "teapot"]) == 1
+    assert "unknown object 'teapot'" in capsys.readouterr().err
 
 
 def test_bad_command_line_is_one_clear_error(capsys):
-    try:
+    with pytest.raises(SystemExit) as exit_:
         main(["nonsense"])
-    except SystemExit as exit_:
-        assert exit_.code != 0
+    assert exit_.value.code != 0
     assert "invalid choice" in capsys.readouterr().err
