@@ -291,7 +291,7 @@ class HandEyeCorrection(AbstractResult):
 
 
 def estimate_hand_eye_correction(
-    frames: RGBDFrame,
+    frames: RGBDFrame | Sequence[RGBDFrame],
     masks: Bool[ArrayLike, "K H W"],
     model_points: Float[ArrayLike, "M 3"],
     model_normals: Float[ArrayLike, "M 3"],
@@ -318,8 +318,9 @@ def estimate_hand_eye_correction(
     each step's registrations warm-started from the last.
 
     Args:
-        frames: :class:`~jaxreg.camera.RGBDFrame` batch ``(K,)`` (:func:`stack_frames`) with
-            the hand-eye as reported: every ``base_T_camera`` shares one calibration error.
+        frames: ``K`` frames of one camera (a list, or a batch from :func:`stack_frames`)
+            with the hand-eye as reported: every ``base_T_camera`` shares one calibration
+            error, a right perturbation (eye-in-hand: an error in ``flange_T_camera``).
         masks: ``(K, H, W)`` the object's pixels in each frame.
         model_points: ``(M, 3)`` surface samples of the object, its own frame (metres).
         model_normals: ``(M, 3)`` their unit normals.
@@ -340,6 +341,8 @@ def estimate_hand_eye_correction(
     Raises:
         ValueError: mismatched shapes, or a frame with fewer than 3 usable pixels.
     """
+    if isinstance(frames, (list, tuple)):
+        frames = stack_frames(frames)
     views = _views(
         frames, masks, model_points, model_normals, num_points, max_correspondence_distance, seed
     )

@@ -6,6 +6,7 @@ its longest, so the tiers' statistics and the correction's share one compilation
 orbit study reuses every compiled shape.
 """
 
+import jax
 import numpy as np
 import pytest
 from jaxlie import SE3
@@ -96,6 +97,17 @@ def test_correction_recovers_the_planted_hand_eye_error(study, correction):
     assert bool(correction.before.groups.bias_detected)
     assert not bool(correction.after.groups.bias_detected)
     np.testing.assert_allclose(correction.pose.log(), correction.tangent, atol=1e-6)
+
+
+def test_a_list_of_frames_gives_the_same_correction(study, correction):
+    third = np.asarray(study.tier) == 2
+    frames = [jax.tree.map(lambda x, i=i: x[i] if np.ndim(x) else x, study.frames)
+              for i in range(int(third.sum()))]  # fmt: skip
+    again = estimate_hand_eye_correction(
+        frames, study.masks, study.model_points, study.model_normals,
+        SE3(study.poses.wxyz_xyz[third]), max_steps=1,
+    )  # fmt: skip
+    np.testing.assert_allclose(again.disagreement_before, correction.disagreement_before, rtol=1e-5)
 
 
 def test_an_orbit_leaves_the_screw_about_its_axis_unobservable():
