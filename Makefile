@@ -27,7 +27,7 @@ demo: $(STAMP)
 
 test: $(STAMP) system-libs
 	$(PY) -m ruff check jaxreg tests benchmarks examples paper_figs
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 bench: $(STAMP) system-libs
 	cd benchmarks && for f in bench_*.py; do echo "== $$f"; ../$(PY) $$f || exit 1; done
