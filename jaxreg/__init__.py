@@ -115,9 +115,10 @@ from jaxreg.uncertainty import (
 
 
 def __getattr__(name: str):
-    # jaxreg.synth needs the ray caster (trimesh + Embree): imported on first use, not with jaxreg.
-    if name == "synth":
+    # jaxreg.synth and jaxreg.studies need the ray caster (trimesh + Embree): imported on first
+    # use, not with jaxreg.
+    if name in ("synth", "studies"):
         import importlib
 
-        return importlib.import_module("jaxreg.synth")
+        return importlib.import_module(f"jaxreg.{name}")
     raise AttributeError(f"module 'jaxreg' has no attribute {name!r}")

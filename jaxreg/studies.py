@@ -4,6 +4,13 @@
   controlled rotation offsets (and optional translation offsets) from the true pose, all
   registered in one compiled call sharded over every device of every process, scored with
   the symmetry-aware metrics of :mod:`jaxreg.metrics`.
+* :func:`repeatability`: is my error noise or bias, and whose? The three tiers (frozen
+  scene re-measured, object re-placed, camera moved) on synthetic scenes, with the
+  per-viewpoint bias test and the error budget against a gripper's margin.
+* :func:`estimate_hand_eye_correction`: the hand-eye correction that makes the viewpoints
+  agree, by differentiating through lifting and registration.
+  (Both live in :mod:`jaxreg._repeatability`, which needs the ray caster of
+  :mod:`jaxreg.synth`.)
 
 Scale-out uses JAX's own runtime, nothing else: the starts are one array sharded over a 1-D
 mesh of ``jax.devices()``. On one machine that is every local device (force several CPU
@@ -34,11 +41,26 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxreg._icp_core import ICPStatus, run
 from jaxreg._icp_setup import DEFAULT, Method, Settings, prepare
+from jaxreg._repeatability import (
+    HandEyeCorrection,
+    Repeatability,
+    estimate_hand_eye_correction,
+    repeatability,
+)
 from jaxreg.kernels import AbstractRobustKernel
 from jaxreg.metrics import Symmetry, pose_error
 from jaxreg.neighbors import NeighborGrid
 
-__all__ = ["BasinSweep", "basin_radius", "basin_sweep", "basin_starts"]
+__all__ = [
+    "BasinSweep",
+    "HandEyeCorrection",
+    "Repeatability",
+    "basin_radius",
+    "basin_starts",
+    "basin_sweep",
+    "estimate_hand_eye_correction",
+    "repeatability",
+]
 
 
 class BasinSweep(eqx.Module):
