@@ -7,14 +7,16 @@ fit, the covariance of the pose under the depth camera's noise, and per-stage mi
 diagnostics. The stages:
 
 1. **Segment** (:func:`jaxreg.segment.segment_frame`): the table plane by RANSAC and the
-   clusters standing on it, on a strided grid. Every cluster whose size is compatible with
-   the model (its radius at most the model's plus ``cluster_margin``) is a candidate, up to
-   ``max_candidates`` largest; a ``pixel`` or ``box`` prompt picks one instead. Each
-   candidate is scored by registration (below, on its grid points): the fraction of its
-   points the model explains, times the fraction of the model's predicted visible surface
-   that the depth image confirms (:func:`visibility`). The best candidate wins; clusters
-   whose centroid lies within the model's radius of its estimated centre join it (one object
-   split by a thin rim or a shadow).
+   clusters standing on it, on a strided grid. Each cluster, and each cluster together with
+   the clusters within 1.2 model radii of it (one object split by a thin rim), is a
+   candidate if its radius is at most the model's plus ``cluster_margin``; the
+   ``max_candidates`` largest are kept, or a ``pixel`` / ``box`` prompt names the seed
+   cluster. Every candidate is scored by registration in one compiled call (below, on its
+   grid points): the fraction of its points the model explains (6 mm) times the share of the
+   model's camera-facing surface that the depth image confirms (:func:`visibility`; seeing
+   through the model, or the model below the table, counts against it). The best candidate
+   wins, and every cluster that its coarse pose explains (60% of its points within 1 cm)
+   joins it.
 2. **Lift**: the winning clusters' footprint at full resolution (their pixels and the depth
    holes between them), its valid-depth fraction, the pixels above the table band, flying
    pixels removed (a pixel needs ``min_consistent_neighbors`` of its 8 neighbours within the
@@ -24,15 +26,18 @@ diagnostics. The stages:
 3. **Register**: the segment (source, base frame) is registered into the model (target,
    object frame), so the overlap is the whole segment less its strays, whatever part of the
    object is visible. Starts: the four PCA frames (their sign ambiguities) and a near-uniform
-   grid of rotations about the centroids (``num_starts``), multi-start point-to-plane ICP on
-   the grid points with a shrinking correspondence distance, then the best distinct starts
-   refined on the lifted points, trimmed to the inlier fraction the coarse fit measured
-   (the visible overlap). Among refined poses that fit equally well the choice is
-   symmetry-aware: with a ``symmetry`` the poses are compared (and the answer reported) on
-   one symmetry branch; without one, equally good poses that differ are reported as an
-   ambiguity in the diagnostics. The covariance is :func:`jaxreg.icp_covariance` of the
-   final registration with the depth noise (:class:`~jaxreg.uncertainty.DepthNoise`) on the
-   segment, moved to the right perturbation of ``base_T_object``.
+   grid of ``num_starts`` rotations about the centroids, each slid along the line of sight
+   until the model's front meets the segment's (a partial view's centroid lies on its visible
+   surface); multi-start point-to-plane ICP on the grid points with a shrinking
+   correspondence distance, starts ranked by the score above; the best distinct ones refined
+   on the lifted points, trimmed to the overlap the coarse fit measured, and chosen by
+   inlier fraction times confirmed share (an upside-down tray fits the segment as well as
+   the upright one; the image sees through its floor). Equally good refined poses are
+   compared on one symmetry branch when a ``symmetry`` is given (the answer is reported on
+   the branch nearest the base axes); their disagreement is a diagnostic. The covariance is
+   :func:`jaxreg.icp_covariance` of the final registration with the depth noise
+   (:class:`~jaxreg.uncertainty.DepthNoise`) on the segment, moved to the right perturbation
+   of ``base_T_object``. FPFH + RANSAC starts are not used yet.
 
 A stage fails on its own evidence, and the estimate then makes no pose claim (``pose`` is
 ``None``): no plane or nothing on it, or no cluster of the model's size (segment); too few
