@@ -20,7 +20,8 @@ cache, so a second run starts warm. It lives in ``$JAXREG_CACHE_DIR`` if set, el
 off. Deleting the folder is always safe.
 
 Subcommands are added by functions taking the subparsers object (``_add_demo``,
-``_add_pose``); each sets ``run`` to a function of the parsed arguments returning the exit
+``_add_pose``, and ``jaxreg basin``'s ``add_basin_parser`` from :mod:`jaxreg._basin_cli`); each
+sets ``run`` to a function of the parsed arguments returning the exit
 status.
 """
 
@@ -35,6 +36,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from jaxreg._basin_cli import add_basin_parser, run_basin
 
 GRIPPER_OPENING = 0.085  # metres: a Robotiq 2F-85-class parallel-jaw gripper
 MODEL_SAMPLES = 20_000  # points sampled on a mesh model
@@ -374,6 +377,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]
     sub = parser.add_subparsers(dest="command", required=True)
     _add_demo(sub)
     _add_pose(sub)
+    add_basin_parser(sub).set_defaults(run=run_basin)
     return parser, sub
 
 
