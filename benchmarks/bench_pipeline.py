@@ -32,7 +32,7 @@ import numpy as np
 import trimesh
 from _timing import print_table
 
-from jaxreg.metrics import Symmetry, add_s
+from jaxreg.metrics import add_s
 from jaxreg.pipeline import STAGES, estimate_pose
 from jaxreg.synth import OBJECTS, StereoSensor, tabletop_scene
 
@@ -43,7 +43,7 @@ def _model(scene, seed: int) -> np.ndarray:
 
 
 def run_jaxreg(scene, model, noise):
-    symmetry = Symmetry(scene.symmetry.rotations, scene.symmetry.axis)
+    symmetry = scene.symmetry
     estimate_pose(scene.frame, model, symmetry=symmetry, depth_noise=noise)  # untimed
     start = time.perf_counter()
     est = estimate_pose(scene.frame, model, symmetry=symmetry, depth_noise=noise)

@@ -283,7 +283,7 @@ def _finish(args, report: dict, title: str, frame, estimate, model_points) -> in
 def run_demo(args) -> int:
     import trimesh
 
-    from jaxreg.metrics import Symmetry, add_s, pose_error
+    from jaxreg.metrics import add_s, pose_error
     from jaxreg.pipeline import estimate_pose
     from jaxreg.synth import OBJECTS, StereoSensor, tabletop_scene
 
@@ -301,7 +301,7 @@ def run_demo(args) -> int:
     scene = tabletop_scene(args.seed, object=args.object)
     samples, _ = trimesh.sample.sample_surface(scene.model, MODEL_SAMPLES, seed=0)
     model = samples.astype(np.float32)
-    symmetry = Symmetry(scene.symmetry.rotations, scene.symmetry.axis)
+    symmetry = scene.symmetry
     noise = StereoSensor.d435().depth_noise(scene.frame.intrinsics)
     estimate = estimate_pose(
         scene.frame, model, symmetry=symmetry, depth_noise=noise, progress=progress

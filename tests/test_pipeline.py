@@ -6,7 +6,7 @@ import pytest
 import trimesh
 
 from jaxreg.camera import RGBDFrame
-from jaxreg.metrics import Symmetry, add_s
+from jaxreg.metrics import add_s
 from jaxreg.pipeline import estimate_pose
 
 
@@ -16,7 +16,7 @@ def scene():
 
     scene = tabletop_scene(4, object="box", distractors=0)
     samples, _ = trimesh.sample.sample_surface(scene.model, 20_000, seed=0)
-    symmetry = Symmetry(scene.symmetry.rotations, scene.symmetry.axis)
+    symmetry = scene.symmetry
     return scene, samples.astype(np.float32), symmetry
 
 
@@ -142,7 +142,7 @@ def test_fifty_seeds_of_mixed_objects_are_found_within_5_mm_add_s():
     for seed in range(50):
         scene = tabletop_scene(seed, object=OBJECTS[seed % len(OBJECTS)])
         samples, _ = trimesh.sample.sample_surface(scene.model, 20_000, seed=seed)
-        symmetry = Symmetry(scene.symmetry.rotations, scene.symmetry.axis)
+        symmetry = scene.symmetry
         est = estimate_pose(scene.frame, samples.astype(np.float32), symmetry=symmetry)
         ok = est.pose is not None
         errors.append(float(add_s(scene.model_points, est.pose, scene.truth)) if ok else np.inf)
