@@ -39,6 +39,9 @@ def test_demo_reports_stages_error_vs_truth_error_bars_grasp_and_pictures(capsys
     grasp = report["grasp"]
     assert grasp["object_width_mm"] == pytest.approx(50, abs=3)  # the box's narrow side
     assert 0 <= report["predicted_grasp_success"] <= 1
+    # The measured error enters as a bias along the jaws, which can only lower the chance.
+    assert 0 <= grasp["measured_lateral_error_mm"] <= report["translation_error_mm"] + 1e-6
+    assert grasp["probability_with_measured_error"] <= grasp["probability"] + 1e-9
     assert json.loads((tmp_path / "report.json").read_text())["pose"] == report["pose"]
     for name in ("depth.png", "segmentation.png", "model_overlay.png"):
         assert (tmp_path / name).stat().st_size > 1000
