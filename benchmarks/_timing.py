@@ -1,10 +1,16 @@
-"""Timing helpers shared by the benchmark scripts: medians of repeated runs, a table printer."""
+"""Helpers shared by the benchmark scripts: medians of repeated runs, a table printer, and
+where the real scans are."""
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
 from collections.abc import Callable
+from pathlib import Path
+
+# PCL's scans: $JAXREG_DATA, else ../shared/data beside the repository (as the tests find them).
+DATA = Path(os.environ.get("JAXREG_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
 def median_seconds(fn: Callable[[], object], repeats: int = 5, warmup: int = 1) -> float:

@@ -23,7 +23,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from _timing import print_table
+from _timing import DATA, print_table
 
 JAXREG_RUN = r"""
 import json, sys, time
@@ -80,10 +80,7 @@ def run(script: str, pcd: Path, env: dict) -> dict:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    default_data = os.environ.get(
-        "JAXREG_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"
-    )
-    parser.add_argument("--data", type=Path, default=Path(default_data))
+    parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--runs", type=int, default=3)
     args = parser.parse_args()
     pcd = args.data / "pcl" / "milk.pcd"

@@ -18,12 +18,11 @@ import argparse
 import os
 import platform
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _timing import median_seconds, print_table
+from _timing import DATA, median_seconds, print_table
 from jaxlie import SE3, SO3
 
 from jaxreg.icp import icp, icp_covariance, init_spread
@@ -31,8 +30,6 @@ from jaxreg.io import load_points
 from jaxreg.neighbors import build_grid, voxel_downsample
 from jaxreg.normals import estimate_normals
 from jaxreg.uncertainty import DepthNoise, pose_statistics
-
-DATA = Path(os.environ.get("JAXREG_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
 def main():

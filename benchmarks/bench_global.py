@@ -24,7 +24,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _timing import interleaved_medians, print_table
+from _timing import DATA, interleaved_medians, print_table
 
 from jaxreg.features import fpfh
 from jaxreg.io import load_points
@@ -37,10 +37,7 @@ HANDED = (1.0, -2.0, 0.5), (0.3, -0.2, 0.5)  # roll-pitch-yaw (rad), offset (m) 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    default_data = os.environ.get(
-        "JAXREG_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"
-    )
-    parser.add_argument("--data", type=Path, default=Path(default_data))
+    parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--voxel", type=float, default=0.005)
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()

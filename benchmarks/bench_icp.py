@@ -24,7 +24,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _timing import interleaved_medians, print_table
+from _timing import DATA, interleaved_medians, print_table
 
 import jaxreg as jr
 from jaxreg.neighbors import build_grid
@@ -45,10 +45,7 @@ def load_clouds(data: Path):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    default_data = os.environ.get(
-        "JAXREG_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"
-    )
-    parser.add_argument("--data", type=Path, default=Path(default_data))
+    parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--starts", type=int, default=64)
     parser.add_argument("--iterations", type=int, default=40)
     parser.add_argument("--repeats", type=int, default=7)
