@@ -15,9 +15,10 @@ With ``--json`` stdout is one JSON object (the fields of the design's command li
 drawn at the estimated pose) to DIR. Errors are one line on stderr and exit status 1.
 
 Compilation cache: the commands (never ``import jaxreg``) enable JAX's persistent compilation
-cache, so a second run starts warm. It lives in ``$JAXREG_CACHE_DIR`` if set, else
-``$XDG_CACHE_HOME/jaxreg/jax`` (``~/.cache/jaxreg/jax``); set ``JAXREG_CACHE_DIR=""`` to turn it
-off. Deleting the folder is always safe.
+cache, and keep the pipeline's traced programs beside it (:mod:`jaxreg._program_cache`), so a
+second run neither traces, lowers nor compiles them again. It lives in ``$JAXREG_CACHE_DIR`` if
+set, else ``$XDG_CACHE_HOME/jaxreg/jax`` (``~/.cache/jaxreg/jax``), programs in its ``programs``
+folder; set ``JAXREG_CACHE_DIR=""`` to turn both off. Deleting the folder is always safe.
 
 Subcommands are added by functions taking the subparsers object (``_add_demo``,
 ``_add_pose``, and ``jaxreg basin``'s ``add_basin_parser`` from :mod:`jaxreg._basin_cli`); each
@@ -44,9 +45,11 @@ MODEL_SAMPLES = 20_000  # points sampled on a mesh model
 
 
 def enable_compilation_cache() -> str | None:
-    """Turns on JAX's persistent compilation cache for this process (see the module
-    docstring for where); returns the folder, or None when disabled."""
+    """Turns on JAX's persistent compilation cache and jaxreg's program store for this process
+    (see the module docstring for where); returns the folder, or None when disabled."""
     import jax
+
+    from jaxreg import _program_cache
 
     folder = os.environ.get("JAXREG_CACHE_DIR")
     if folder is None:
@@ -58,6 +61,7 @@ def enable_compilation_cache() -> str | None:
     jax.config.update("jax_compilation_cache_dir", folder)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    _program_cache.set_folder(Path(folder) / "programs")
     return folder
 
 

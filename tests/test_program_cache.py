@@ -1,0 +1,123 @@
+"""Programs stored on disk between processes (jaxreg._program_cache)."""
+
+import json
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxreg as jr
+from jaxreg import _program_cache
+
+pytest.importorskip("flatbuffers", reason="jax.export serialization needs flatbuffers")
+
+# A module-level function of arrays plus one static option, as the pipeline's stages are.
+# It counts its traces, so a test can tell a stored program from a freshly traced one.
+MODULE = textwrap.dedent(
+    """
+    import jax.numpy as jnp
+    import jaxreg as jr
+
+    TRACES = []
+
+    def fit(source, target, scale):
+        TRACES.append(1)
+        return jr.align(source * scale, target)
+    """
+)
+
+FRESH_PROCESS = textwrap.dedent(
+    """
+    import json
+    import sys
+    import numpy as np
+    from jaxreg import _program_cache
+    import fitmod
+
+    _program_cache.set_folder(sys.argv[1])
+    source = np.load(sys.argv[2])
+    result = _program_cache.persistent_jit(fitmod.fit)(source, source + 0.5, 2.0)
+    print(json.dumps({"traces": len(fitmod.TRACES), "message": str(result.status_message()),
+                      "pose": np.asarray(result.pose.wxyz_xyz).tolist()}))
+    """
+)
+
+
+@pytest.fixture
+def fitmod(tmp_path, monkeypatch):
+    (tmp_path / "fitmod.py").write_text(MODULE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import fitmod
+
+    fitmod.TRACES.clear()
+    yield fitmod
+    sys.modules.pop("fitmod", None)
+
+
+@pytest.fixture
+def store(tmp_path):
+    folder = tmp_path / "programs"
+    _program_cache.set_folder(folder)
+    yield folder
+    _program_cache.set_folder(None)
+
+
+def _source(n=20, seed=0):
+    return np.random.default_rng(seed).normal(size=(n, 3)).astype(np.float32)
+
+
+def test_off_by_default_and_the_same_as_filter_jit(fitmod):
+    assert _program_cache._FOLDER is None
+    fit = _program_cache.persistent_jit(fitmod.fit)
+    source = _source()
+    direct = jr.align(source * 2.0, source + 0.5)
+    stored = fit(source, source + 0.5, 2.0)
+    np.testing.assert_array_equal(stored.pose.wxyz_xyz, direct.pose.wxyz_xyz)
+
+
+def test_a_second_process_runs_the_stored_program_without_tracing(fitmod, store, tmp_path):
+    fit = _program_cache.persistent_jit(fitmod.fit)
+    source = _source()
+    first = fit(source, source + 0.5, 2.0)
+    assert len(fitmod.TRACES) == 1 and len(list(store.glob("*.jaxprog"))) == 1
+    fit(source, source + 0.5, 2.0)  # same signature: no new trace, no new file
+    assert len(fitmod.TRACES) == 1 and len(list(store.glob("*.jaxprog"))) == 1
+
+    np.save(tmp_path / "source.npy", source)
+    env = {"PYTHONPATH": f"{tmp_path}:{':'.join(sys.path)}", "JAX_PLATFORMS": "cpu"}
+    out = subprocess.run(
+        [sys.executable, "-c", FRESH_PROCESS, str(store), str(tmp_path / "source.npy")],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    fresh = json.loads(out.stdout.strip().splitlines()[-1])
+    assert fresh["traces"] == 0  # the function body never ran: the program came from the file
+    np.testing.assert_allclose(fresh["pose"], np.asarray(first.pose.wxyz_xyz), atol=1e-6)
+    assert fresh["message"] == str(first.status_message())  # the status survives the trip
+
+
+def test_new_shapes_or_static_options_are_new_programs(fitmod, store):
+    fit = _program_cache.persistent_jit(fitmod.fit)
+    fit(_source(20), _source(20) + 0.5, 2.0)
+    fit(_source(30), _source(30) + 0.5, 2.0)
+    fit(_source(20), _source(20) + 0.5, 3.0)
+    assert len(fitmod.TRACES) == 3 and len(list(store.glob("*.jaxprog"))) == 3
+    scaled = fit(_source(20), _source(20) + 0.5, 3.0)
+    direct = jr.align(_source(20) * 3.0, _source(20) + 0.5)
+    np.testing.assert_allclose(scaled.pose.wxyz_xyz, direct.pose.wxyz_xyz, atol=1e-6)
+
+
+def test_traced_calls_fall_back_and_store_nothing(fitmod, store):
+    fit = _program_cache.persistent_jit(fitmod.fit)
+    sources = jnp.stack([_source(seed=s) for s in range(3)])
+    batched = jax.vmap(lambda s: fit(s, s + 0.5, 2.0).pose.wxyz_xyz)(sources)
+    grad = jax.grad(lambda s: fit(s, s + 0.5, 2.0).pose.wxyz_xyz[4])(sources[0])
+    assert batched.shape == (3, 7) and np.all(np.isfinite(grad))
+    assert not list(store.glob("*.jaxprog"))
