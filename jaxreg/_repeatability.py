@@ -1,14 +1,15 @@
-"""Repeatability studies on synthetic scenes, and the hand-eye correction that makes camera
-viewpoints agree, found by differentiating through lifting and registration.
+"""The three tiers of a pose repeatability study on synthetic scenes, with a planted hand-eye
+error.
 
-:func:`repeatability` runs the three tiers of a pose repeatability study on scenes of
-:func:`jaxreg.synth.tabletop_scene` (small images, no clutter by default):
+:func:`repeatability` runs them on scenes of :func:`jaxreg.synth.tabletop_scene` (small images,
+no clutter by default):
 
 1. **frozen**: one scene re-measured ``frozen`` times (new sensor-noise draws): the spread is
-   the sensor's noise through the registration;
+   the sensor's noise through the estimator;
 2. **re-placement**: the object re-placed ``replacements`` times around its nominal pose
    (uniform jitter of ``placement`` metres in x, y and ``placement_deg`` of yaw), same camera:
-   the pose-dependent error joins in;
+   the pose-dependent error (what the segment holds, which faces are seen, where the voxels
+   fall) joins in;
 3. **viewpoint**: the object left in place and seen from ``len(viewpoints)`` camera poses
    (an arm moving an eye-in-hand camera), each re-measured ``draws_per_view`` times.
 
@@ -17,38 +18,27 @@ perturbation, ``reported = true @ exp(hand_eye_bias)``: constant in the camera f
 eye-in-hand calibration error is. It moves each estimate by a few millimetres, the same way
 every time from one viewpoint, so tiers 1 and 2 cannot see it; tier 3 does (per-viewpoint
 clusters, each tight, mutually offset: the groups test of
-:func:`jaxreg.uncertainty.pose_statistics`). :func:`estimate_hand_eye_correction` then finds
-the correction ``exp(delta)`` to the reported ``base_T_camera`` that makes the viewpoints
-agree, by Gauss-Newton on the spread of the object across frames, with the Jacobian taken by
-``jax.jacfwd`` through lifting (:meth:`jaxreg.RGBDFrame.points`) and ICP (implicit
-differentiation at the converged fixed point).
+:func:`jaxreg.uncertainty.pose_statistics`). :meth:`Repeatability.correct_hand_eye` then
+finds the correction that makes the viewpoints agree
+(:func:`jaxreg.studies.estimate_hand_eye_correction`).
 
-Registration (``jaxreg.estimate_pose`` is not used: the study isolates the sensor, placement
-and calibration errors from segmentation and global initialisation, the pipeline's own failure
-modes): the scene's exact target mask less its one-pixel silhouette ring (where the sensor
-mixes depths; dropping it halves the view-dependent registration bias); ``num_points`` of its
-valid pixels drawn at random, a fixed set per frame (subsampling in pixel space keeps the lift
-differentiable, where :func:`jaxreg.voxel_downsample` is a host step); lifted through the
-intrinsics and the reported ``base_T_camera``; registered scene -> model (every scene point
-has its match on the model, whatever part is visible) by point-to-plane ICP against the
-model's surface samples and exact face normals, from the truth perturbed by ``init_sigma``.
+Two estimators (``registration``):
 
-Observability: a hand-eye correction is fixed only up to what the camera motions constrain.
-With views ``B_k`` the estimate from view ``k`` moves as ``B_k X B_k^-1`` for a correction
-error ``X``, so an ``X`` that commutes with every relative motion ``B_j B_k^-1`` changes no
-disagreement: camera poses on one orbit (rotations about a single axis) leave the screw about
-that axis (rotation about it and translation along it: 2 directions) unobservable; relative
-rotations about two non-parallel axes fix all 6. Fixed is not well fixed: a camera moved by
-azimuth about the object turns about the vertical through it, so a hand-eye turn about that
-line shows only through changes of elevation and distance, and it is the weakest direction
-(its standard error is the largest in ``covariance``). The result reports the singular values
-of the disagreement's Jacobian, the projector onto the observable directions and the
-correction's standard-error covariance; Gauss-Newton steps are taken in the observable
-subspace only (the rest stays at zero).
+* ``"pipeline"`` (default): :func:`jaxreg.estimate_pose` on every frame, segmentation and
+  global initialisation included: what a user of the library gets. A frame where it fails is
+  counted (``found``) and left out of the statistics. The hand-eye correction registers the
+  viewpoint frames' pipeline segments, started from the pipeline's poses.
+* ``"mask"``: the scene's exact target mask, and point-to-plane ICP from the truth perturbed by
+  ``init_sigma`` (the correction's own registration, see :mod:`jaxreg.studies`): isolates the
+  sensor, placement and calibration errors from segmentation and initialisation, at a
+  fraction of the cost.
+
+Either way the masks lose their one-pixel silhouette ring (where the sensor mixes depths;
+dropping it halves the view-dependent registration bias) before the correction uses them.
 
 Conventions: poses ``a_T_b``; tangents jaxlie's ``(vx, vy, vz, wx, wy, wz)`` (metres,
-radians); the hand-eye bias and correction are right perturbations of ``base_T_camera``
-(camera frame). Distances in metres, angles in degrees where the name says so.
+radians); the hand-eye bias is a right perturbation of ``base_T_camera`` (camera frame).
+Distances in metres, angles in degrees where the name says so.
 """
 
 from __future__ import annotations
@@ -63,12 +53,18 @@ import trimesh
 from jaxlie import SE3
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg._result import AbstractResult
-from jaxreg.camera import Intrinsics, RGBDFrame
-from jaxreg.icp import ICPStatus, icp
+from jaxreg._hand_eye import (
+    HandEyeCorrection,
+    _corners,
+    _linearise,
+    _views,
+    estimate_hand_eye_correction,
+    stack_frames,
+)
+from jaxreg.camera import RGBDFrame
+from jaxreg.icp import ICPStatus
 from jaxreg.lie import se3_exp, se3_from_matrix
-from jaxreg.metrics import Symmetry
-from jaxreg.neighbors import NeighborGrid, build_grid
+from jaxreg.metrics import Symmetry, canonicalise
 from jaxreg.uncertainty import (
     ErrorBudget,
     PoseStatistics,
@@ -78,371 +74,20 @@ from jaxreg.uncertainty import (
     pose_statistics,
 )
 
-__all__ = [
-    "HandEyeCorrection",
-    "HandEyeStatus",
-    "Repeatability",
-    "estimate_hand_eye_correction",
-    "repeatability",
-    "stack_frames",
-]
+__all__ = ["Repeatability", "repeatability"]
 
 TIERS = ("frozen", "re-placement", "viewpoint")
-
-
-# --------------------------------------------------------------------------------------------
-# Lifting and registration of a batch of frames, differentiable in a hand-eye correction.
-
-
-def stack_frames(frames: Sequence[RGBDFrame]) -> RGBDFrame:
-    """One :class:`~jaxreg.camera.RGBDFrame` batch ``(K,)`` of frames of one camera (same
-    intrinsics and image size): ``depth (K, H, W)``, ``base_T_camera`` batch ``(K,)``; colour
-    is dropped."""
-    if len(frames) == 0:
-        raise ValueError("stack_frames needs at least one frame")
-    shapes = {f.depth.shape for f in frames}
-    if len(shapes) != 1:
-        raise ValueError(f"frames must share one image size, got {sorted(shapes)}")
-    first, structure = jax.tree.flatten(frames[0].intrinsics)
-    for f in frames[1:]:
-        leaves, other = jax.tree.flatten(f.intrinsics)
-        same = other == structure and all(map(np.array_equal, first, leaves))
-        if not same:
-            raise ValueError("frames must share one camera's intrinsics")
-    frames = [eqx.tree_at(lambda f: f.rgb, f, None, is_leaf=lambda x: x is None) for f in frames]
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *frames)
-
-
-def _pick_pixels(
-    depth: np.ndarray, masks: np.ndarray, num_points: int, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(K, N)`` flat indices of ``num_points`` random valid masked pixels per frame and their
-    ``(K, N)`` weights (0 pads a frame with fewer valid pixels)."""
-    pixels = np.zeros((len(depth), num_points), np.int32)
-    weights = np.zeros((len(depth), num_points), np.float32)
-    for k, (d, m) in enumerate(zip(depth, masks, strict=True)):
-        valid = np.flatnonzero(m & np.isfinite(d))
-        if len(valid) < 3:
-            raise ValueError(f"frame {k}: fewer than 3 masked pixels with depth")
-        take = rng.choice(valid, min(num_points, len(valid)), replace=False)
-        pixels[k, : len(take)] = take
-        pixels[k, len(take) :] = take[0]
-        weights[k, : len(take)] = 1.0
-    return pixels, weights
-
-
-class _Views(eqx.Module):
-    """The data of a batch of ``K`` frames to register: depth, intrinsics, reported
-    ``base_T_camera``, chosen pixels and weights, the model and its neighbour grid."""
-
-    depth: Float[Array, "K H W"]
-    intrinsics: Intrinsics
-    base_T_camera: SE3
-    pixels: Int[Array, "K N"]
-    weights: Float[Array, "K N"]
-    model: Float[Array, "M 3"]
-    normals: Float[Array, "M 3"]
-    grid: NeighborGrid
-    distance: Float[Array, ""]
-
-
-def _views(frames, masks, model_points, model_normals, num_points, distance, seed) -> _Views:
-    depth = np.asarray(frames.depth)
-    masks = np.asarray(masks, bool)
-    if depth.ndim != 3 or masks.shape != depth.shape:
-        raise ValueError(
-            f"frames must be a batch (K,) (see stack_frames) with masks (K, H, W); got depth "
-            f"{depth.shape}, masks {masks.shape}"
-        )
-    model = jnp.asarray(model_points, jnp.float32)
-    normals = jnp.asarray(model_normals, jnp.float32)
-    if model.ndim != 2 or model.shape[1] != 3 or normals.shape != model.shape:
-        raise ValueError(
-            f"model_points and model_normals must both be (M, 3), got {model.shape}, "
-            f"{normals.shape}"
-        )
-    pixels, weights = _pick_pixels(depth, masks, num_points, np.random.default_rng(seed))
-    return _Views(
-        jnp.asarray(depth),
-        jax.tree.map(lambda x: x[0] if jnp.ndim(x) else x, frames.intrinsics),  # one camera
-        frames.base_T_camera,
-        jnp.asarray(pixels),
-        jnp.asarray(weights),
-        model,
-        normals,
-        build_grid(model, distance),
-        jnp.asarray(distance, jnp.float32),
-    )
-
-
-def _register(correction: Float[Array, " 6"], views: _Views, inits: SE3, iterations: int):
-    """``base_T_object`` batch ``(K,)`` of every frame lifted with ``base_T_camera @
-    exp(correction)``, and the ICP statuses."""
-    fix = se3_exp(correction)
-
-    def one(depth, camera, pixels, weights, init):
-        frame = RGBDFrame(depth, views.intrinsics, base_T_camera=camera @ fix)
-        points = frame.points().reshape(-1, 3)[pixels]
-        result = icp(
-            points, views.model, init.inverse(), method="point_to_plane",
-            target_normals=views.normals, max_correspondence_distance=views.distance,
-            max_iterations=iterations, tolerance=1e-6, source_weights=weights,
-            neighbors=views.grid,
-        )  # fmt: skip
-        return result.pose.inverse(), result.status
-
-    return jax.vmap(one)(views.depth, views.base_T_camera, views.pixels, views.weights, inits)
-
-
-def _points_of(poses: SE3, anchors: Array) -> Array:
-    """``(K, P, 3)``: the ``(P, 3)`` object-frame anchors placed by each of ``K`` poses."""
-    rot = poses.rotation().as_matrix()
-    return jnp.einsum("kij,pj->kpi", rot, anchors) + poses.translation()[:, None]
-
-
-def _corners(model_points) -> Float[Array, "8 3"]:
-    """The 8 corners of the model's bounding box (object frame)."""
-    lo, hi = np.min(model_points, axis=0), np.max(model_points, axis=0)
-    corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), -1)
-    return jnp.asarray(corners.reshape(-1, 3), jnp.float32)
-
-
-def _disagreement(correction, views, inits, anchors, iterations):
-    """Residuals ``(K * P * 3,)``: each frame's placement of the anchors minus the mean over
-    frames, with the aux ``(poses, status)``."""
-    poses, status = _register(correction, views, inits, iterations)
-    placed = _points_of(poses, anchors)
-    residual = (placed - jnp.mean(placed, axis=0)).reshape(-1)
-    return residual, (residual, poses, status)
-
-
-@eqx.filter_jit
-def _linearise(correction, views, inits, anchors, iterations):
-    """Jacobian ``(K * P * 3, 6)``, residuals, poses and statuses at ``correction``."""
-    jac, aux = jax.jacfwd(_disagreement, has_aux=True)(
-        correction, views, inits, anchors, iterations
-    )
-    return jac, *aux
-
-
-# --------------------------------------------------------------------------------------------
-# The hand-eye correction.
-
-
-class HandEyeStatus(eqx.Enumeration):
-    """How :func:`estimate_hand_eye_correction` ended; each member's value is the message."""
-
-    success = "the views agree: the correction converged"
-    partially_observable = (
-        "converged, but the views fix only some directions of the correction (see "
-        "`observable`); the others are left at zero: move the camera about two non-parallel axes"
-    )
-    max_steps = "the Gauss-Newton steps ran out before the correction settled: raise max_steps"
-    registration_failed = (
-        "a frame's registration failed for want of pairs or a finite update (see "
-        "`registration_status`): check its mask and start"
-    )
-
-
-class HandEyeCorrection(AbstractResult):
-    """Result of :func:`estimate_hand_eye_correction` (``K`` frames).
-
-    Attributes:
-        pose: ``SE3`` correction ``C``: the corrected hand-eye is ``base_T_camera @ C``.
-        tangent: ``(6,)`` ``log C`` (right perturbation, camera frame, ``(v, w)``).
-        status: :class:`HandEyeStatus`.
-        converged: the last step fell below ``tolerance`` (metres, radians).
-        iterations: Gauss-Newton steps taken.
-        covariance: ``(6, 6)`` standard-error covariance of ``tangent`` from the residual
-            disagreement left after correction (frame-to-frame noise), restricted to the
-            observable directions (0 across the others).
-        singular_values: ``(6,)`` of the Jacobian of the disagreement residuals at the start,
-            descending, with the rotation columns multiplied by the mean camera-object
-            distance (so both kinds are metres of displacement per metre).
-        observable: ``(6, 6)`` projector onto the directions of the tangent the views fix
-            (singular value above ``rank_tolerance`` times the largest); it acts on tangents
-            ``(v, w)`` and is orthogonal in the scaled coordinates ``(v, distance * w)``.
-        rank: ``()`` number of observable directions.
-        poses_before, poses_after: ``SE3`` batch ``(K,)`` ``base_T_object`` of every frame
-            with the reported and with the corrected hand-eye.
-        disagreement_before, disagreement_after: ``()`` RMS distance (metres) of the model's
-            bounding-box corners, as each frame places them, from their mean over frames.
-        before, after: :func:`jaxreg.uncertainty.pose_statistics` of those poses with the
-            ``groups`` labels (``None`` without labels): the per-viewpoint bias test.
-        registration_status: :class:`jaxreg.ICPStatus` batch ``(K,)`` at the correction.
-    """
-
-    pose: SE3
-    tangent: Float[Array, " 6"]
-    status: HandEyeStatus
-    converged: Bool[Array, ""]
-    iterations: Int[Array, ""]
-    covariance: Float[Array, "6 6"]
-    singular_values: Float[Array, " 6"]
-    observable: Float[Array, "6 6"]
-    rank: Int[Array, ""]
-    poses_before: SE3
-    poses_after: SE3
-    disagreement_before: Float[Array, ""]
-    disagreement_after: Float[Array, ""]
-    before: PoseStatistics | None
-    after: PoseStatistics | None
-    registration_status: ICPStatus
-
-
-def estimate_hand_eye_correction(
-    frames: RGBDFrame | Sequence[RGBDFrame],
-    masks: Bool[ArrayLike, "K H W"],
-    model_points: Float[ArrayLike, "M 3"],
-    model_normals: Float[ArrayLike, "M 3"],
-    inits: SE3,
-    *,
-    groups: Int[ArrayLike, " K"] | None = None,
-    symmetry: Symmetry | None = None,
-    num_points: int = 768,
-    max_correspondence_distance: float = 0.015,
-    max_iterations: int = 40,
-    max_steps: int = 8,
-    tolerance: float = 1e-5,
-    rank_tolerance: float = 1e-3,
-    seed: int = 0,
-) -> HandEyeCorrection:
-    """The correction ``C`` to a hand-eye transform that makes frames from several camera
-    poses agree on where a static object is.
-
-    Each frame's masked pixels are lifted with ``base_T_camera @ exp(delta)`` and registered
-    to the model (see the module docstring); the residuals are the model's bounding-box
-    corners as each frame places them, minus their mean over frames. Gauss-Newton on
-    ``delta``, its Jacobian by ``jax.jacfwd`` through the lift and ICP (implicit
-    differentiation), steps by the pseudo-inverse truncated to the observable directions,
-    each step's registrations warm-started from the last.
-
-    Args:
-        frames: ``K`` frames of one camera (a list, or a batch from :func:`stack_frames`)
-            with the hand-eye as reported: every ``base_T_camera`` shares one calibration
-            error, a right perturbation (eye-in-hand: an error in ``flange_T_camera``).
-        masks: ``(K, H, W)`` the object's pixels in each frame.
-        model_points: ``(M, 3)`` surface samples of the object, its own frame (metres).
-        model_normals: ``(M, 3)`` their unit normals.
-        inits: ``SE3`` batch ``(K,)`` starting ``base_T_object`` per frame (within ICP's
-            basin of the frame's own, biased, pose).
-        groups: optional ``(K,)`` viewpoint labels for the before/after bias test.
-        symmetry: the object's symmetry, for those statistics.
-        num_points: pixels per frame registered (static).
-        max_correspondence_distance, max_iterations: ICP's (point-to-plane).
-        max_steps: Gauss-Newton steps at most.
-        tolerance: a step below this (metres and radians) ends the iteration.
-        rank_tolerance: relative singular value below which a direction is unobservable.
-        seed: the draw of each frame's pixels.
-
-    Returns:
-        :class:`HandEyeCorrection`.
-
-    Raises:
-        ValueError: mismatched shapes, or a frame with fewer than 3 usable pixels.
-    """
-    if isinstance(frames, (list, tuple)):
-        frames = stack_frames(frames)
-    views = _views(
-        frames, masks, model_points, model_normals, num_points, max_correspondence_distance, seed
-    )
-    if not isinstance(inits, SE3) or inits.get_batch_axes() != views.depth.shape[:1]:
-        raise ValueError(f"inits must be an SE3 batch ({views.depth.shape[0]},)")
-    anchors = _corners(model_points)
-    # Rotations scaled by the camera-object distance: every column in metres of displacement.
-    reach = float(np.mean(np.linalg.norm(
-        np.asarray((frames.base_T_camera.inverse() @ inits).translation()), axis=-1
-    )))  # fmt: skip
-    scale = np.r_[np.ones(3), np.full(3, 1.0 / reach)]
-
-    def linearise(delta, starts):
-        jac, residual, poses, status = _linearise(
-            jnp.asarray(delta, jnp.float32), views, starts, anchors, max_iterations
-        )
-        return np.asarray(jac, float) * scale, np.asarray(residual, float), poses, status
-
-    delta = np.zeros(6)
-    jac, residual, poses, status = linearise(delta, inits)
-    poses_before, residual_before = poses, residual
-    _, sigma, vt = np.linalg.svd(jac, full_matrices=False)
-    basis = vt[sigma > rank_tolerance * sigma[0]]  # (r, 6) observable, scaled coordinates
-    converged, steps = False, 0
-    while steps < max_steps and not converged:
-        coef, *_ = np.linalg.lstsq(jac @ basis.T, -residual, rcond=None)
-        step = basis.T @ coef
-        for _ in range(4):  # halve a step that makes the views disagree more
-            trial = linearise(delta + step * scale, poses)
-            if np.sum(trial[1] ** 2) <= np.sum(residual**2):
-                break
-            step = step / 2
-        else:  # no step along the model reduces the disagreement: the noise floor
-            converged = True
-            break
-        delta = delta + step * scale
-        jac, residual, poses, status = trial
-        steps += 1
-        converged = max(np.abs(step[:3]).max(), np.abs(step[3:]).max() / reach) < tolerance
-    rank = len(basis)
-    # Standard error of the correction from the residual left over (frame-to-frame noise).
-    reduced = jac @ basis.T
-    # Each frame's residuals come from its 6-DOF pose error; the mean over frames takes 6.
-    dof = 6 * (len(residual) // anchors.size - 1) - rank
-    noise = np.sum(residual**2) / max(dof, 1)
-    covariance = basis.T @ np.linalg.pinv(reduced.T @ reduced) @ basis * noise
-    covariance = covariance * scale[:, None] * scale[None, :]
-
-    # A registration stopped by the iteration bound still moved to within its last step.
-    usable = [ICPStatus.success._value, ICPStatus.max_iterations._value]
-    failed = ~np.isin(np.asarray(status._value), usable)
-    if failed.any():
-        code = HandEyeStatus.registration_failed
-    elif not converged:
-        code = HandEyeStatus.max_steps
-    elif rank < 6:
-        code = HandEyeStatus.partially_observable
-    else:
-        code = HandEyeStatus.success
-
-    def stats(poses):
-        if groups is None:
-            return None
-        labels = np.asarray(groups)
-        return pose_statistics(
-            poses, groups=labels, symmetry=symmetry, num_groups=int(labels.max()) + 1
-        )
-
-    rms = lambda r: jnp.asarray(np.sqrt(np.mean(np.sum(r.reshape(-1, 3) ** 2, -1))))  # noqa: E731
-    return HandEyeCorrection(
-        pose=se3_exp(jnp.asarray(delta, jnp.float32)),
-        tangent=jnp.asarray(delta, jnp.float32),
-        status=code,
-        converged=jnp.asarray(converged),
-        iterations=jnp.asarray(steps, jnp.int32),
-        covariance=jnp.asarray(covariance, jnp.float32),
-        singular_values=jnp.asarray(sigma, jnp.float32),
-        observable=jnp.asarray(np.diag(scale) @ basis.T @ basis @ np.diag(1 / scale), jnp.float32),
-        rank=jnp.asarray(rank, jnp.int32),
-        poses_before=poses_before,
-        poses_after=poses,
-        disagreement_before=rms(residual_before),
-        disagreement_after=rms(residual),
-        before=stats(poses_before),
-        after=stats(poses),
-        registration_status=status,
-    )
-
-
-# --------------------------------------------------------------------------------------------
-# The three-tier study.
+REGISTRATIONS = ("pipeline", "mask")
 
 
 class Repeatability(eqx.Module):
     """Result of :func:`repeatability`: ``K`` frames over the three tiers (``TIERS``: frozen,
-    re-placement, viewpoint), ``K3`` of them in the viewpoint tier.
+    re-placement, viewpoint), ``K3`` of them in the viewpoint tier with a pose (``found``).
 
-    Statistics take each estimate referred to the nominal pose, ``est @ truth^-1 @ nominal``
-    (its base-frame error carried to the nominal pose), so the re-placement tier's spread is
-    the registration's error, not the placement jitter itself.
+    Statistics take each estimate (on the symmetry branch nearest its truth) referred to the
+    nominal pose, ``est @ truth^-1 @ nominal`` (its base-frame error carried to the nominal
+    pose), so the re-placement tier's spread is the estimator's error, not the placement
+    jitter itself. Frames without a pose are left out.
 
     Attributes:
         frozen, replacement: :class:`jaxreg.uncertainty.PoseStatistics` of tiers 1 and 2.
@@ -453,12 +98,18 @@ class Repeatability(eqx.Module):
             synthetic truth shows.
         rotation_bias_deg: ``(3, 3)`` per tier, ``log(R_mean R_nominal^-1)`` (degrees).
         nominal: ``SE3`` the object's nominal ``base_T_object``.
-        poses: ``SE3`` batch ``(K,)`` estimated ``base_T_object`` (reported hand-eye).
+        poses: ``SE3`` batch ``(K,)`` estimated ``base_T_object`` (reported hand-eye; the
+            truth where ``found`` is False), on the symmetry branch nearest the truth.
         truth: ``SE3`` batch ``(K,)`` true ``base_T_object`` of each frame.
+        found: ``(K,)`` the estimator gave a pose (always, with ``"mask"``).
+        reasons: ``K`` strings: the pipeline's one-line reason per frame (empty with
+            ``"mask"``).
         tier: ``(K,)`` 0, 1, 2 for frozen, re-placement, viewpoint.
         view: ``(K,)`` viewpoint label (0 in tiers 1 and 2).
-        status: :class:`jaxreg.ICPStatus` batch ``(K,)``.
-        lateral_error: ``(K,)`` position error along ``closing_axis`` (metres).
+        status: :class:`jaxreg.ICPStatus` batch ``(K,)`` with ``"mask"``; ``None`` with
+            ``"pipeline"`` (see ``found`` and ``reasons``).
+        lateral_error: ``(K,)`` position error along ``closing_axis`` (metres; NaN without a
+            pose).
         lateral_sigma, lateral_bias: ``(3,)`` per tier, standard deviation and mean of it.
         margin: ``()`` the gripper's clearance per side (metres).
         grasp_success: ``(3,)`` per tier :func:`grasp_success_probability` of its lateral
@@ -469,11 +120,13 @@ class Repeatability(eqx.Module):
         budget_grasp_success: ``()`` grasp success of the budget's total as a zero-mean
             sigma: what the RSS budget predicts without knowing the bias.
         hand_eye_bias: ``(6,)`` the planted error (right perturbation of ``base_T_camera``).
-        frames: :class:`~jaxreg.camera.RGBDFrame` batch ``(K3,)`` of the viewpoint tier (as
-            reported), with ``masks (K3, H, W)``, for :meth:`correct_hand_eye`.
-        true_base_T_camera: ``SE3`` batch ``(K3,)`` the viewpoint tier's true hand-eye.
+        frames: :class:`~jaxreg.camera.RGBDFrame` batch ``(K3,)`` of the viewpoint tier's
+            frames with a pose (as reported), with ``masks (K3, H, W)`` (eroded) and
+            ``view_poses`` (their estimates), for :meth:`correct_hand_eye`.
+        true_base_T_camera: ``SE3`` batch ``(K3,)`` those frames' true hand-eye.
         model_points, model_normals: ``(M, 3)`` the model's surface samples and normals.
         symmetry: the object's :class:`jaxreg.metrics.Symmetry`.
+        registration: the estimator, one of ``REGISTRATIONS``.
     """
 
     frozen: PoseStatistics
@@ -484,9 +137,11 @@ class Repeatability(eqx.Module):
     nominal: SE3
     poses: SE3
     truth: SE3
+    found: Bool[Array, " K"]
+    reasons: tuple[str, ...] = eqx.field(static=True)
     tier: Int[Array, " K"]
     view: Int[Array, " K"]
-    status: ICPStatus
+    status: ICPStatus | None
     lateral_error: Float[Array, " K"]
     lateral_sigma: Float[Array, " 3"]
     lateral_bias: Float[Array, " 3"]
@@ -497,19 +152,20 @@ class Repeatability(eqx.Module):
     hand_eye_bias: Float[Array, " 6"]
     frames: RGBDFrame
     masks: Bool[Array, "K3 H W"]
+    view_poses: SE3
+    view_labels: Int[Array, " K3"]
     true_base_T_camera: SE3
     model_points: Float[Array, "M 3"]
     model_normals: Float[Array, "M 3"]
     symmetry: Symmetry
+    registration: str = eqx.field(static=True)
 
     def correct_hand_eye(self, **options) -> HandEyeCorrection:
         """:func:`estimate_hand_eye_correction` on the viewpoint tier's frames, started from
         their estimates, with the viewpoints as groups; ``options`` are its keywords."""
-        third = np.asarray(self.tier) == 2
         return estimate_hand_eye_correction(
-            self.frames, self.masks, self.model_points, self.model_normals,
-            SE3(self.poses.wxyz_xyz[third]), groups=np.asarray(self.view)[third],
-            symmetry=self.symmetry, **options,
+            self.frames, self.masks, self.model_points, self.model_normals, self.view_poses,
+            groups=np.asarray(self.view_labels), symmetry=self.symmetry, **options,
         )  # fmt: skip
 
 
@@ -544,10 +200,53 @@ def _object_view(base_T_object: np.ndarray, distance: float, azimuth_deg, elevat
     return look_at(centre + distance * direction, centre)
 
 
+def _register_masks(stacked, masks, model_points, model_normals, truth, tier, options, rng):
+    """``"mask"`` registration of every frame: poses ``(K,)`` and ICP statuses, in chunks of
+    the viewpoint tier's size by the function the hand-eye correction differentiates (one
+    compilation serves the study and the correction)."""
+    num_points, distance, iterations, init_sigma, seed = options
+    views = _views(stacked, masks, model_points, model_normals, num_points, distance, seed)
+    k = len(tier)
+    scale = np.r_[[init_sigma[0]] * 3, [np.radians(init_sigma[1])] * 3]
+    inits = truth @ se3_exp(jnp.asarray(rng.normal(size=(k, 6)) * scale, jnp.float32))
+    chunk, anchors = int(np.sum(tier == 2)), _corners(model_points)
+    order = np.arange(-(-k // chunk) * chunk) % k  # pad by wrapping around
+    poses, status = [], []
+    for part in order.reshape(-1, chunk):
+        sub = eqx.tree_at(
+            lambda v: (v.depth, v.base_T_camera, v.pixels, v.weights), views,
+            (views.depth[part], SE3(views.base_T_camera.wxyz_xyz[part]), views.pixels[part],
+             views.weights[part]),
+        )  # fmt: skip
+        start = SE3(inits.wxyz_xyz[part])
+        _, _, p, st = _linearise(jnp.zeros(6, jnp.float32), sub, start, anchors, iterations)
+        poses.append(p.wxyz_xyz)
+        status.append(st._value)
+    poses = SE3(jnp.concatenate(poses)[:k])
+    status = type(st)(_value=jnp.concatenate(status)[:k], _enumeration=st._enumeration)
+    return poses, status
+
+
+def _register_pipeline(frames, model_points, model_normals, symmetry, truth):
+    """:func:`jaxreg.estimate_pose` on every frame: poses ``(K,)`` (the truth where it
+    failed), found ``(K,)``, eroded segment masks ``(K, H, W)`` and reasons."""
+    from jaxreg.pipeline import estimate_pose
+
+    poses, found, masks, reasons = [], [], [], []
+    for k, frame in enumerate(frames):
+        est = estimate_pose(frame, model_points, model_normals=model_normals, symmetry=symmetry)
+        found.append(est.success)
+        poses.append(est.pose.wxyz_xyz if est.success else truth.wxyz_xyz[k])
+        masks.append(_erode(est.mask))
+        reasons.append(est.reason)
+    return SE3(jnp.stack(poses).astype(jnp.float32)), np.array(found), np.stack(masks), reasons
+
+
 def repeatability(
     seed: int = 0,
     *,
     object: str = "box",
+    registration: str = "pipeline",
     frozen: int = 8,
     replacements: int = 6,
     viewpoints: Sequence[tuple[float, float, float]] = (
@@ -562,6 +261,7 @@ def repeatability(
     image_size: tuple[int, int] = (640, 360),
     distractors: int = 0,
     num_points: int = 768,
+    model_samples: int = 2048,
     init_sigma: tuple[float, float] = (0.005, 2.0),
     max_correspondence_distance: float = 0.015,
     max_iterations: int = 40,
@@ -575,6 +275,8 @@ def repeatability(
         seed: the scene (:func:`jaxreg.synth.tabletop_scene`): object pose, nominal camera,
             and every draw of the study (noise, placements, starts, pixels).
         object: the target, one of :data:`jaxreg.synth.OBJECTS`.
+        registration: ``"pipeline"`` (:func:`jaxreg.estimate_pose`, what a user gets) or
+            ``"mask"`` (exact masks and ICP from near the truth; see the module docstring).
         frozen: tier 1 re-measurements.
         replacements: tier 2 re-placements (one measurement each).
         viewpoints: cameras as ``(azimuth_deg, elevation_deg, distance)``: azimuth about the
@@ -594,10 +296,13 @@ def repeatability(
         placement, placement_deg: tier 2's uniform jitter half-widths (x, y in metres; yaw).
         image_size: ``(width, height)`` of the D435's depth image (pixels).
         distractors: clutter objects (placed off every camera's line of sight).
-        num_points: pixels registered per frame.
-        init_sigma: ``(metres, degrees)`` per-axis sigma of the start's perturbation of the
-            truth.
-        max_correspondence_distance, max_iterations: ICP's (point-to-plane).
+        num_points: pixels registered per frame by the ``"mask"`` registration and the
+            hand-eye correction.
+        model_samples: surface samples of the model (its normals are the faces').
+        init_sigma: ``(metres, degrees)`` per-axis sigma of the ``"mask"`` registration's
+            start, a perturbation of the truth.
+        max_correspondence_distance, max_iterations: the ``"mask"`` registration's ICP
+            (point-to-plane).
         gripper_opening, object_width: the grasp (metres): margin ``(opening - width) / 2``.
         closing_axis: ``(3,)`` base-frame direction along which the jaws close.
 
@@ -605,11 +310,14 @@ def repeatability(
         :class:`Repeatability`.
 
     Raises:
-        ValueError: fewer than 2 frames in a tier or fewer than 2 viewpoints, a bad object,
-            or a frame whose mask has no depth.
+        ValueError: fewer than 2 frames in a tier or fewer than 2 viewpoints, a bad object or
+            registration, a frame whose mask has no depth, or (pipeline) fewer than 2 poses
+            found in a tier.
     """
     from jaxreg.synth import StereoSensor, tabletop_scene
 
+    if registration not in REGISTRATIONS:
+        raise ValueError(f"registration must be one of {REGISTRATIONS}, got {registration!r}")
     if min(frozen, replacements, draws_per_view) < 2 or len(viewpoints) < 2:
         raise ValueError(
             "each tier needs at least 2 frames (draws_per_view >= 2) and the viewpoint tier at "
@@ -659,32 +367,28 @@ def repeatability(
     truth = SE3(jnp.stack(truths))
     stacked = stack_frames(frames)
 
-    samples, faces = trimesh.sample.sample_surface(base.model, 2048, seed=seed)
+    samples, faces = trimesh.sample.sample_surface(base.model, model_samples, seed=seed)
     model_points = samples.astype(np.float32)
     model_normals = base.model.face_normals[faces].astype(np.float32)
-    views = _views(
-        stacked, np.stack(masks), model_points, model_normals, num_points,
-        max_correspondence_distance, seed,
-    )  # fmt: skip
-    scale = np.r_[[init_sigma[0]] * 3, [np.radians(init_sigma[1])] * 3]
-    inits = truth @ se3_exp(jnp.asarray(rng.normal(size=(len(plan), 6)) * scale, jnp.float32))
-    # Registered in chunks of the viewpoint tier's size by the function the hand-eye
-    # correction differentiates: one compilation serves the study and the correction.
-    chunk, anchors = int(np.sum(tier == 2)), _corners(model_points)
-    order = np.arange(-(-len(plan) // chunk) * chunk) % len(plan)  # pad by wrapping around
-    poses, status = [], []
-    for part in order.reshape(-1, chunk):
-        sub = eqx.tree_at(
-            lambda v: (v.depth, v.base_T_camera, v.pixels, v.weights), views,
-            (views.depth[part], SE3(views.base_T_camera.wxyz_xyz[part]), views.pixels[part],
-             views.weights[part]),
-        )  # fmt: skip
-        start = SE3(inits.wxyz_xyz[part])
-        _, _, p, st = _linearise(jnp.zeros(6, jnp.float32), sub, start, anchors, max_iterations)
-        poses.append(p.wxyz_xyz)
-        status.append(st._value)
-    poses = SE3(jnp.concatenate(poses)[: len(plan)])
-    status = type(st)(_value=jnp.concatenate(status)[: len(plan)], _enumeration=st._enumeration)
+    masks = np.stack(masks)
+    if registration == "mask":
+        options = (num_points, max_correspondence_distance, max_iterations, init_sigma, seed)
+        poses, status = _register_masks(
+            stacked, masks, model_points, model_normals, truth, tier, options, rng
+        )
+        found, reasons = np.ones(len(plan), bool), ("",) * len(plan)
+    else:
+        poses, found, masks, reasons = _register_pipeline(
+            frames, model_points, model_normals, base.symmetry, truth
+        )
+        status, reasons = None, tuple(reasons)
+        for t in range(3):
+            if np.sum(found[tier == t]) < 2:
+                raise ValueError(
+                    f"the pipeline found the object in fewer than 2 frames of the {TIERS[t]} "
+                    f"tier: {sorted(set(np.asarray(reasons)[(tier == t) & ~found]))}"
+                )
+    poses = canonicalise(poses, truth, base.symmetry)
 
     nominal_pose = se3_from_matrix(nominal.astype(np.float32))
     referred = poses @ truth.inverse() @ nominal_pose
@@ -696,9 +400,10 @@ def repeatability(
     def stats(t):
         idx = np.flatnonzero(tier == t)
         pad = np.r_[idx, np.full(length - len(idx), idx[0])]
+        weights = (np.arange(length) < len(idx)) & found[pad]
         result = pose_statistics(
             SE3(referred.wxyz_xyz[pad]), symmetry=base.symmetry, groups=view[pad],
-            weights=np.arange(length) < len(idx), num_groups=len(viewpoints),
+            weights=weights, num_groups=len(viewpoints),
         )  # fmt: skip
         return result if t == 2 else eqx.tree_at(lambda r: r.groups, result, None)
 
@@ -710,12 +415,13 @@ def repeatability(
         [np.asarray((s.mean.rotation() @ nominal_pose.rotation().inverse()).log()) for s in tiers]
     )
     lateral = np.asarray(poses.translation() - truth.translation(), float) @ axis
-    sigma = np.array([np.std(lateral[tier == t], ddof=1) for t in range(3)])
-    mean = np.array([np.mean(lateral[tier == t]) for t in range(3)])
+    lateral = np.where(found, lateral, np.nan)
+    sigma = np.array([np.nanstd(lateral[tier == t], ddof=1) for t in range(3)])
+    mean = np.array([np.nanmean(lateral[tier == t]) for t in range(3)])
     margin = grasp_margin(gripper_opening, object_width)
     excess = np.sqrt(np.maximum(sigma**2 - sigma[0] ** 2, 0.0))
     budget = error_budget({TIERS[0]: sigma[0], TIERS[1]: excess[1], TIERS[2]: excess[2]})
-    third = tier == 2
+    third = (tier == 2) & found
     return Repeatability(
         frozen=tiers[0],
         replacement=tiers[1],
@@ -725,6 +431,8 @@ def repeatability(
         nominal=nominal_pose,
         poses=poses,
         truth=truth,
+        found=jnp.asarray(found),
+        reasons=reasons,
         tier=jnp.asarray(tier),
         view=jnp.asarray(view),
         status=status,
@@ -737,9 +445,12 @@ def repeatability(
         budget_grasp_success=grasp_success_probability(budget.total, 0.0, margin),
         hand_eye_bias=bias,
         frames=jax.tree.map(lambda x: x[third] if jnp.ndim(x) else x, stacked),
-        masks=jnp.asarray(np.stack(masks)[third]),
+        masks=jnp.asarray(masks[third]),
+        view_poses=SE3(poses.wxyz_xyz[third]),
+        view_labels=jnp.asarray(view[third]),
         true_base_T_camera=SE3(jnp.stack(cameras)[third]),
         model_points=jnp.asarray(model_points),
         model_normals=jnp.asarray(model_normals),
         symmetry=base.symmetry,
+        registration=registration,
     )

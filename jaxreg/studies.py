@@ -9,8 +9,8 @@
   per-viewpoint bias test and the error budget against a gripper's margin.
 * :func:`estimate_hand_eye_correction`: the hand-eye correction that makes the viewpoints
   agree, by differentiating through lifting and registration.
-  (Both live in :mod:`jaxreg._repeatability`, which needs the ray caster of
-  :mod:`jaxreg.synth`.)
+  (In :mod:`jaxreg._repeatability` and :mod:`jaxreg._hand_eye`; the study needs the ray
+  caster of :mod:`jaxreg.synth`.)
 
 Scale-out uses JAX's own runtime, nothing else: the starts are one array sharded over a 1-D
 mesh of ``jax.devices()``. On one machine that is every local device (force several CPU
@@ -39,14 +39,10 @@ from jax.experimental import multihost_utils
 from jaxlie import SE3
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from jaxreg._hand_eye import HandEyeCorrection, estimate_hand_eye_correction
 from jaxreg._icp_core import ICPStatus, run
 from jaxreg._icp_setup import DEFAULT, Method, Settings, prepare
-from jaxreg._repeatability import (
-    HandEyeCorrection,
-    Repeatability,
-    estimate_hand_eye_correction,
-    repeatability,
-)
+from jaxreg._repeatability import Repeatability, repeatability
 from jaxreg.kernels import AbstractRobustKernel
 from jaxreg.metrics import Symmetry, pose_error
 from jaxreg.neighbors import NeighborGrid

@@ -13,19 +13,20 @@ comparing the per-axis spread with `icp_covariance` evaluated on the first copy 
     is traced, so ICP uses brute-force matching);
 (d) the Monte Carlo cloud of (a) in (vx, vy) with the predicted 1- and 2-sigma ellipses.
 
-Prints the ratios predicted / measured and writes paper_figs/out/covariance_vs_monte_carlo.png.
+Prints the ratios predicted / measured and writes out/covariance_vs_monte_carlo.png/.csv/.txt
+(units: mm and degrees).
 Run: python paper_figs/fig_covariance_vs_monte_carlo.py [--draws 300] (a few minutes on CPU).
 """
 
 import argparse
-import os
+import textwrap
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
+from _common import DATA, save
 from jaxlie import SE3, SO3
 
 from jaxreg.icp import icp, icp_covariance
@@ -34,11 +35,6 @@ from jaxreg.neighbors import build_grid, voxel_downsample
 from jaxreg.normals import estimate_normals
 from jaxreg.uncertainty import DepthNoise, pose_statistics
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-HERE = Path(__file__).resolve().parent
-DATA = Path(os.environ.get("JAXREG_DATA", HERE.parents[1] / "shared" / "data")) / "pcl"
 AXES = ["vx", "vy", "vz", "wx", "wy", "wz"]
 UNITS = np.array([1e3] * 3 + [180 / np.pi] * 3)  # mm and degrees
 TRUTH = SE3.from_rotation_and_translation(
@@ -141,7 +137,7 @@ def main():
         help="draws for study (c), whose brute-force matching is slower",
     )
     args = parser.parse_args()
-    scan = load_points(DATA / "milk.pcd")
+    scan = load_points(DATA / "pcl" / "milk.pcd")
     start = time.perf_counter()
     plane = scan_to_model(scan, "point_to_plane", args.draws)
     point = scan_to_model(scan, "point_to_point", args.draws)
@@ -170,10 +166,36 @@ def main():
     ax.set_title("(d) study (a), right perturbation about the Karcher mean", fontsize=9)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    out = HERE / "out"
-    out.mkdir(exist_ok=True)
-    fig.savefig(out / "covariance_vs_monte_carlo.png", dpi=150)
-    print(f"wrote {out / 'covariance_vs_monte_carlo.png'}")
+
+    studies = [
+        ("a", "point_to_plane, scan noise", args.draws, plane[:2]),
+        ("b", "point_to_point, scan noise", args.draws, point[:2]),
+        ("c", "point_to_plane, scene noise", args.target_draws, scene),
+    ]
+    rows = [
+        [label, name, draws, axis, float(pred[i] * UNITS[i]), float(meas[i] * UNITS[i]),
+         float(pred[i] / meas[i])]
+        for label, name, draws, (pred, meas) in studies
+        for i, axis in enumerate(AXES)
+    ]  # fmt: skip
+    ratio = {label: pred / meas for label, _, _, (pred, meas) in studies}
+    worst = {k: np.abs(np.log(r)).max() for k, r in ratio.items()}
+    span = lambda r: f"{r.min():.2f}-{r.max():.2f}"  # noqa: E731
+    lines = [
+        "Closed-form ICP covariance (icp_covariance) against Monte Carlo on milk.pcd (Kinect), "
+        "depth noise sigma_z = 2 mm z^2 along each camera ray.",
+        "Lesson: error bars for a system this full of unmodelled effects are honestly obtained "
+        "empirically (the repeatability study). Measured: for the one effect that is modelled, "
+        f"depth noise, the closed form matches {args.draws}-draw Monte Carlo: predicted / "
+        f"measured sigma per axis (vx vy vz wx wy wz) {span(ratio['a'])} point-to-plane "
+        f"(within {100 * (np.exp(worst['a']) - 1):.0f}%), {span(ratio['b'])} point-to-point, "
+        f"{span(ratio['c'])} model-to-scene with re-estimated normals ({args.target_draws} "
+        "draws; normal noise is not modelled). It covers depth noise only: segmentation, "
+        "partial views and calibration bias are what the empirical tiers measure.",
+    ]
+    caption = "\n".join(textwrap.fill(line, 100) for line in lines)
+    header = ["study", "method_noise", "draws", "axis", "predicted", "monte_carlo", "ratio"]
+    save(fig, "covariance_vs_monte_carlo", header, rows, caption)
 
 
 if __name__ == "__main__":

@@ -1,9 +1,11 @@
 """Repeatability study: three tiers on synthetic scenes with a planted hand-eye error, and the
 hand-eye correction found by differentiating through lifting and registration.
 
-One study (seed 0, 640x360, 6 + 6 + 3 x 4 frames) serves most tests; the viewpoint tier is
-its longest, so the tiers' statistics and the correction's share one compilation, and the
-orbit study reuses every compiled shape.
+One study (seed 0, 640x360, 6 + 6 + 3 x 4 frames, exact masks) serves most tests; the viewpoint
+tier is its longest, so the tiers' statistics and the correction's share one compilation, and
+the control (no planted error), the other seeds and the orbit study reuse every compiled shape.
+The study through the real pipeline (``registration="pipeline"``) compiles
+``jaxreg.estimate_pose`` and is slow.
 """
 
 import jax
@@ -12,14 +14,17 @@ import pytest
 from jaxlie import SE3
 
 import jaxreg as jr
-from jaxreg._repeatability import estimate_hand_eye_correction, repeatability, stack_frames
+from jaxreg._hand_eye import estimate_hand_eye_correction, stack_frames
+from jaxreg._repeatability import repeatability
 from jaxreg.icp import ICPStatus
 from jaxreg.lie import se3_exp
 from jaxreg.synth import tabletop_scene
 
 # The planted hand-eye error: 4.9 mm and 1.0 degree (right perturbation of base_T_camera).
 BIAS = np.r_[[0.004, -0.002, 0.002], np.radians(1.0) * np.array([0.6, -0.8, 0.0])]
-SIZES = dict(frozen=6, replacements=6, draws_per_view=4)
+SIZES = dict(frozen=6, replacements=6, draws_per_view=4, registration="mask")
+# Recovery tolerance: measured errors on seeds 0-7 reach 1.8 mm and 0.16 degrees.
+TOLERANCE = (2.5e-3, 0.3)  # metres, degrees
 
 
 @pytest.fixture(scope="module")
@@ -30,6 +35,20 @@ def study():
 @pytest.fixture(scope="module")
 def correction(study):
     return study.correct_hand_eye()
+
+
+def check_recovered(correction, planted):
+    """The correction undoes the planted error within TOLERANCE and 4 standard errors per
+    axis, the views agree, and no viewpoint bias beyond the resolution is left."""
+    assert correction.status_message() == "the views agree: the correction converged"
+    error = np.asarray(correction.tangent) + planted
+    assert np.linalg.norm(error[:3]) < TOLERANCE[0]
+    assert np.degrees(np.linalg.norm(error[3:])) < TOLERANCE[1]
+    se = np.sqrt(np.diag(np.asarray(correction.covariance)))
+    assert np.all(np.abs(error) < 4 * se)
+    assert float(correction.disagreement_after) < 0.15 * float(correction.disagreement_before)
+    assert bool(correction.before.groups.bias_detected)
+    assert not bool(correction.bias_left)
 
 
 def test_every_frame_registers(study):
@@ -84,19 +103,32 @@ def test_budget_and_grasp_success_put_the_bias_first(study):
 
 def test_correction_recovers_the_planted_hand_eye_error(study, correction):
     """Gauss-Newton through lift + ICP brings the views together; the correction undoes the
-    planted 4.9 mm / 1 degree error to within 3 mm and 0.35 degrees (and 4 standard errors per
-    axis), and the per-viewpoint test no longer fires."""
-    assert correction.status_message() == "the views agree: the correction converged"
+    planted 4.9 mm / 1 degree error to within 2.5 mm and 0.3 degrees (and 4 standard errors
+    per axis), and no viewpoint offset beyond 0.5 mm / 0.5 degrees is left."""
     assert int(correction.rank) == 6 and bool(correction.converged)
-    error = np.asarray(correction.tangent) + BIAS
-    assert np.linalg.norm(error[:3]) < 3e-3
-    assert np.degrees(np.linalg.norm(error[3:])) < 0.35
-    se = np.sqrt(np.diag(np.asarray(correction.covariance)))
-    assert np.all(np.abs(error) < 4 * se)
-    assert float(correction.disagreement_after) < 0.15 * float(correction.disagreement_before)
-    assert bool(correction.before.groups.bias_detected)
-    assert not bool(correction.after.groups.bias_detected)
+    check_recovered(correction, BIAS)
     np.testing.assert_allclose(correction.pose.log(), correction.tangent, atol=1e-6)
+
+
+def test_what_is_left_after_the_correction_is_the_registrations_own_view_bias(correction):
+    """With no hand-eye error the viewpoints still differ by tenths of a millimetre and
+    degree (the sensor's noise meets the box's edges differently from each view): the
+    resolution of ``bias_left`` sits above that floor, and what the correction leaves is the
+    same size."""
+    control = repeatability(0, hand_eye_bias=np.zeros(6), **SIZES).viewpoint.groups
+    floor_t = np.abs(np.asarray(control.translation_offset)).max()
+    floor_r = np.abs(np.asarray(control.rotation_offset_deg)).max()
+    assert 0.02e-3 < floor_t < 0.5e-3 and floor_r < 0.5
+    left = correction.after.groups
+    assert np.abs(np.asarray(left.translation_offset)).max() < 2 * max(floor_t, 0.1e-3)
+    assert np.abs(np.asarray(left.rotation_offset_deg)).max() < 0.5
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_the_correction_holds_on_other_scenes(seed):
+    """Seeds 1 and 3 are those where the bias test still fired after the correction when the
+    residual view-dependent registration bias was judged against within-view noise alone."""
+    check_recovered(repeatability(seed, hand_eye_bias=BIAS, **SIZES).correct_hand_eye(), BIAS)
 
 
 def test_a_list_of_frames_gives_the_same_correction(study, correction):
@@ -129,7 +161,7 @@ def test_an_orbit_leaves_the_screw_about_its_axis_unobservable():
         assert np.linalg.norm(projector @ null) < 0.02 * np.linalg.norm(null)
     error = projector @ (np.asarray(result.tangent) + BIAS)
     assert np.linalg.norm(error[:3]) < 3e-3 and np.degrees(np.linalg.norm(error[3:])) < 0.35
-    assert not bool(result.after.groups.bias_detected)
+    assert not bool(result.bias_left)
 
 
 def test_bad_requests_raise(study):
@@ -137,8 +169,9 @@ def test_bad_requests_raise(study):
         repeatability(0, frozen=1)
     with pytest.raises(ValueError, match="hand_eye_bias"):
         repeatability(0, hand_eye_bias=(0.0, 0.0, 0.0))
-    third = np.asarray(study.tier) == 2
-    inits = SE3(study.poses.wxyz_xyz[third])
+    with pytest.raises(ValueError, match="registration"):
+        repeatability(0, registration="exact")
+    inits = study.view_poses
     with pytest.raises(ValueError, match="masks"):
         estimate_hand_eye_correction(
             study.frames, study.masks[:, :10], study.model_points, study.model_normals, inits
