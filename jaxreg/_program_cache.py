@@ -33,7 +33,6 @@ from pathlib import Path
 
 import equinox as eqx
 import jax
-import numpy as np
 
 __all__ = ["persistent_jit", "set_folder"]
 
@@ -154,7 +153,7 @@ def persistent_jit(fn: Callable) -> Callable:
         arrays, in_tree = jax.tree.flatten(dynamic)
         if any(isinstance(a, jax.core.Tracer) for a in arrays):
             return jitted(*args)
-        arrays = [jax.numpy.asarray(a) if isinstance(a, np.ndarray) else a for a in arrays]
+        arrays = [a if isinstance(a, jax.Array) else jax.numpy.asarray(a) for a in arrays]
         program = _program(fn, args, arrays, _key(fn, arrays, static, in_tree))
         if program is None:
             return jitted(*args)
