@@ -153,7 +153,7 @@ def persistent_jit(fn: Callable) -> Callable:
         arrays, in_tree = jax.tree.flatten(dynamic)
         if any(isinstance(a, jax.core.Tracer) for a in arrays):
             return jitted(*args)
-        arrays = [a if isinstance(a, jax.Array) else jax.numpy.asarray(a) for a in arrays]
+        arrays = [a if isinstance(a, jax.Array) else jax.device_put(a) for a in arrays]
         program = _program(fn, args, arrays, _key(fn, arrays, static, in_tree))
         if program is None:
             return jitted(*args)

@@ -42,10 +42,19 @@ class AbstractResult(eqx.Module):
         return tuple(np.shape(self.status._value))
 
     def __getitem__(self, index) -> AbstractResult:
-        """One lane (or a sub-batch) of a batched result, indexing every leaf's batch axes."""
+        """One lane (or a sub-batch) of a batched result, indexing every leaf's batch axes.
+
+        Concrete leaves are indexed on the host and put back on the device: eager indexing
+        would compile (and in a later process load) one small program per leaf shape."""
         if not self.batch_shape:
             raise IndexError(f"{type(self).__name__} holds one problem: there is no batch to index")
-        return jax.tree.map(lambda leaf: leaf[index], self)
+        if isinstance(index, jax.core.Tracer) or any(
+            isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(self)
+        ):
+            return jax.tree.map(lambda leaf: leaf[index], self)
+        if isinstance(index, jax.Array):
+            index = np.asarray(index)
+        return jax.tree.map(lambda leaf: jax.device_put(np.asarray(leaf)[index]), self)
 
     def status_message(self) -> str | np.ndarray:
         """The status as text, on the host: a string, or an array of strings for a batch."""
