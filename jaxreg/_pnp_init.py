@@ -31,28 +31,39 @@ from jaxlie import SE3, SO3
 from jaxtyping import Array, Float
 
 from jaxreg.alignment import kabsch
+from jaxreg.normals import _eigh3
 
-__all__ = ["general_starts", "ippe_candidates", "weighted_pcas"]
+__all__ = ["general_starts", "image_spread", "ippe_candidates", "weighted_pca"]
 
 
 def _inv3(M: Array) -> Array:
-    """Inverse of a 3x3 matrix by its adjugate (rows r_i: columns r1 x r2, r2 x r0, r0 x r1)."""
-    adj = jnp.stack([jnp.cross(M[1], M[2]), jnp.cross(M[2], M[0]), jnp.cross(M[0], M[1])], -1)
-    return adj / jnp.dot(M[0], jnp.cross(M[1], M[2]))
+    """Inverse of a 3x3 matrix by its adjugate."""
+    return _adjugate3(M) / jnp.dot(M[0], jnp.cross(M[1], M[2]))
 
 
-def weighted_pcas(X: Float[Array, "N 3"], m: Float[Array, "N 2"], w: Float[Array, " N"]):
-    """Weighted PCA of the object points and of the normalised image points (as z = 0 points)
-    in one batched eigh: for each, centroid `(3,)`, eigenvalues `(3,)` ascending, eigenvectors
-    `(3, 3)` as columns."""
-    points = jnp.stack([X, jnp.concatenate([m, jnp.zeros_like(m[:, :1])], axis=-1)])
+def weighted_pca(X: Float[Array, "N 3"], w: Float[Array, " N"]):
+    """Weighted PCA of the object points: centroid `(3,)`, eigenvalues `(3,)` ascending and
+    unit eigenvectors `(3, 3)` as columns, in closed form (elementwise over a vmapped batch)."""
     wsum = jnp.maximum(jnp.sum(w), jnp.finfo(X.dtype).tiny)
-    centroids = jnp.einsum("n,kni->ki", w, points) / wsum
-    centred = points - centroids[:, None]
-    scatter = jnp.einsum("n,kni,knj->kij", w, centred, centred) / wsum
-    evals, evecs = jnp.linalg.eigh(scatter)
-    evals = jnp.maximum(evals, 0.0)
-    return (centroids[0], evals[0], evecs[0]), (centroids[1], evals[1], evecs[1])
+    centroid = w @ X / wsum
+    centred = X - centroid
+    scatter = jnp.einsum("n,ni,nj->ij", w, centred, centred) / wsum
+    entries = scatter[jnp.array([0, 0, 0, 1, 1, 2]), jnp.array([0, 1, 2, 1, 2, 2])]
+    evals, evecs = _eigh3(entries)
+    return centroid, jnp.maximum(evals, 0.0), evecs
+
+
+def image_spread(m: Float[Array, "N 2"], w: Float[Array, " N"]) -> Float[Array, "2"]:
+    """Eigenvalues `(2,)`, ascending, of the weighted scatter of the normalised image points."""
+    wsum = jnp.maximum(jnp.sum(w), jnp.finfo(m.dtype).tiny)
+    centred = m - w @ m / wsum
+    x, y = centred[:, 0], centred[:, 1]
+    a, b, c = jnp.sum(w * x * x) / wsum, jnp.sum(w * x * y) / wsum, jnp.sum(w * y * y) / wsum
+    mean = 0.5 * (a + c)
+    big = mean + jnp.sqrt(0.25 * (a - c) ** 2 + b * b)
+    # The smaller one as det / big: no cancellation between mean and the square root.
+    small = (a * c - b * b) / jnp.where(big > 0, big, 1.0)
+    return jnp.maximum(jnp.stack([small, big]), 0.0)
 
 
 def _null_vector(A: Array) -> Array:
@@ -102,7 +113,8 @@ def _translation_given_rotation(R: Array, X: Array, m: Array, w: Array) -> Array
 
 
 def _homography(xy: Array, m: Array, w: Array) -> Array:
-    """DLT homography H (3x3) with [m, 1] ~ H [xy, 1], Hartley-normalised, weighted rows."""
+    """DLT homography H (3x3) with [m, 1] ~ H [xy, 1], Hartley-normalised, weighted rows (in
+    closed form for four points, which it fits exactly)."""
 
     def similarity(p):
         wsum = jnp.maximum(jnp.sum(w), jnp.finfo(p.dtype).tiny)
@@ -128,14 +140,41 @@ def _homography(xy: Array, m: Array, w: Array) -> Array:
 
     T_src, _, a = similarity(xy)
     _, T_dst_inv, b = similarity(m)
-    one, zero = jnp.ones_like(a[:, :1]), jnp.zeros_like(a[:, :1])
-    row_u = jnp.concatenate([a, one, zero, zero, zero, -b[:, :1] * a, -b[:, :1]], axis=-1)
-    row_v = jnp.concatenate([zero, zero, zero, a, one, -b[:, 1:] * a, -b[:, 1:]], axis=-1)
-    sw = jnp.sqrt(w)[:, None]
-    A = jnp.concatenate([row_u * sw, row_v * sw], axis=0)
-    Hn = _null_vector(A).reshape(3, 3)
+    if xy.shape[0] == 4:
+        # Four points determine H exactly: the DLT's null vector, in closed form.
+        Hn = _square_to_quad(b) @ _adjugate3(_square_to_quad(a))
+    else:
+        one, zero = jnp.ones_like(a[:, :1]), jnp.zeros_like(a[:, :1])
+        row_u = jnp.concatenate([a, one, zero, zero, zero, -b[:, :1] * a, -b[:, :1]], axis=-1)
+        row_v = jnp.concatenate([zero, zero, zero, a, one, -b[:, 1:] * a, -b[:, 1:]], axis=-1)
+        sw = jnp.sqrt(w)[:, None]
+        A = jnp.concatenate([row_u * sw, row_v * sw], axis=0)
+        Hn = _null_vector(A).reshape(3, 3)
     H = T_dst_inv @ Hn @ T_src
     return H / jnp.where(H[2, 2] < 0, -1.0, 1.0)
+
+
+def _adjugate3(M: Array) -> Array:
+    """Adjugate of a 3x3 matrix (its inverse times its determinant)."""
+    return jnp.stack([jnp.cross(M[1], M[2]), jnp.cross(M[2], M[0]), jnp.cross(M[0], M[1])], -1)
+
+
+def _square_to_quad(p: Float[Array, "4 2"]) -> Float[Array, "3 3"]:
+    """A homography (up to scale) taking the unit square's corners (0, 0), (1, 0), (1, 1),
+    (0, 1) to the quadrilateral `p` (Heckbert 1989, multiplied through by its denominator so
+    that nothing is divided)."""
+    x, y = p[:, 0], p[:, 1]
+    sx, sy = x[0] - x[1] + x[2] - x[3], y[0] - y[1] + y[2] - y[3]
+    dx1, dx2, dy1, dy2 = x[1] - x[2], x[3] - x[2], y[1] - y[2], y[3] - y[2]
+    den = dx1 * dy2 - dx2 * dy1
+    g, h = sx * dy2 - dx2 * sy, dx1 * sy - sx * dy1
+    return jnp.stack(
+        [
+            jnp.stack([den * (x[1] - x[0]) + g * x[1], den * (x[3] - x[0]) + h * x[3], den * x[0]]),
+            jnp.stack([den * (y[1] - y[0]) + g * y[1], den * (y[3] - y[0]) + h * y[3], den * y[0]]),
+            jnp.stack([g, h, den]),
+        ]
+    )
 
 
 def _ippe_rotations(H: Array) -> tuple[Array, Array]:
@@ -187,7 +226,7 @@ def ippe_candidates(
     X: Float[Array, "N 3"], m: Float[Array, "N 2"], w: Float[Array, " N"], object_pca
 ) -> SE3:
     """The two IPPE poses camera_T_object, stacked as an SE3 of batch `(2,)`, for object points
-    `X` on (or near: their best-fit plane is used) a plane; `object_pca` from `weighted_pcas`."""
+    `X` on (or near: their best-fit plane is used) a plane; `object_pca` from `weighted_pca`."""
     centroid, _, evecs = object_pca
     plane_T_object = _plane_frame(centroid, evecs)
     P = plane_T_object @ X

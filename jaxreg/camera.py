@@ -15,7 +15,8 @@ and hand-eye pose) are the objects the pipeline and the synthetic scenes pass ar
   `camera_T_object @ SE3.exp(delta)`, i.e. expressed in the object frame.
 
 All functions take leading batch axes `(...)` that broadcast between arguments, and are
-differentiable; `undistort_points` is a fixed number of fixed-point steps.
+differentiable; `undistort_points` is a fixed number of fixed-point steps. The Jacobians are
+closed form (elementwise over the batch).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import numpy as np
 from jaxlie import SE3
 from jaxtyping import Array, ArrayLike, Bool, Float, Shaped
 
-from jaxreg.lie import se3_exp, se3_from_matrix
+from jaxreg.lie import se3_from_matrix
 
 __all__ = [
     "Intrinsics",
@@ -123,14 +124,42 @@ def project(
     return apply_intrinsics(distort(xy, dist_coeffs), K)
 
 
-def _batch_jacobian(fn, x: Array, ndim_in: int) -> Array:
-    """d fn(x)[..., i] / d x[..., j] for fn acting independently on every leading index of x.
+def _distortion_jacobian(xy: Array, dist: Array | None) -> tuple[Array, Array, Array, Array]:
+    """Entries `(d00, d01, d10, d11)`, each `(..., N)`, of `d distort(xy) / d xy` (the
+    identity without distortion)."""
+    x, y = xy[..., 0], xy[..., 1]
+    if dist is None:
+        one, zero = jnp.ones_like(x), jnp.zeros_like(x)
+        return one, zero, zero, one
+    d = dist[..., None, :]
+    k1, k2, p1, p2, k3 = (d[..., i] for i in range(5))
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    dradial = 2.0 * (k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3))  # d radial / d r2, times 2
+    cross = x * y * dradial + 2.0 * (p1 * x + p2 * y)
+    return (
+        radial + x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x,
+        cross,
+        cross,
+        radial + y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x,
+    )
 
-    One forward-mode pass per input component (3 or 6), never a dense Jacobian over the batch.
-    """
-    basis = jnp.eye(ndim_in, dtype=x.dtype)
-    cols = jax.vmap(lambda e: jax.jvp(fn, (x,), (jnp.broadcast_to(e, x.shape),))[1])(basis)
-    return jnp.moveaxis(cols, 0, -1)
+
+def _projection_jacobian(points_cam: Array, K: Array, dist: Array | None) -> Array:
+    """`K[:2, :2] @ D @ P`, `(..., N, 2, 3)`: P the Jacobian of `(x/z, y/z)`, D the
+    distortion's; closed form, elementwise."""
+    k = K[..., None, :, :]
+    inv_z = 1.0 / points_cam[..., 2]
+    x, y = points_cam[..., 0] * inv_z, points_cam[..., 1] * inv_z
+    d00, d01, d10, d11 = _distortion_jacobian(jnp.stack([x, y], axis=-1), dist)
+    # rows of K2 @ D, then times P = [[1, 0, -x], [0, 1, -y]] / z
+    a00 = k[..., 0, 0] * d00 + k[..., 0, 1] * d10
+    a01 = k[..., 0, 0] * d01 + k[..., 0, 1] * d11
+    a10 = k[..., 1, 0] * d00 + k[..., 1, 1] * d10
+    a11 = k[..., 1, 0] * d01 + k[..., 1, 1] * d11
+    row0 = jnp.stack([a00 * inv_z, a01 * inv_z, -(a00 * x + a01 * y) * inv_z], axis=-1)
+    row1 = jnp.stack([a10 * inv_z, a11 * inv_z, -(a10 * x + a11 * y) * inv_z], axis=-1)
+    return jnp.stack([row0, row1], axis=-2)
 
 
 def projection_jacobian(
@@ -140,11 +169,12 @@ def projection_jacobian(
 ) -> Float[Array, "*batch N 2 3"]:
     """Jacobian of `project` with respect to each camera-frame point: `(..., N, 2, 3)`.
 
-    Entry `[..., n, i, j]` is `d pixel_i / d X_j` of point n (forward-mode autodiff).
+    Entry `[..., n, i, j]` is `d pixel_i / d X_j` of point n (closed form).
     """
     points_cam = jnp.asarray(points_cam)
     points_cam = points_cam.astype(jnp.result_type(points_cam, float))
-    return _batch_jacobian(lambda p: project(p, K, dist_coeffs), points_cam, 3)
+    K = jnp.asarray(K, points_cam.dtype)
+    return _projection_jacobian(points_cam, K, canonical_dist_coeffs(dist_coeffs))
 
 
 def _transform(pose: SE3, points: Array) -> Array:
@@ -163,15 +193,21 @@ def pose_jacobian(
 
     `d project(camera_T_object @ exp(delta) @ X_n) / d delta` at `delta = 0`, shape
     `(..., N, 2, 6)`, tangent order `(vx, vy, vz, wx, wy, wz)` (object frame). `camera_T_object`
-    has batch `(...)`, `object_points` `(..., N, 3)` are in the object frame.
+    has batch `(...)`, `object_points` `(..., N, 3)` are in the object frame. Closed form: the
+    point moves by `R (v + w x X)`, so with `A = d pixel / d X_cam @ R` the translation block
+    is `A` and the rotation block's rows are `X x a` for the rows `a` of `A`.
     """
     object_points = jnp.asarray(object_points)
-    delta0 = jnp.zeros((*camera_T_object.get_batch_axes(), 6), camera_T_object.wxyz_xyz.dtype)
-
-    def pixels(delta):
-        return project(_transform(camera_T_object @ se3_exp(delta), object_points), K, dist_coeffs)
-
-    return _batch_jacobian(pixels, delta0, 6)
+    dtype = jnp.result_type(object_points, camera_T_object.wxyz_xyz.dtype, float)
+    object_points = object_points.astype(dtype)
+    R = camera_T_object.rotation().as_matrix().astype(dtype)
+    # Products of 3-vectors written out: XLA's CPU dot is slow on batches of tiny matrices.
+    points_cam = jnp.sum(object_points[..., None, :] * R[..., None, :, :], axis=-1)
+    points_cam = points_cam + camera_T_object.translation().astype(dtype)[..., None, :]
+    J = _projection_jacobian(points_cam, jnp.asarray(K, dtype), canonical_dist_coeffs(dist_coeffs))
+    A = jnp.sum(J[..., :, :, None] * R[..., None, None, :, :], axis=-2)  # (..., N, 2, 3)
+    X = jnp.broadcast_to(object_points[..., None, :], A.shape)
+    return jnp.concatenate([A, jnp.cross(X, A)], axis=-1)
 
 
 def reprojection_error(

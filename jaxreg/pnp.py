@@ -57,7 +57,8 @@ import numpy as np
 from jaxlie import SE3, SO3
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg._pnp_init import general_starts, ippe_candidates, weighted_pcas
+from jaxreg._pnp_init import general_starts, image_spread, ippe_candidates, weighted_pca
+from jaxreg._pnp_linalg import matmul, spd_inverse
 from jaxreg._pnp_refine import refine_pose, weighted_jacobian
 from jaxreg._result import AbstractResult, select_status
 from jaxreg.camera import canonical_dist_coeffs, project, undistort_points
@@ -183,7 +184,8 @@ def _sanitise(X, uv, w):
 
 
 def _geometry_status(obj_evals, img_evals, count, *, planar: bool) -> PnPStatus:
-    """Data-dependent checks on the input (PCA eigenvalues, ascending), most fundamental first."""
+    """Data-dependent checks on the input (PCA eigenvalues, ascending: `(3,)` of the object
+    points, `(2,)` of the image points), most fundamental first."""
     obj_std = jnp.sqrt(obj_evals[::-1])
     img_std = jnp.sqrt(img_evals[::-1])
     collinear = (obj_std[1] <= _COLLINEAR_TOL * obj_std[0]) | (
@@ -250,23 +252,20 @@ def _ranking(fits: _Fit, converged: Array, eligible: Array | bool = True) -> Arr
     return jnp.lexsort((rmse, ~(tied & converged), tier))
 
 
-def _covariance(pose: SE3, X, K, dist, w, sigma_px):
-    """`sigma_px^2 (J^T W J)^-1` at `pose` with `inf` on undetermined directions (see the module
-    docstring), the per-axis sigmas described in `PnPResult`, and whether any direction is
-    undetermined."""
-    dtype = X.dtype
+def _normalised_information(pose: SE3, X, K, dist, w):
+    """`J^T W J` at `pose` (zero where not finite), its column norms `col` (1 where zero) and
+    `C = J^T W J / outer(col, col)`, whose diagonal is 1 (0 where the column is zero)."""
     J = weighted_jacobian(pose, X, K, dist, jnp.sqrt(w))
-    info = J.T @ J
+    info = matmul(J.T, J)
     info = jnp.where(jnp.all(jnp.isfinite(info)), info, 0.0)
     col = jnp.sqrt(jnp.diagonal(info))
     col = jnp.where(col > 0, col, 1.0)
-    evals, evecs = jnp.linalg.eigh(info / jnp.outer(col, col))
-    tol = 100 * jnp.finfo(dtype).eps
-    determined = evals > tol * evals[-1]
-    inv = jnp.where(determined, 1.0 / jnp.where(determined, evals, 1.0), 0.0)
-    cov = sigma_px**2 * ((evecs * inv) @ evecs.T) / jnp.outer(col, col)
-    # Tangent coordinates with a share in an undetermined direction (evecs[i, k]: coordinate i).
-    free = jnp.any(~determined & (jnp.abs(evecs) > jnp.sqrt(tol)), axis=1)
+    return info, col, info / jnp.outer(col, col)
+
+
+def _with_undetermined(cov, free, pose: SE3, tol):
+    """`inf` in the rows and columns of the `free` tangent coordinates, the per-axis sigmas
+    described in `PnPResult`, and whether any coordinate is free."""
     free_pair = free[:, None] | free[None, :]
     R = pose.rotation().as_matrix()
     t_var = jnp.einsum("ij,jk,ik->i", R, jnp.where(free_pair, 0.0, cov)[:3, :3], R)
@@ -277,9 +276,79 @@ def _covariance(pose: SE3, X, K, dist, w, sigma_px):
     return cov, t_sigma, r_sigma, jnp.any(free)
 
 
-def _finish(pose, fit: _Fit, iterations, lm_converged, status, X, K, dist, w, sigma_px):
-    """The `PnPResult` of one pose: covariance, and the final status (input failures first)."""
-    cov, t_sigma, r_sigma, undetermined = _covariance(pose, X, K, dist, w, sigma_px)
+def _covariance(pose: SE3, X, K, dist, w, sigma_px):
+    """`sigma_px^2 (J^T W J)^-1` at `pose` with `inf` on undetermined directions (see the module
+    docstring), the per-axis sigmas described in `PnPResult`, and whether any direction is
+    undetermined. One eigendecomposition per problem: the reference for
+    `_covariance_closed_form`, used where that one cannot decide."""
+    tol = 100 * jnp.finfo(X.dtype).eps
+    _, col, C = _normalised_information(pose, X, K, dist, w)
+    evals, evecs = jnp.linalg.eigh(C)
+    determined = evals > tol * evals[-1]
+    inv = jnp.where(determined, 1.0 / jnp.where(determined, evals, 1.0), 0.0)
+    cov = sigma_px**2 * ((evecs * inv) @ evecs.T) / jnp.outer(col, col)
+    # Tangent coordinates with a share in an undetermined direction (evecs[i, k]: coordinate i).
+    free = jnp.any(~determined & (jnp.abs(evecs) > jnp.sqrt(tol)), axis=1)
+    return _with_undetermined(cov, free, pose, tol)
+
+
+def _covariance_closed_form(pose: SE3, X, K, dist, w, sigma_px):
+    """`_covariance`'s outputs without an eigendecomposition, and whether they are its.
+
+    Two cases are decided here. Every direction is determined when `1 / trace(C^-1)`, a lower
+    bound on C's smallest eigenvalue, exceeds twice `tol` times the largest absolute row sum of
+    C, an upper bound on its largest eigenvalue (the factor 2 covers the rounding of `C^-1`,
+    whose relative error there is ~`eps / tol`): then the covariance is the plain inverse, by
+    Cholesky. No direction is determined when the information is zero (no weight, or a
+    non-finite Jacobian). Between them lie near-singular problems, left to `_covariance`: the
+    returned flag is False there."""
+    tol = 100 * jnp.finfo(X.dtype).eps
+    info, col, C = _normalised_information(pose, X, K, dist, w)
+    C_inv, positive = spd_inverse(C)
+    trace = jnp.trace(C_inv)
+    largest = jnp.max(jnp.sum(jnp.abs(C), axis=1))
+    determined = positive & jnp.isfinite(trace) & (trace * 2 * tol * largest < 1.0)
+    zero = jnp.all(info == 0)
+    cov = jnp.where(zero, 0.0, sigma_px**2 * C_inv / jnp.outer(col, col))
+    return _with_undetermined(cov, jnp.full(6, zero), pose, tol), determined | zero
+
+
+def _covariances(pose: SE3, X, K, dist, w, sigma_px, axes):
+    """`_covariance` of a flat batch of problems `(B,)` (X `(B, N, 3)`, w `(B, N)`, K and dist
+    batched or shared as `axes` says) at poses of batch `(B,)` or `(B, C)` (C candidates each).
+
+    Closed form where it decides (`_covariance_closed_form`), the eigendecomposition elsewhere;
+    that runs only when some lane needs it, and then for the whole batch."""
+
+    def batched(fn):
+        f = lambda T, X, K, dist, w: fn(T, X, K, dist, w, sigma_px)  # noqa: E731
+        if pose.wxyz_xyz.ndim == 3:
+            f = jax.vmap(f, in_axes=(0, None, None, None, None))
+        return jax.vmap(f, in_axes=(0, 0, axes[0], axes[1], 0))
+
+    fast, decided = batched(_covariance_closed_form)(pose, X, K, dist, w)
+
+    def fallback():
+        exact = batched(_covariance)(pose, X, K, dist, w)
+        return jax.tree.map(
+            lambda a, b: jnp.where(
+                decided.reshape(decided.shape + (1,) * (a.ndim - decided.ndim)), a, b
+            ),
+            fast,
+            exact,
+        )
+
+    return jax.lax.cond(jnp.all(decided), lambda: fast, fallback)
+
+
+def _finish(
+    pose, fit: _Fit, iterations, lm_converged, status, X, K, dist, w, sigma_px, covariance=None
+):
+    """The `PnPResult` of one pose: covariance (`_covariance`'s, computed unless given), and the
+    final status (input failures first)."""
+    if covariance is None:
+        covariance = _covariance(pose, X, K, dist, w, sigma_px)
+    cov, t_sigma, r_sigma, undetermined = covariance
     late = select_status(
         [
             (~fit.finite, PnPStatus.non_finite),
@@ -311,12 +380,24 @@ def _prologue(X, uv, K, dist, w, *, planar: bool):
     """Valid points, normalised image points, the object points' PCA and the input's status."""
     X, uv, w, count = _sanitise(X, uv, w)
     m = undistort_points(uv, K, dist)
-    object_pca, image_pca = weighted_pcas(X, m, w)
-    status = _geometry_status(object_pca[1], image_pca[1], count, planar=planar)
+    object_pca = weighted_pca(X, w)
+    status = _geometry_status(object_pca[1], image_spread(m, w), count, planar=planar)
     return X, uv, w, count, m, object_pca, status
 
 
-def _general_core(X, uv, K, dist, w, sigma_px, *, max_iterations: int) -> PnPResult:
+class _Refined(eqx.Module):
+    """One problem's refined pose(s) before the covariance: batch `()` or `(2,)` (candidates)."""
+
+    pose: SE3
+    fit: _Fit
+    iterations: Array
+    converged: Array
+    status: PnPStatus  # the input's, per problem
+    X: Array  # the sanitised points and weights the covariance needs
+    w: Array
+
+
+def _general_core(X, uv, K, dist, w, *, max_iterations: int) -> _Refined:
     X, uv, w, count, m, object_pca, status = _prologue(X, uv, K, dist, w, planar=False)
     starts = general_starts(X, m, w, object_pca)
     order = jnp.argsort(jax.vmap(lambda T: _normalised_rmse(T, X, m, w))(starts))
@@ -331,10 +412,10 @@ def _general_core(X, uv, K, dist, w, sigma_px, *, max_iterations: int) -> PnPRes
     pose, fit, iterations, converged = jax.tree.map(
         lambda leaf: leaf[best], (poses, fits, iterations, converged)
     )
-    return _finish(pose, fit, iterations, converged, status, X, K, dist, w, sigma_px)
+    return _Refined(pose, fit, iterations, converged, status, X, w)
 
 
-def _planar_core(X, uv, K, dist, w, sigma_px, *, max_iterations: int, refine: bool):
+def _planar_core(X, uv, K, dist, w, *, max_iterations: int, refine: bool) -> _Refined:
     X, uv, w, count, m, object_pca, status = _prologue(X, uv, K, dist, w, planar=True)
     starts = ippe_candidates(X, m, w, object_pca)
     if refine:
@@ -349,13 +430,21 @@ def _planar_core(X, uv, K, dist, w, sigma_px, *, max_iterations: int, refine: bo
     poses, fits, iterations, converged = jax.tree.map(
         lambda leaf: leaf[order], (poses, fits, iterations, converged)
     )
+    return _Refined(poses, fits, iterations, converged, status, X, w)
+
+
+def _planar_result(refined: _Refined, K, dist, sigma_px, covariance) -> PlanarPnPResult:
+    """Both candidates' results, the ambiguity ratio and the separation of one problem."""
+    r = refined
     both = jax.vmap(
-        lambda T, fit, it, conv: _finish(T, fit, it, conv, status, X, K, dist, w, sigma_px)
-    )(poses, fits, iterations, converged)
-    rmse = fits.rmse
+        lambda T, fit, it, conv, cov: _finish(
+            T, fit, it, conv, r.status, r.X, K, dist, r.w, sigma_px, cov
+        )
+    )(r.pose, r.fit, r.iterations, r.converged, covariance)
+    rmse, tier = r.fit.rmse, r.fit.tier
     ratio = rmse[1] / jnp.maximum(rmse[0], jnp.finfo(rmse.dtype).tiny)
-    ratio = jnp.where(fits.tier[1] > fits.tier[0], jnp.inf, ratio)
-    rotations = poses.rotation()
+    ratio = jnp.where(tier[1] > tier[0], jnp.inf, ratio)
+    rotations = r.pose.rotation()
     separation = jnp.rad2deg(geodesic_angle(SO3(rotations.wxyz[0]), SO3(rotations.wxyz[1])))
     best = jax.tree.map(lambda leaf: leaf[0], both)
     return PlanarPnPResult(
@@ -418,10 +507,10 @@ def _prepare(name, object_points, image_points, K, dist_coeffs, weights, sigma_p
     return arrays, sigma_px, tuple(batch)
 
 
-def _vmap_batch(core, arrays, batch, *extra):
-    """Run an unbatched `core(*arrays, *extra)` over the broadcast leading `batch` axes."""
-    if not batch:
-        return core(*arrays, *extra)
+def _solve_batch(core, finish, arrays, batch, sigma_px):
+    """Run `core(X, uv, K, dist, w) -> _Refined` over the broadcast leading `batch` axes (one
+    problem when `batch == ()`), the covariances of the whole batch at once (`_covariances`),
+    then `finish(refined, K, dist, sigma_px, covariance)` per problem."""
     size = int(np.prod(batch))
     flat, axes = [], []
     for a, k in zip(arrays, _CORE_NDIMS, strict=True):
@@ -432,20 +521,43 @@ def _vmap_batch(core, arrays, batch, *extra):
             core_shape = a.shape[a.ndim - k :]
             flat.append(jnp.broadcast_to(a, batch + core_shape).reshape(size, *core_shape))
             axes.append(0)
-    out = jax.vmap(core, in_axes=(*axes, *(None,) * len(extra)))(*flat, *extra)
+    if not batch:  # one problem: a batch of one, so that every stage is written for a batch
+        for i in (0, 1, 4):  # object points, image points, weights (never None)
+            flat[i], axes[i] = flat[i][None], 0
+    refined = jax.vmap(core, in_axes=axes)(*flat)
+    K, dist = flat[2], flat[3]
+    cov = _covariances(refined.pose, refined.X, K, dist, refined.w, sigma_px, axes[2:4])
+    out = jax.vmap(finish, in_axes=(0, axes[2], axes[3], None, 0))(refined, K, dist, sigma_px, cov)
     return jax.tree.map(lambda leaf: leaf.reshape(*batch, *leaf.shape[1:]), out)
+
+
+def _general_result(refined: _Refined, K, dist, sigma_px, covariance) -> PnPResult:
+    r = refined
+    return _finish(
+        r.pose,
+        r.fit,
+        r.iterations,
+        r.converged,
+        r.status,
+        r.X,
+        K,
+        dist,
+        r.w,
+        sigma_px,
+        covariance,
+    )
 
 
 @functools.partial(jax.jit, static_argnames=("batch", "max_iterations"))
 def _solve_general(arrays, sigma_px, *, batch, max_iterations):
     core = functools.partial(_general_core, max_iterations=max_iterations)
-    return _vmap_batch(core, arrays, batch, sigma_px)
+    return _solve_batch(core, _general_result, arrays, batch, sigma_px)
 
 
 @functools.partial(jax.jit, static_argnames=("batch", "max_iterations", "refine"))
 def _solve_planar(arrays, sigma_px, *, batch, max_iterations, refine):
     core = functools.partial(_planar_core, max_iterations=max_iterations, refine=refine)
-    return _vmap_batch(core, arrays, batch, sigma_px)
+    return _solve_batch(core, _planar_result, arrays, batch, sigma_px)
 
 
 # --------------------------------------------------------------------------------------------
