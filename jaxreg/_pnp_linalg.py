@@ -12,9 +12,10 @@ raised; the other outputs are then finite placeholders to be discarded.
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
-__all__ = ["matmul", "spd_inverse", "spd_solve"]
+__all__ = ["cho_solve", "cholesky", "matmul", "packed", "spd_inverse", "spd_solve"]
 
 
 def matmul(
@@ -25,16 +26,34 @@ def matmul(
     return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
 
 
-def _cholesky(A: Array) -> tuple[list[list[Array]], list[Array], Array]:
-    """Lower factor `L` (rows of `(...)` scalars, `A = L L^T`), the reciprocals of its diagonal
-    and whether every pivot was positive."""
+def _unpack(A: Array) -> list[list[Array]]:
     n = A.shape[-1]
-    a = [[A[..., i, j] for j in range(n)] for i in range(n)]
-    L: list[list[Array]] = [[jnp.zeros_like(a[0][0])] * n for _ in range(n)]
+    return [[A[..., i, j] for j in range(n)] for i in range(n)]
+
+
+def packed(upper) -> list[list[Array]]:
+    """The full matrix (rows of scalars) of the upper triangle `upper`, given row by row
+    (`n (n + 1) / 2` scalars)."""
+    n = int(round((np.sqrt(8 * len(upper) + 1) - 1) / 2))
+    rows: list[list[Array]] = [[upper[0]] * n for _ in range(n)]
+    k = 0
+    for i in range(n):
+        for j in range(i, n):
+            rows[i][j] = rows[j][i] = upper[k]
+            k += 1
+    return rows
+
+
+def cholesky(a: list[list[Array]]) -> tuple[list[list[Array]], list[Array], Array]:
+    """Lower factor `L` (rows of scalars, `A = L L^T`) of a matrix given as rows of scalars,
+    the reciprocals of its diagonal and whether every pivot was positive."""
+    n = len(a)
+    zero = jnp.zeros_like(a[0][0])
+    L: list[list[Array]] = [[zero] * n for _ in range(n)]
     inv_diag = []
-    ok = jnp.ones(A.shape[:-2], bool)
+    ok = jnp.ones(zero.shape, bool)
     for j in range(n):
-        pivot = a[j][j] - sum((L[j][k] * L[j][k] for k in range(j)), jnp.zeros_like(a[j][j]))
+        pivot = a[j][j] - sum((L[j][k] * L[j][k] for k in range(j)), zero)
         good = pivot > 0  # False for NaN too
         ok = ok & good
         root = jnp.sqrt(jnp.where(good, pivot, 1.0))
@@ -42,25 +61,30 @@ def _cholesky(A: Array) -> tuple[list[list[Array]], list[Array], Array]:
         inv = 1.0 / root
         inv_diag.append(inv)
         for i in range(j + 1, n):
-            dot = sum((L[i][k] * L[j][k] for k in range(j)), jnp.zeros_like(a[i][j]))
+            dot = sum((L[i][k] * L[j][k] for k in range(j)), zero)
             L[i][j] = (a[i][j] - dot) * inv
     return L, inv_diag, ok
+
+
+def cho_solve(L, inv_diag, b: list[Array]) -> list[Array]:
+    """`x` with `L L^T x = b`, all as scalars."""
+    n = len(b)
+    zero = jnp.zeros_like(inv_diag[0])
+    y: list[Array] = []
+    for i in range(n):
+        y.append((b[i] - sum((L[i][k] * y[k] for k in range(i)), zero)) * inv_diag[i])
+    x: list[Array] = [zero] * n
+    for i in reversed(range(n)):
+        x[i] = (y[i] - sum((L[k][i] * x[k] for k in range(i + 1, n)), zero)) * inv_diag[i]
+    return x
 
 
 def spd_solve(
     A: Float[Array, "*batch n n"], b: Float[Array, "*batch n"]
 ) -> tuple[Float[Array, "*batch n"], Bool[Array, "*batch"]]:
     """`x = A^-1 b` by Cholesky, and whether `A` was positive definite."""
-    n = A.shape[-1]
-    L, inv_diag, ok = _cholesky(A)
-    y: list[Array] = []
-    for i in range(n):
-        dot = sum((L[i][k] * y[k] for k in range(i)), jnp.zeros_like(b[..., i]))
-        y.append((b[..., i] - dot) * inv_diag[i])
-    x: list[Array] = [jnp.zeros_like(y[0])] * n
-    for i in reversed(range(n)):
-        dot = sum((L[k][i] * x[k] for k in range(i + 1, n)), jnp.zeros_like(y[i]))
-        x[i] = (y[i] - dot) * inv_diag[i]
+    L, inv_diag, ok = cholesky(_unpack(A))
+    x = cho_solve(L, inv_diag, [b[..., i] for i in range(A.shape[-1])])
     return jnp.stack(x, axis=-1), ok
 
 
@@ -70,7 +94,7 @@ def spd_inverse(
     """`A^-1` by Cholesky (`L^-T L^-1`, exactly symmetric), and whether `A` was positive
     definite."""
     n = A.shape[-1]
-    L, inv_diag, ok = _cholesky(A)
+    L, inv_diag, ok = cholesky(_unpack(A))
     zero = jnp.zeros_like(inv_diag[0])
     # M = L^-1, lower triangular, by forward substitution on the identity's columns.
     M: list[list[Array]] = [[zero] * n for _ in range(n)]

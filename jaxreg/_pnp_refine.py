@@ -31,15 +31,17 @@ gradient of the squared error, with its exact Hessian); the start pose is a cons
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 from jaxlie import SE3, SO3
 from jaxtyping import Array
 
-from jaxreg._pnp_linalg import matmul, spd_solve
-from jaxreg.camera import apply_intrinsics, distort, pose_jacobian
+from jaxreg._pnp_linalg import cho_solve, cholesky, packed
+from jaxreg.camera import pose_jacobian
 
-__all__ = ["chart_jacobian", "refine_pose", "weighted_jacobian"]
+__all__ = ["normal_equations", "refine_pose", "weighted_jacobian"]
 
 _QUADRATIC_PX = 1e-2  # below this Gauss-Newton change of the residuals, take the full step
 
@@ -49,10 +51,37 @@ def _tolerance(dtype) -> float:
     return 1e-5 if jnp.finfo(dtype).bits <= 32 else 1e-8
 
 
-def _rotation_coefficients(w: Array):
+# Everything below is written on scalars: a 3-vector is a tuple of three arrays, a matrix a
+# tuple of rows, per point an array `(N,)` and per problem a 0-d array. Vmapped over problems,
+# every operation then has the batch's shape `(B,)` or `(B, N)` and XLA fuses a whole step into
+# a few loops; with `(B, 3, 3)` arrays it splits into ~100 small kernels (slices, reductions,
+# batched dots) whose launch cost dominates.
+
+
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _mat_vec(M, v):
+    return tuple(M[i][0] * v[0] + M[i][1] * v[1] + M[i][2] * v[2] for i in range(3))
+
+
+def _row_mat(r, M):
+    """Row vector times matrix: `r @ M`."""
+    return tuple(r[0] * M[0][j] + r[1] * M[1][j] + r[2] * M[2][j] for j in range(3))
+
+
+def _point_sum(x: Array) -> Array:
+    """Sum over the points (the last axis): written out for a few points, so that it fuses with
+    the arithmetic around it."""
+    n = x.shape[-1]
+    return sum((x[..., i] for i in range(1, n)), x[..., 0]) if n <= 8 else jnp.sum(x, axis=-1)
+
+
+def _rotation_coefficients(w):
     """`(sin t / t, (1 - cos t) / t^2, (t - sin t) / t^3)` at t = |w|, double-where at 0."""
-    theta_sq = jnp.sum(w * w)
-    small = theta_sq < (1e-5 if jnp.finfo(w.dtype).bits <= 32 else 1e-10)
+    theta_sq = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    small = theta_sq < (1e-5 if jnp.finfo(theta_sq.dtype).bits <= 32 else 1e-10)
     safe = jnp.where(small, 1.0, theta_sq)
     theta = jnp.sqrt(safe)
     sin = jnp.sin(theta)
@@ -62,91 +91,178 @@ def _rotation_coefficients(w: Array):
     return a, b, c
 
 
-def _rotation_increment(w: Array, X: Array) -> Array:
-    """`SO3.exp(w) @ X - X` for points X (N, 3), without the cancellation of subtracting X:
-    `A w x X + B w x (w x X)` with A = sin(t)/t, B = (1 - cos t)/t^2."""
-    a, b, _ = _rotation_coefficients(w)
-    wx = jnp.cross(w, X)
-    return a * wx + b * jnp.cross(w, wx)
-
-
 def _chart(T0: SE3, delta: Array) -> SE3:
     """The pose at chart coordinate delta = (v, w): X -> T0 (exp(w) X + v)."""
     return T0 @ SE3.from_rotation_and_translation(SO3.exp(delta[3:]), delta[:3])
 
 
-def _distortion_increment(xy0: Array, dxy: Array, dist: Array | None) -> Array:
-    """`distort(xy0 + dxy) - distort(xy0)` for one problem, without cancellation: every term
-    is a product with an increment, so float32 keeps its relative precision on small steps."""
+def _distort(x, y, dist):
+    """Brown-Conrady distortion of normalised coordinates (as `jaxreg.camera.distort`)."""
     if dist is None:
-        return dxy
-    k1, k2, p1, p2, k3 = (dist[i] for i in range(5))
-    x0, y0 = xy0[:, 0], xy0[:, 1]
-    dx, dy = dxy[:, 0], dxy[:, 1]
+        return x, y
+    k1, k2, p1, p2, k3 = dist
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    return (
+        x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+        y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
+    )
+
+
+def _distortion_increment(x0, y0, dx, dy, dist):
+    """`distort(xy0 + dxy) - distort(xy0)` without cancellation: every term is a product with
+    an increment, so float32 keeps its relative precision on small steps."""
+    if dist is None:
+        return dx, dy
+    k1, k2, p1, p2, k3 = dist
     x1, y1 = x0 + dx, y0 + dy
     r0 = x0 * x0 + y0 * y0
     r1 = x1 * x1 + y1 * y1
     dx2 = dx * (2.0 * x0 + dx)  # x1^2 - x0^2
     dy2 = dy * (2.0 * y0 + dy)
     dr = dx2 + dy2
-    dxy_ = dx * y1 + x0 * dy  # x1 y1 - x0 y0
+    dxy = dx * y1 + x0 * dy  # x1 y1 - x0 y0
     radial1 = 1.0 + r1 * (k1 + r1 * (k2 + r1 * k3))
     dradial = dr * (k1 + k2 * (r1 + r0) + k3 * (r1 * r1 + r1 * r0 + r0 * r0))
-    ddx = dx * radial1 + x0 * dradial + 2.0 * p1 * dxy_ + p2 * (dr + 2.0 * dx2)
-    ddy = dy * radial1 + y0 * dradial + p1 * (dr + 2.0 * dy2) + 2.0 * p2 * dxy_
-    return jnp.stack([ddx, ddy], axis=-1)
+    ddx = dx * radial1 + x0 * dradial + 2.0 * p1 * dxy + p2 * (dr + 2.0 * dx2)
+    ddy = dy * radial1 + y0 * dradial + p1 * (dr + 2.0 * dy2) + 2.0 * p2 * dxy
+    return ddx, ddy
 
 
-def _chart_residuals(R0: Array, t0: Array, delta: Array, X, uv, K, dist, sw) -> Array:
-    """Weighted pixel residuals (2N,) of the pose `_chart((R0, t0), delta)`.
+def _distortion_jacobian(x, y, dist):
+    """Rows of `d distort / d (x, y)` (as `jaxreg.camera`'s)."""
+    if dist is None:
+        one, zero = jnp.ones_like(x), jnp.zeros_like(x)
+        return (one, zero), (zero, one)
+    k1, k2, p1, p2, k3 = dist
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    dradial = 2.0 * (k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3))
+    cross = x * y * dradial + 2.0 * (p1 * x + p2 * y)
+    return (
+        (radial + x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x, cross),
+        (cross, radial + y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x),
+    )
 
-    Evaluated as the residual at delta = 0 plus the change delta causes. Computed directly,
-    pixel coordinates (~1e3) and depths round at ~1e-4 px in float32, a floor on which LM
-    rejects every step; as start + increment the residual resolves changes of ~1e-7 of its
-    own size. Its Jacobian at delta = 0 is that of the right perturbation `T0 @ SE3.exp(delta)`.
+
+class _Problem(NamedTuple):
+    """One refinement problem in scalar form (see above), centred on the start pose."""
+
+    R0: tuple  # rows of the start rotation
+    X: tuple  # object points, three (N,) arrays
+    Xc0: tuple  # the points in the camera frame at the start
+    xy0: tuple  # their normalised coordinates
+    r0: tuple  # unweighted pixel residuals at the start, two (N,) arrays
+    K: tuple  # (k00, k01, k10, k11): the intrinsics' linear part
+    dist: tuple | None
+    sw: Array  # (N,) square roots of the weights
+    scale: tuple  # the six column scales of y = scale * delta
+
+    @classmethod
+    def build(cls, R0: Array, t0: Array, X, uv, K, dist, sw, scale) -> _Problem:
+        R = tuple(tuple(R0[i, j] for j in range(3)) for i in range(3))
+        Xs = (X[:, 0], X[:, 1], X[:, 2])
+        Xc0 = tuple(c + t0[i] for i, c in enumerate(_mat_vec(R, Xs)))
+        xy0 = (Xc0[0] / Xc0[2], Xc0[1] / Xc0[2])
+        d = None if dist is None else tuple(dist[i] for i in range(5))
+        xd, yd = _distort(*xy0, d)
+        r0 = (
+            K[0, 0] * xd + K[0, 1] * yd + K[0, 2] - uv[:, 0],
+            K[1, 0] * xd + K[1, 1] * yd + K[1, 2] - uv[:, 1],
+        )
+        k = (K[0, 0], K[0, 1], K[1, 0], K[1, 1])
+        return cls(R, Xs, Xc0, xy0, r0, k, d, sw, tuple(scale[i] for i in range(6)))
+
+
+def _evaluate(p: _Problem, y, *, jacobian: bool = True):
+    """Weighted residuals at chart coordinate `delta = y / scale`, evaluated as the residual at
+    the start plus the change delta causes (computed directly, pixel coordinates ~1e3 round at
+    ~1e-4 px in float32, a floor on which LM rejects every step; as start + increment the
+    residual resolves changes of ~1e-7 of its own size).
+
+    `y` is a `(6,)` array or six scalars. Returns the residuals `(ru, rv)` (two `(N,)` arrays)
+    alone, or with `jacobian` the normal equations' entries: `A` (21 upper-triangle entries of
+    `J^T J`, row by row), `g = J^T r` (6) and the cost `|r|^2 / 2`, with `J = d r / d y`.
+    With `E = exp(w)` and the right Jacobian `Jr(w)` of SO(3), the chart's variation
+    `(dv, dw)` is the right perturbation `(E^T dv, Jr dw)` of the pose it reaches, so
+    `J = [P R0, rows (X x (P R0 E)) Jr] / scale` with `P` the pixels' Jacobian with respect to
+    the camera-frame point.
     """
-    Xc = matmul(X, R0.T) + t0
-    xy0 = Xc[:, :2] / Xc[:, 2:3]
-    r0 = apply_intrinsics(distort(xy0, dist), K) - uv
-    dXc = matmul(_rotation_increment(delta[3:], X) + delta[:3], R0.T)
-    z1 = Xc[:, 2:3] + dXc[:, 2:3]
-    dxy = (dXc[:, :2] * Xc[:, 2:3] - Xc[:, :2] * dXc[:, 2:3]) / (Xc[:, 2:3] * z1)
-    du = matmul(_distortion_increment(xy0, dxy, dist), K[:2, :2].T)
-    return ((r0 + du) * sw[:, None]).reshape(-1)
+    delta = [y[i] / p.scale[i] for i in range(6)]
+    v, w = delta[:3], delta[3:]
+    a, b, c = _rotation_coefficients(w)
+    wX = _cross(w, p.X)
+    wwX = _cross(w, wX)
+    dXc = _mat_vec(p.R0, tuple(a * wX[i] + b * wwX[i] + v[i] for i in range(3)))
+    z0 = p.Xc0[2]
+    z1 = z0 + dXc[2]
+    dx = (dXc[0] * z0 - p.Xc0[0] * dXc[2]) / (z0 * z1)
+    dy = (dXc[1] * z0 - p.Xc0[1] * dXc[2]) / (z0 * z1)
+    ddx, ddy = _distortion_increment(*p.xy0, dx, dy, p.dist)
+    k00, k01, k10, k11 = p.K
+    ru = (p.r0[0] + k00 * ddx + k01 * ddy) * p.sw
+    rv = (p.r0[1] + k10 * ddx + k11 * ddy) * p.sw
+    if not jacobian:
+        return ru, rv
+    x1, y1 = p.xy0[0] + dx, p.xy0[1] + dy
+    (d00, d01), (d10, d11) = _distortion_jacobian(x1, y1, p.dist)
+    inv_z = p.sw / z1  # the weights ride along from here
+    rows = []
+    for q0, q1 in (
+        (k00 * d00 + k01 * d10, k00 * d01 + k01 * d11),
+        (k10 * d00 + k11 * d10, k10 * d01 + k11 * d11),
+    ):
+        P = (q0 * inv_z, q1 * inv_z, -(q0 * x1 + q1 * y1) * inv_z)
+        B = _row_mat(P, p.R0)  # d pixel / d v
+        # E = I + a W + b W^2 and Jr = I - b W + c W^2, applied without forming them.
+        BE = _row_mat(B, _exp_matrix(w, a, b))
+        Jw = _row_mat(_cross(p.X, BE), _right_jacobian(w, b, c))
+        rows.append(tuple(col / p.scale[j] for j, col in enumerate((*B, *Jw))))
+    J0, J1 = rows
+    A = tuple(_point_sum(J0[i] * J0[j] + J1[i] * J1[j]) for i in range(6) for j in range(i, 6))
+    g = tuple(_point_sum(J0[i] * ru + J1[i] * rv) for i in range(6))
+    cost = 0.5 * _point_sum(ru * ru + rv * rv)
+    return A, g, cost
+
+
+def _skew(w):
+    zero = jnp.zeros_like(w[0])
+    return ((zero, -w[2], w[1]), (w[2], zero, -w[0]), (-w[1], w[0], zero))
+
+
+def _exp_matrix(w, a, b):
+    W = _skew(w)
+    W2 = tuple(_row_mat(W[i], W) for i in range(3))
+    return tuple(
+        tuple((1.0 if i == j else 0.0) + a * W[i][j] + b * W2[i][j] for j in range(3))
+        for i in range(3)
+    )
+
+
+def _right_jacobian(w, b, c):
+    W = _skew(w)
+    W2 = tuple(_row_mat(W[i], W) for i in range(3))
+    return tuple(
+        tuple((1.0 if i == j else 0.0) - b * W[i][j] + c * W2[i][j] for j in range(3))
+        for i in range(3)
+    )
+
+
+def normal_equations(A21, g6, cost):
+    """`(J^T J (6, 6), J^T r (6,), cost)` as arrays, from `_evaluate`'s scalars."""
+    index = [[0] * 6 for _ in range(6)]
+    k = 0
+    for i in range(6):
+        for j in range(i, 6):
+            index[i][j] = index[j][i] = k
+            k += 1
+    A = jnp.stack([jnp.stack([A21[index[i][j]] for j in range(6)], -1) for i in range(6)], -2)
+    return A, jnp.stack(g6, -1), cost
 
 
 def weighted_jacobian(pose: SE3, X, K, dist, sw) -> Array:
     """d (weighted pixel residuals) / d delta, `(2N, 6)`, of the right perturbation at `pose`."""
     return (pose_jacobian(pose, X, K, dist) * sw[:, None, None]).reshape(-1, 6)
-
-
-def _skew(w: Array) -> Array:
-    zero = jnp.zeros_like(w[0])
-    return jnp.stack(
-        [
-            jnp.stack([zero, -w[2], w[1]]),
-            jnp.stack([w[2], zero, -w[0]]),
-            jnp.stack([-w[1], w[0], zero]),
-        ]
-    )
-
-
-def chart_jacobian(T0: SE3, delta: Array, X, K, dist, sw) -> Array:
-    """d `_chart_residuals` / d delta at `delta`, `(2N, 6)`, in closed form.
-
-    With `E = exp(w)` and the right Jacobian `Jr(w)` of SO(3), the chart's variation
-    `(dv, dw)` is the right perturbation `(E^T dv, Jr dw)` of the pose it reaches, so this is
-    `weighted_jacobian` there times `blockdiag(E^T, Jr)`.
-    """
-    w = delta[3:]
-    a, b, c = _rotation_coefficients(w)
-    W = _skew(w)
-    W2 = matmul(W, W)
-    eye = jnp.eye(3, dtype=delta.dtype)
-    E = eye + a * W + b * W2
-    Jr = eye - b * W + c * W2
-    J = weighted_jacobian(_chart(T0, delta), X, K, dist, sw)
-    return jnp.concatenate([matmul(J[:, :3], E.T), matmul(J[:, 3:], Jr)], axis=1)
 
 
 def refine_pose(T0: SE3, active, X, uv, K, dist, w, *, max_iterations: int):
@@ -156,8 +272,8 @@ def refine_pose(T0: SE3, active, X, uv, K, dist, w, *, max_iterations: int):
     unit change of any component moves the residuals by about one pixel. A lane that is not
     `active` (its input failed, or it is a start not worth refining) or has a non-finite start
     takes no step and returns T0 unchanged, 0 iterations and `converged` True; for
-    differentiation its residual is `y` itself (zero-padded to 2N), whose well-posed Hessian
-    keeps the implicit derivative finite (an all-zero problem would make it singular). Returns
+    differentiation its residual is `y` itself, whose well-posed Hessian keeps the implicit
+    derivative finite (an all-zero problem would make it singular). Returns
     (pose, iterations, converged).
     """
     T0 = jax.lax.stop_gradient(T0)
@@ -168,38 +284,25 @@ def refine_pose(T0: SE3, active, X, uv, K, dist, w, *, max_iterations: int):
     X, uv = jnp.where(ok, X, 0.0), jnp.where(ok, uv, 0.0)
     sw = jnp.sqrt(jnp.where(ok, w, 0.0))
     R0, t0 = start.rotation().as_matrix(), start.translation()
-    scale = jnp.linalg.norm(weighted_jacobian(start, X, K, dist, sw), axis=0)
+    problem = jax.lax.stop_gradient(_Problem.build(R0, t0, X, uv, K, dist, sw, jnp.ones(6, dtype)))
+    A, _, _ = _evaluate(problem, jnp.zeros(6, dtype))
+    diagonal = jnp.stack([A[0], A[6], A[11], A[15], A[18], A[20]])  # of J^T J at T0
+    scale = jnp.sqrt(diagonal)
     scale = jax.lax.stop_gradient(jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0))
-    pad = jnp.zeros(2 * X.shape[0], dtype)
-
-    def residual_fn(X, uv, K, dist, sw):
-        def residuals(y):
-            r = _chart_residuals(R0, t0, y / scale, X, uv, K, dist, sw)
-            return jnp.where(ok, r, pad.at[:6].set(y))
-
-        return residuals
-
-    def jacobian_fn(X, K, dist, sw):
-        def jacobian(y):
-            J = chart_jacobian(start, y / scale, X, K, dist, sw) / scale
-            return jnp.where(ok, J, jnp.zeros((pad.shape[0], 6), dtype).at[:6].set(jnp.eye(6)))
-
-        return jacobian
-
     # The loop runs on constants (it is not differentiated); custom_root differentiates the
     # optimality condition at its solution instead.
-    X_, uv_, K_, dist_, sw_ = jax.lax.stop_gradient((X, uv, K, dist, sw))
     found, iterations, converged = _levenberg_marquardt(
-        residual_fn(X_, uv_, K_, dist_, sw_),
-        jacobian_fn(X_, K_, dist_, sw_),
-        jnp.zeros(6, dtype),
-        ok,
-        max_iterations,
+        problem._replace(scale=tuple(scale[i] for i in range(6))), ok, max_iterations
     )
-    residuals = residual_fn(X, uv, K, dist, sw)
+    differentiable = _Problem.build(R0, t0, X, uv, K, dist, sw, scale)
 
     def gradient(y):
-        return jax.grad(lambda y: 0.5 * jnp.sum(residuals(y) ** 2))(y)
+        def cost(y):
+            ru, rv = _evaluate(differentiable, y, jacobian=False)
+            cost = 0.5 * jnp.sum(ru * ru + rv * rv)
+            return jnp.where(ok, cost, 0.5 * jnp.sum(y * y))
+
+        return jax.grad(cost)(y)
 
     def tangent_solve(hessian_vector_product, b):
         return jnp.linalg.solve(jax.jacfwd(hessian_vector_product)(b), b)
@@ -209,58 +312,64 @@ def refine_pose(T0: SE3, active, X, uv, K, dist, w, *, max_iterations: int):
     return pose, iterations, converged
 
 
-def _levenberg_marquardt(residuals, jacobian, y0, ok, max_iterations: int):
-    """The damped Gauss-Newton loop of the module docstring. Returns (y, iterations,
-    converged); a lane that is not `ok` takes no step."""
-    dtype = y0.dtype
+def _levenberg_marquardt(problem: _Problem, ok, max_iterations: int):
+    """The damped Gauss-Newton loop of the module docstring, on scalars. Returns (y,
+    iterations, converged); a lane that is not `ok` takes no step."""
+    dtype = problem.sw.dtype
     tol = _tolerance(dtype)
-    eye = jnp.eye(6, dtype=dtype)
-    r, J = residuals(y0), jacobian(y0)
-    state = dict(
-        y=y0,
-        r=r,
-        J=J,
-        cost=0.5 * jnp.sum(r * r),
-        lam=jnp.asarray(1e-3, dtype),
-        nu=jnp.asarray(2.0, dtype),
-        iterations=jnp.zeros((), jnp.int32),
-        done=~ok,
-        converged=~ok,
+    y0 = jnp.zeros(6, dtype)
+    A, g, cost = _evaluate(problem, y0)
+    state = (
+        tuple(y0[i] for i in range(6)),
+        A,
+        g,
+        cost,
+        jnp.asarray(1e-3, dtype),  # lambda
+        jnp.asarray(2.0, dtype),  # nu
+        jnp.zeros((), jnp.int32),
+        ~ok,  # done
+        ~ok,  # converged
     )
 
     def cond(s):
-        return ~s["done"] & (s["iterations"] < max_iterations)
+        return ~s[7] & (s[6] < max_iterations)
 
     def body(s):
-        J = s["J"]
-        A, g = matmul(J.T, J), jnp.sum(J * s["r"][:, None], axis=0)
-        newton, definite = spd_solve(A, -g)
-        change = jnp.sqrt(jnp.sum(jnp.sum(J * newton, axis=1) ** 2))  # |J newton|
+        y, A, g, cost, lam, nu, iterations, _, _ = s
+        rows = packed(A)
+        minus_g = [-gi for gi in g]
+        L, inv_diag, definite = cholesky(rows)
+        newton = cho_solve(L, inv_diag, minus_g)
+        # |J newton|^2 = newton^T A newton = -newton^T g
+        change = jnp.sqrt(jnp.maximum(-sum(n * gi for n, gi in zip(newton, g, strict=True)), 0.0))
         quadratic = definite & (change <= _QUADRATIC_PX)
         converged = definite & (change <= tol)
-        damped, _ = spd_solve(A + s["lam"] * eye, -g)
-        step = jnp.where(quadratic, newton, damped)
-        y = s["y"] + step
-        r, J = residuals(y), jacobian(y)
-        cost = 0.5 * jnp.sum(r * r)
-        predicted = 0.5 * jnp.sum(step * (s["lam"] * step - g))
-        rho = (s["cost"] - cost) / jnp.where(predicted > 0, predicted, 1.0)
-        finite = jnp.isfinite(cost) & jnp.all(jnp.isfinite(J))
-        accept = finite & (quadratic | (cost < s["cost"]))
+        damped_rows = [
+            [a + lam if i == j else a for j, a in enumerate(r)] for i, r in enumerate(rows)
+        ]
+        L, inv_diag, _ = cholesky(damped_rows)
+        damped = cho_solve(L, inv_diag, minus_g)
+        step = [jnp.where(quadratic, n, d) for n, d in zip(newton, damped, strict=True)]
+        y_new = tuple(yi + si for yi, si in zip(y, step, strict=True))
+        A_new, g_new, cost_new = _evaluate(problem, y_new)
+        predicted = 0.5 * sum(si * (lam * si - gi) for si, gi in zip(step, g, strict=True))
+        rho = (cost - cost_new) / jnp.where(predicted > 0, predicted, 1.0)
+        finite = jnp.isfinite(cost_new + sum(A_new))
+        accept = finite & (quadratic | (cost_new < cost))
         shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-        lam = jnp.where(accept, s["lam"] * jnp.where(quadratic, 1.0, shrink), s["lam"] * s["nu"])
-        keep = lambda new, old: jnp.where(accept, new, old)  # noqa: E731
-        return dict(
-            y=keep(y, s["y"]),
-            r=keep(r, s["r"]),
-            J=keep(J, s["J"]),
-            cost=keep(cost, s["cost"]),
-            lam=lam,
-            nu=jnp.where(accept, 2.0, 2.0 * s["nu"]),
-            iterations=s["iterations"] + 1,
-            done=converged,
-            converged=converged,
+        lam = jnp.where(accept, lam * jnp.where(quadratic, 1.0, shrink), lam * nu)
+        keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(accept, a, b), new, old)  # noqa: E731
+        return (
+            keep(y_new, y),
+            keep(A_new, A),
+            keep(g_new, g),
+            keep(cost_new, cost),
+            lam,
+            jnp.where(accept, 2.0, 2.0 * nu),
+            iterations + 1,
+            converged,
+            converged,
         )
 
-    s = jax.lax.while_loop(cond, body, state)
-    return s["y"], s["iterations"], s["converged"]
+    y, _, _, _, _, _, iterations, _, converged = jax.lax.while_loop(cond, body, state)
+    return jnp.stack(y), iterations, converged
