@@ -27,7 +27,8 @@ Two estimators (``registration``):
 * ``"pipeline"`` (default): :func:`jaxreg.estimate_pose` on every frame, segmentation and
   global initialisation included: what a user of the library gets. A frame where it fails is
   counted (``found``) and left out of the statistics. The hand-eye correction registers the
-  viewpoint frames' pipeline segments, started from the pipeline's poses.
+  viewpoint frames' pipeline segments (the pixels their poses explain), started from the
+  pipeline's poses.
 * ``"mask"``: the scene's exact target mask, and point-to-plane ICP from the truth perturbed by
   ``init_sigma`` (the correction's own registration, see :mod:`jaxreg.studies`): isolates the
   sensor, placement and calibration errors from segmentation and initialisation, at a
@@ -227,17 +228,34 @@ def _register_masks(stacked, masks, model_points, model_normals, truth, tier, op
     return poses, status
 
 
-def _register_pipeline(frames, model_points, model_normals, symmetry, truth):
+def _explained(frame: RGBDFrame, mask: np.ndarray, pose: SE3, tree, distance: float):
+    """``mask`` less the pixels whose lifted point lies farther than ``distance`` from the
+    model placed at ``pose`` (table and background that a segment holds)."""
+    points = np.asarray(frame.points(mask))[mask]
+    near, _ = tree.query(np.asarray(pose.inverse() @ points), distance_upper_bound=distance)
+    keep = mask.copy()
+    keep[mask] = np.isfinite(near)
+    return keep
+
+
+def _register_pipeline(frames, model_points, model_normals, symmetry, truth, inlier_distance):
     """:func:`jaxreg.estimate_pose` on every frame: poses ``(K,)`` (the truth where it
-    failed), found ``(K,)``, eroded segment masks ``(K, H, W)`` and reasons."""
+    failed), found ``(K,)``, masks ``(K, H, W)`` (the eroded segment, less the pixels its pose
+    does not put within ``inlier_distance`` of the model) and reasons."""
+    from scipy.spatial import cKDTree
+
     from jaxreg.pipeline import estimate_pose
 
+    tree = cKDTree(model_points)
     poses, found, masks, reasons = [], [], [], []
     for k, frame in enumerate(frames):
         est = estimate_pose(frame, model_points, model_normals=model_normals, symmetry=symmetry)
         found.append(est.success)
         poses.append(est.pose.wxyz_xyz if est.success else truth.wxyz_xyz[k])
-        masks.append(_erode(est.mask))
+        mask = _erode(est.mask)
+        masks.append(
+            _explained(frame, mask, est.pose, tree, inlier_distance) if est.success else mask
+        )
         reasons.append(est.reason)
     return SE3(jnp.stack(poses).astype(jnp.float32)), np.array(found), np.stack(masks), reasons
 
@@ -265,6 +283,7 @@ def repeatability(
     init_sigma: tuple[float, float] = (0.005, 2.0),
     max_correspondence_distance: float = 0.015,
     max_iterations: int = 40,
+    inlier_distance: float = 0.004,
     gripper_opening: float = 0.040,
     object_width: float = 0.025,
     closing_axis: Float[ArrayLike, " 3"] = (1.0, 0.0, 0.0),
@@ -303,6 +322,10 @@ def repeatability(
             start, a perturbation of the truth.
         max_correspondence_distance, max_iterations: the ``"mask"`` registration's ICP
             (point-to-plane).
+        inlier_distance: with ``"pipeline"``, the hand-eye correction registers only the
+            segment pixels that the pipeline's pose puts within this distance (metres) of the
+            model: a segment also holds table and background pixels, which have no match on
+            the model and would drag a scene-to-model registration differently from each view.
         gripper_opening, object_width: the grasp (metres): margin ``(opening - width) / 2``.
         closing_axis: ``(3,)`` base-frame direction along which the jaws close.
 
@@ -379,7 +402,7 @@ def repeatability(
         found, reasons = np.ones(len(plan), bool), ("",) * len(plan)
     else:
         poses, found, masks, reasons = _register_pipeline(
-            frames, model_points, model_normals, base.symmetry, truth
+            frames, model_points, model_normals, base.symmetry, truth, inlier_distance
         )
         status, reasons = None, tuple(reasons)
         for t in range(3):
