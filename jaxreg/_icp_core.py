@@ -17,10 +17,11 @@ import jax.numpy as jnp
 from jaxlie import SE3, SO3
 from jaxtyping import Array, Bool, Float, Int
 
+from jaxreg._eig4 import jacobi_eigh
 from jaxreg._result import AbstractResult
-from jaxreg.alignment import _fit
+from jaxreg.alignment import _centred_moments, _eps, _shape_invariants
 from jaxreg.kernels import AbstractRobustKernel, trim_mask
-from jaxreg.lie import se3_exp
+from jaxreg.lie import procrustes_quaternion_matrix, se3_exp
 from jaxreg.neighbors import NeighborGrid, knn, query_nearest
 
 
@@ -213,12 +214,13 @@ def _plane_step(problem: Problem, moved: Array, pairs: Pairs) -> tuple[SE3, Arra
 
 
 def pseudo_inverse(a: Float[Array, "6 6"]) -> tuple[Array, Array, Array]:
-    """Pseudo-inverse of the symmetric PSD ``a`` by its eigendecomposition, eigenvalues below
+    """Pseudo-inverse of the symmetric PSD ``a`` by its eigendecomposition
+    (:func:`jaxreg._eig4.jacobi_eigh`: no LAPACK call in the loop), eigenvalues below
     ``1e-5`` (float32; ``1e-6`` float64) of the largest counted as zero.
 
     Returns the ``(6, 6)`` pseudo-inverse, the ``(6, 6)`` projector onto the discarded
     (unconstrained) directions, and a flag: some direction was discarded."""
-    lam, vec = jnp.linalg.eigh(a)
+    lam, vec = jacobi_eigh(a)
     rel = 1e-6 if a.dtype == jnp.float64 else 1e-5
     ok = lam > rel * jnp.maximum(lam[-1], jnp.finfo(lam.dtype).tiny)
     inv = jnp.where(ok, 1.0 / jnp.where(ok, lam, 1.0), 0.0)
@@ -226,16 +228,38 @@ def pseudo_inverse(a: Float[Array, "6 6"]) -> tuple[Array, Array, Array]:
     return (vec * inv) @ vec.T, null, ~jnp.all(ok)
 
 
+def _horn_step(moved: Array, matched: Array, w: Array) -> tuple[SE3, Array]:
+    """Weighted Kabsch of ``moved`` onto ``matched`` and its degeneracy flag: the closed
+    form and tests of :func:`jaxreg.alignment.align` (the same moments and thresholds as its
+    ``_fit``), with Horn's quaternion eigenproblem solved by :func:`jaxreg._eig4.jacobi_eigh`
+    rather than LAPACK, whose batched CPU kernel deadlocks on several host devices (see
+    :mod:`jaxreg._eig4`). Rows with ``w == 0`` are ignored whatever their values."""
+    weight_sum, count, mu, h, cov_src, cov_dst = _centred_moments(moved, matched, w)
+    # q^T K(H^T) q = tr(R(q)^T H^T) = tr(R H): Horn's matrix is K of the transpose.
+    eig, vectors = jacobi_eigh(procrustes_quaternion_matrix(h.T))
+    q = jnp.where(weight_sum > 0, vectors[:, -1], jnp.array([1, 0, 0, 0], h.dtype))
+    tol = 100 * _eps(w.dtype)
+    scale_ref = jnp.abs(eig[-1]) + jnp.abs(eig[0])
+    eigengap = (eig[-1] - eig[-2]) / jnp.where(scale_ref > 0, scale_ref, 1.0) * 2
+
+    def collinear(c):
+        tr, i2, _ = _shape_invariants(c)
+        return i2 <= tol * jnp.where(tr > 0, tr, 1.0) ** 2
+
+    degenerate = (count < 3) | collinear(cov_src) | collinear(cov_dst) | (eigengap <= tol)
+    rotation = SO3(wxyz=q)
+    translation = mu[3:] - rotation @ mu[:3]
+    return SE3.from_rotation_and_translation(rotation, translation), degenerate
+
+
 def _increment(problem: Problem, opts: Options, moved: Array, pairs: Pairs):
     """Increment (left, target frame) from the ``pairs`` of the ``moved`` source; and
     :func:`jaxreg.alignment.align`'s degeneracy flag (point-to-point) or rank loss (plane)."""
     if opts.method == "point_to_plane":
         return _plane_step(problem, moved, pairs)
-    # align()'s closed form without its input checks: the weighted rows are finite by
-    # construction, and _fit ignores the others (unmatched, or matched to target padding).
-    fit = _fit(moved, fill_gather(problem.target, pairs.index), pairs.weight)
-    translation = fit.mu_dst - fit.rotation @ fit.mu_src
-    return SE3.from_rotation_and_translation(fit.rotation, translation), fit.degenerate
+    # The weighted rows are finite by construction; the others (unmatched, or matched to
+    # target padding) are ignored.
+    return _horn_step(moved, fill_gather(problem.target, pairs.index), pairs.weight)
 
 
 def run(problem: Problem, opts: Options, init: SE3) -> RegistrationResult:

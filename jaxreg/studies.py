@@ -196,9 +196,8 @@ def basin_radius(angles_deg: Float[ArrayLike, " A"], success_rate: ArrayLike, le
     return radius
 
 
-@eqx.filter_jit
-def _register(problem, opts, starts, truth, symmetry, thresholds):
-    """ICP from every start (the leading axis of ``starts``, sharded) and its scores."""
+def _scores(problem, opts, starts, truth, symmetry, thresholds):
+    """ICP from every start of ``starts`` ``(S, 7)`` and its scores (one device's share)."""
     result = jax.vmap(run, in_axes=(None, None, 0))(problem, opts, SE3(starts))
     t_err, r_err = pose_error(result.pose, SE3(truth), symmetry=symmetry)
     r_deg = jnp.rad2deg(r_err)
@@ -214,6 +213,21 @@ def _register(problem, opts, starts, truth, symmetry, thresholds):
         translation_error=t_err,
         success=success,
     )
+
+
+@eqx.filter_jit
+def _register(problem, opts, starts, truth, symmetry, thresholds, mesh):
+    """:func:`_scores` with the start axis split over ``mesh``: each device runs its own loop
+    over its own starts (``shard_map``), so the loop needs no collective per iteration and a
+    device stops when its own starts have finished."""
+    whole, split = jax.sharding.PartitionSpec(), jax.sharding.PartitionSpec("starts")
+    return jax.shard_map(
+        _scores,
+        mesh=mesh,
+        in_specs=(whole, whole, split, whole, whole, whole),
+        out_specs=split,
+        check_vma=False,
+    )(problem, opts, starts, truth, symmetry, thresholds)
 
 
 def _host(tree):
@@ -326,7 +340,7 @@ def basin_sweep(
     for i in range(count):
         block = flat[i * chunk : (i + 1) * chunk]
         sharded = jax.make_array_from_callback(block.shape, sharding, block.__getitem__)
-        out = _register(constants[0], constants[1], sharded, *constants[2:])
+        out = _register(constants[0], constants[1], sharded, *constants[2:], mesh)
         parts.append(multihost_utils.process_allgather(out, tiled=True))
         if progress is not None:
             progress(min((i + 1) * chunk, total), total)
