@@ -41,9 +41,13 @@ from jaxtyping import Array
 from jaxreg._pnp_linalg import cho_solve, cholesky, packed
 from jaxreg.camera import pose_jacobian
 
-__all__ = ["normal_equations", "refine_pose", "weighted_jacobian"]
+__all__ = ["normal_equations", "refine_poses", "weighted_jacobian"]
 
 _QUADRATIC_PX = 1e-2  # below this Gauss-Newton change of the residuals, take the full step
+_SECANT_PX = 2e-5  # above it, the curvature measured along a step is resolved (float32)
+_LAMBDA_AFTER_REJECT = 1e-3  # a rejected step raises lambda to at least this times nu
+_MIN_RATIO = 0.25  # the secant correction lengthens a step at most 4-fold
+_FULL_STEPS = 10  # steps run on the whole batch before the starts still running are gathered
 
 
 def _tolerance(dtype) -> float:
@@ -265,35 +269,65 @@ def weighted_jacobian(pose: SE3, X, K, dist, sw) -> Array:
     return (pose_jacobian(pose, X, K, dist) * sw[:, None, None]).reshape(-1, 6)
 
 
-def refine_pose(T0: SE3, active, X, uv, K, dist, w, *, max_iterations: int):
-    """Levenberg-Marquardt from T0 (a constant for differentiation); see the module docstring.
+def refine_poses(T0: SE3, active, X, uv, K, dist, w, *, max_iterations: int, axes):
+    """Levenberg-Marquardt from each start of a batch of problems; see the module docstring.
+
+    `T0` has batch `(P, S)` (S starts of each of P problems) and `active` shape `(P, S)`;
+    `X` `(P, N, 3)`, `uv` `(P, N, 2)`, `w` `(P, N)`; `K` and `dist` are per problem or shared
+    as `axes` (their vmap axes, 0 or None) says. Returns (pose `(P, S)`, iterations `(P, S)`,
+    converged `(P, S)`).
 
     The variable is y = s * delta with s the column norms of the residual Jacobian at T0, so a
-    unit change of any component moves the residuals by about one pixel. A lane that is not
-    `active` (its input failed, or it is a start not worth refining) or has a non-finite start
-    takes no step and returns T0 unchanged, 0 iterations and `converged` True; for
-    differentiation its residual is `y` itself, whose well-posed Hessian keeps the implicit
-    derivative finite (an all-zero problem would make it singular). Returns
-    (pose, iterations, converged).
+    unit change of any component moves the residuals by about one pixel. A start that is not
+    `active` (its input failed, or it is not worth refining) or is not finite takes no step
+    and returns T0 unchanged, 0 iterations and `converged` True; for differentiation its
+    residual is `y` itself, whose well-posed Hessian keeps the implicit derivative finite (an
+    all-zero problem would make it singular). T0 is a constant for differentiation.
     """
+    per_start = (0, 0, None, None, None, None, None)  # T0, active vary by start
+    in_axes = (0, 0, 0, 0, axes[0], axes[1], 0)
+    prepare = jax.vmap(jax.vmap(_prepare, in_axes=per_start), in_axes=in_axes)
+    problem, state = prepare(T0, active, X, uv, K, dist, w)
+    shape = state.shape[:2]
+    flat = lambda a: a.reshape(-1, *a.shape[2:])  # noqa: E731
+    state = _run(jax.tree.map(flat, problem), flat(state), max_iterations)
+    state = state.reshape(*shape, *state.shape[1:])
+    finish = jax.vmap(jax.vmap(_finish, in_axes=per_start + (0,)), in_axes=in_axes + (0,))
+    return finish(T0, active, X, uv, K, dist, w, state)
+
+
+def _start(T0: SE3, active, X, uv, K, dist, w):
+    """The chart's centre and the problem's arrays as the loop sees them (see refine_poses)."""
     T0 = jax.lax.stop_gradient(T0)
-    dtype = X.dtype
     ok = active & jnp.all(jnp.isfinite(T0.wxyz_xyz))
     dummy = jnp.zeros_like(T0.wxyz_xyz).at[0].set(1.0).at[6].set(1.0)  # identity, z = 1
     start = SE3(jnp.where(ok, T0.wxyz_xyz, dummy))
     X, uv = jnp.where(ok, X, 0.0), jnp.where(ok, uv, 0.0)
     sw = jnp.sqrt(jnp.where(ok, w, 0.0))
-    R0, t0 = start.rotation().as_matrix(), start.translation()
-    problem = jax.lax.stop_gradient(_Problem.build(R0, t0, X, uv, K, dist, sw, jnp.ones(6, dtype)))
-    A, _, _ = _evaluate(problem, jnp.zeros(6, dtype))
-    diagonal = jnp.stack([A[0], A[6], A[11], A[15], A[18], A[20]])  # of J^T J at T0
-    scale = jnp.sqrt(diagonal)
-    scale = jax.lax.stop_gradient(jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0))
-    # The loop runs on constants (it is not differentiated); custom_root differentiates the
-    # optimality condition at its solution instead.
-    found, iterations, converged = _levenberg_marquardt(
-        problem._replace(scale=tuple(scale[i] for i in range(6))), ok, max_iterations
-    )
+    return T0, ok, start, start.rotation().as_matrix(), start.translation(), X, uv, sw
+
+
+def _scale(R0, t0, X, uv, K, dist, sw):
+    """The column norms of the residual Jacobian at the start (1 where zero or not finite)."""
+    problem = _Problem.build(R0, t0, X, uv, K, dist, sw, jnp.ones(6, X.dtype))
+    A, _, _ = _evaluate(problem, jnp.zeros(6, X.dtype))
+    scale = jnp.sqrt(jnp.stack([A[0], A[6], A[11], A[15], A[18], A[20]]))
+    return jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)
+
+
+def _prepare(T0: SE3, active, X, uv, K, dist, w):
+    """One start's problem (constants) and the loop's initial state."""
+    T0, ok, _, R0, t0, X, uv, sw = jax.lax.stop_gradient(_start(T0, active, X, uv, K, dist, w))
+    K, dist = jax.lax.stop_gradient((K, dist))
+    scale = _scale(R0, t0, X, uv, K, dist, sw)
+    problem = _Problem.build(R0, t0, X, uv, K, dist, sw, scale)
+    return problem, _initial_state(problem, ok)
+
+
+def _finish(T0: SE3, active, X, uv, K, dist, w, state):
+    """The pose the loop reached, differentiable by the implicit function theorem at it."""
+    T0, ok, start, R0, t0, X, uv, sw = _start(T0, active, X, uv, K, dist, w)
+    scale = jax.lax.stop_gradient(_scale(R0, t0, X, uv, K, dist, sw))
     differentiable = _Problem.build(R0, t0, X, uv, K, dist, sw, scale)
 
     def gradient(y):
@@ -307,69 +341,107 @@ def refine_pose(T0: SE3, active, X, uv, K, dist, w, *, max_iterations: int):
     def tangent_solve(hessian_vector_product, b):
         return jnp.linalg.solve(jax.jacfwd(hessian_vector_product)(b), b)
 
+    found = jax.lax.stop_gradient(state[:6])
     y = jax.lax.custom_root(gradient, found, lambda _, y0: y0, tangent_solve)
     pose = SE3(jnp.where(ok, _chart(start, y / scale).wxyz_xyz, T0.wxyz_xyz))
-    return pose, iterations, converged
+    return pose, state[43].astype(jnp.int32), state[45] > 0
 
 
-def _levenberg_marquardt(problem: _Problem, ok, max_iterations: int):
-    """The damped Gauss-Newton loop of the module docstring, on scalars. Returns (y,
-    iterations, converged); a lane that is not `ok` takes no step."""
+def _run(problem: _Problem, state: Array, max_iterations: int) -> Array:
+    """The loop over a flat batch of starts `(L, ...)`, until each has converged or spent
+    `max_iterations` steps.
+
+    A step costs in proportion to the lanes it carries, finished or not, and most starts
+    converge within ~8 steps while a few in flat valleys take several times that. So the whole
+    batch runs `_FULL_STEPS` steps; then the starts still running (the first `L // 8`, in
+    lane order) are gathered and run on their own to the end; any left after that (more than
+    `L // 8` were still running) finish in the whole batch. A lane's steps and result do not
+    depend on which of these runs carried it."""
+    lanes = state.shape[0]
+    step = jax.vmap(_step)
+
+    def running(state, limit):
+        return (state[:, 44] == 0) & (state[:, 43] < limit)
+
+    def loop(problem, state, limit):
+        def body(state):
+            return jnp.where(running(state, limit)[:, None], step(problem, state), state)
+
+        return jax.lax.while_loop(lambda state: jnp.any(running(state, limit)), body, state)
+
+    capacity = lanes // 8
+    if capacity < 8:
+        return loop(problem, state, max_iterations)
+    state = loop(problem, state, min(_FULL_STEPS, max_iterations))
+    subset = jnp.argsort(~running(state, max_iterations), stable=True)[:capacity]
+    part = loop(jax.tree.map(lambda a: a[subset], problem), state[subset], max_iterations)
+    state = state.at[subset].set(part)
+    return loop(problem, state, max_iterations)
+
+
+def _initial_state(problem: _Problem, ok) -> Array:
+    """The loop state of one start, one array: y (6), A (21), g (6), cost, lambda, nu, the last
+    accepted step (6), its curvature ratio, iterations, done, converged. (As separate arrays,
+    every carried scalar would be written by a kernel of its own each step.)"""
     dtype = problem.sw.dtype
-    tol = _tolerance(dtype)
-    y0 = jnp.zeros(6, dtype)
-    A, g, cost = _evaluate(problem, y0)
-    state = (
-        tuple(y0[i] for i in range(6)),
-        A,
-        g,
-        cost,
-        jnp.asarray(1e-3, dtype),  # lambda
-        jnp.asarray(2.0, dtype),  # nu
-        jnp.zeros((), jnp.int32),
-        ~ok,  # done
-        ~ok,  # converged
+    zero = jnp.zeros((), dtype)
+    A, g, cost = _evaluate(problem, (zero,) * 6)
+    notok = jnp.where(ok, 0.0, 1.0).astype(dtype)
+    return jnp.stack(
+        [*(zero,) * 6, *A, *g, cost, 1e-3 + zero, 2.0 + zero, *(zero,) * 6, 1.0 + zero]
+        + [zero, notok, notok]
     )
 
-    def cond(s):
-        return ~s[7] & (s[6] < max_iterations)
 
-    def body(s):
-        y, A, g, cost, lam, nu, iterations, _, _ = s
-        rows = packed(A)
-        minus_g = [-gi for gi in g]
-        L, inv_diag, definite = cholesky(rows)
-        newton = cho_solve(L, inv_diag, minus_g)
-        # |J newton|^2 = newton^T A newton = -newton^T g
-        change = jnp.sqrt(jnp.maximum(-sum(n * gi for n, gi in zip(newton, g, strict=True)), 0.0))
-        quadratic = definite & (change <= _QUADRATIC_PX)
-        converged = definite & (change <= tol)
-        damped_rows = [
-            [a + lam if i == j else a for j, a in enumerate(r)] for i, r in enumerate(rows)
-        ]
-        L, inv_diag, _ = cholesky(damped_rows)
-        damped = cho_solve(L, inv_diag, minus_g)
-        step = [jnp.where(quadratic, n, d) for n, d in zip(newton, damped, strict=True)]
-        y_new = tuple(yi + si for yi, si in zip(y, step, strict=True))
-        A_new, g_new, cost_new = _evaluate(problem, y_new)
-        predicted = 0.5 * sum(si * (lam * si - gi) for si, gi in zip(step, g, strict=True))
-        rho = (cost - cost_new) / jnp.where(predicted > 0, predicted, 1.0)
-        finite = jnp.isfinite(cost_new + sum(A_new))
-        accept = finite & (quadratic | (cost_new < cost))
-        shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-        lam = jnp.where(accept, lam * jnp.where(quadratic, 1.0, shrink), lam * nu)
-        keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(accept, a, b), new, old)  # noqa: E731
-        return (
-            keep(y_new, y),
-            keep(A_new, A),
-            keep(g_new, g),
-            keep(cost_new, cost),
-            lam,
-            jnp.where(accept, 2.0, 2.0 * nu),
-            iterations + 1,
-            converged,
-            converged,
-        )
+def _step(problem: _Problem, state: Array) -> Array:
+    """One step of the damped Gauss-Newton loop of the module docstring, on scalars."""
+    dtype = state.dtype
+    tol = _tolerance(dtype)
+    zero = jnp.zeros((), dtype)
 
-    y, _, _, _, _, _, iterations, _, converged = jax.lax.while_loop(cond, body, state)
-    return jnp.stack(y), iterations, converged
+    def dot(a, b):
+        return sum((ai * bi for ai, bi in zip(a, b, strict=True)), zero)
+
+    s = [state[i] for i in range(state.shape[0])]
+    y, A, g, cost, lam, nu = s[0:6], s[6:27], s[27:33], s[33], s[34], s[35]
+    last, ratio, iterations = s[36:42], s[42], s[43]
+    rows = packed(A)
+    minus_g = [-gi for gi in g]
+    L, inv_diag, definite = cholesky(rows)
+    newton = cho_solve(L, inv_diag, minus_g)
+    change = jnp.sqrt(jnp.maximum(dot(newton, minus_g), 0.0))  # |J newton|
+    quadratic = definite & (change <= _QUADRATIC_PX)
+    converged = definite & (change <= tol)
+    # Secant correction along the last step: with the true curvature there `ratio` times
+    # the Gauss-Newton one, the inverse of the corrected matrix (Sherman-Morrison).
+    q = dot(last, [dot(row, last) for row in rows])
+    secant = (ratio < 1.0) & (q > 0) & (change > _SECANT_PX)
+    coef = (ratio - 1.0) / jnp.where(secant, q * ratio, 1.0) * dot(last, minus_g)
+    newton = [jnp.where(secant, n - coef * d, n) for n, d in zip(newton, last, strict=True)]
+    damped_rows = [[a + lam if i == j else a for j, a in enumerate(r)] for i, r in enumerate(rows)]
+    L, inv_diag, _ = cholesky(damped_rows)
+    damped = cho_solve(L, inv_diag, minus_g)
+    step = [jnp.where(quadratic, n, d) for n, d in zip(newton, damped, strict=True)]
+    y_new = [yi + si for yi, si in zip(y, step, strict=True)]
+    A_new, g_new, cost_new = _evaluate(problem, y_new)
+    predicted = 0.5 * dot(step, [lam * si - gi for si, gi in zip(step, g, strict=True)])
+    rho = (cost - cost_new) / jnp.where(predicted > 0, predicted, 1.0)
+    finite = jnp.isfinite(cost_new + sum(A_new))
+    accept = finite & (quadratic | (cost_new < cost))
+    shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+    lam_accept = lam * jnp.where(quadratic, 1.0, shrink)
+    lam = jnp.where(accept, lam_accept, jnp.maximum(lam, _LAMBDA_AFTER_REJECT) * nu)
+    curvature = dot(step, [a - b for a, b in zip(g_new, g, strict=True)])
+    q_step = dot(step, [dot(row, step) for row in rows])
+    ratio_new = jnp.clip(curvature / jnp.where(q_step > 0, q_step, 1.0), _MIN_RATIO, 1.0)
+    ratio_new = jnp.where(q_step > 0, ratio_new, 1.0)
+    new = [*y_new, *A_new, *g_new, cost_new, *step, ratio_new]
+    old = [*y, *A, *g, cost, *last, ratio]
+    kept = [jnp.where(accept, a, b) for a, b in zip(new, old, strict=True)]
+    flag = jnp.where(converged, 1.0, 0.0).astype(dtype)
+    return jnp.stack(
+        kept[:34]
+        + [lam, jnp.where(accept, 2.0, 2.0 * nu)]
+        + kept[34:]
+        + [iterations + 1.0, flag, flag]
+    )

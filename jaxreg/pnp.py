@@ -59,7 +59,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxreg._pnp_init import general_starts, image_spread, ippe_candidates, weighted_pca
 from jaxreg._pnp_linalg import matmul, spd_inverse
-from jaxreg._pnp_refine import refine_pose, weighted_jacobian
+from jaxreg._pnp_refine import refine_poses, weighted_jacobian
 from jaxreg._result import AbstractResult, select_status
 from jaxreg.camera import canonical_dist_coeffs, project, undistort_points
 from jaxreg.lie import geodesic_angle
@@ -397,40 +397,54 @@ class _Refined(eqx.Module):
     w: Array
 
 
-def _general_core(X, uv, K, dist, w, *, max_iterations: int) -> _Refined:
+class _Starts(eqx.Module):
+    """One problem's sanitised input, its status and the starts to refine (batch `(S,)`)."""
+
+    X: Array
+    uv: Array
+    w: Array
+    status: PnPStatus
+    starts: SE3
+    go: Array  # (S,) refine this start
+    eligible: Array  # (S,) may win
+
+
+def _general_starts(X, uv, K, dist, w) -> _Starts:
     X, uv, w, count, m, object_pca, status = _prologue(X, uv, K, dist, w, planar=False)
     starts = general_starts(X, m, w, object_pca)
     order = jnp.argsort(jax.vmap(lambda T: _normalised_rmse(T, X, m, w))(starts))
     starts = jax.tree.map(lambda leaf: leaf[order], starts)
     # All five starts with 4 or 5 valid points, else the two that reproject best.
     eligible = jnp.arange(_NUM_STARTS) < jnp.where(count <= 5, _NUM_STARTS, 2)
-    poses, iterations, converged = jax.vmap(
-        lambda T0, go: refine_pose(T0, go, X, uv, K, dist, w, max_iterations=max_iterations)
-    )(starts, eligible & (status == PnPStatus.success))
-    fits = jax.vmap(lambda T: _fit(T, X, uv, K, dist, w))(poses)
-    best = _ranking(fits, converged, eligible)[0]
+    go = eligible & (status == PnPStatus.success)
+    return _Starts(X, uv, w, status, starts, go, eligible)
+
+
+def _planar_starts(X, uv, K, dist, w) -> _Starts:
+    X, uv, w, count, m, object_pca, status = _prologue(X, uv, K, dist, w, planar=True)
+    starts = ippe_candidates(X, m, w, object_pca)
+    go = jnp.broadcast_to(status == PnPStatus.success, (2,))
+    return _Starts(X, uv, w, status, starts, go, jnp.ones(2, bool))
+
+
+def _general_choose(st: _Starts, poses, iterations, converged, K, dist) -> _Refined:
+    """The best refined start (see the module docstring)."""
+    fits = jax.vmap(lambda T: _fit(T, st.X, st.uv, K, dist, st.w))(poses)
+    best = _ranking(fits, converged, st.eligible)[0]
     pose, fit, iterations, converged = jax.tree.map(
         lambda leaf: leaf[best], (poses, fits, iterations, converged)
     )
-    return _Refined(pose, fit, iterations, converged, status, X, w)
+    return _Refined(pose, fit, iterations, converged, st.status, st.X, st.w)
 
 
-def _planar_core(X, uv, K, dist, w, *, max_iterations: int, refine: bool) -> _Refined:
-    X, uv, w, count, m, object_pca, status = _prologue(X, uv, K, dist, w, planar=True)
-    starts = ippe_candidates(X, m, w, object_pca)
-    if refine:
-        go = status == PnPStatus.success
-        poses, iterations, converged = jax.vmap(
-            lambda T0: refine_pose(T0, go, X, uv, K, dist, w, max_iterations=max_iterations)
-        )(starts)
-    else:
-        poses, iterations, converged = starts, jnp.zeros(2, jnp.int32), jnp.ones(2, bool)
-    fits = jax.vmap(lambda T: _fit(T, X, uv, K, dist, w))(poses)
+def _planar_choose(st: _Starts, poses, iterations, converged, K, dist) -> _Refined:
+    """Both candidates, best first."""
+    fits = jax.vmap(lambda T: _fit(T, st.X, st.uv, K, dist, st.w))(poses)
     order = _ranking(fits, converged)
     poses, fits, iterations, converged = jax.tree.map(
         lambda leaf: leaf[order], (poses, fits, iterations, converged)
     )
-    return _Refined(poses, fits, iterations, converged, status, X, w)
+    return _Refined(poses, fits, iterations, converged, st.status, st.X, st.w)
 
 
 def _planar_result(refined: _Refined, K, dist, sigma_px, covariance) -> PlanarPnPResult:
@@ -507,10 +521,11 @@ def _prepare(name, object_points, image_points, K, dist_coeffs, weights, sigma_p
     return arrays, sigma_px, tuple(batch)
 
 
-def _solve_batch(core, finish, arrays, batch, sigma_px):
-    """Run `core(X, uv, K, dist, w) -> _Refined` over the broadcast leading `batch` axes (one
-    problem when `batch == ()`), the covariances of the whole batch at once (`_covariances`),
-    then `finish(refined, K, dist, sigma_px, covariance)` per problem."""
+def _solve_batch(starts_fn, choose_fn, finish_fn, arrays, batch, sigma_px, *, refine, iterations):
+    """Solve every problem of the broadcast leading `batch` axes (one problem when
+    `batch == ()`): `starts_fn(X, uv, K, dist, w) -> _Starts` per problem, the refinement of all
+    starts of all problems together (`refine_poses`), `choose_fn` per problem, the covariances
+    of the whole batch at once (`_covariances`), then `finish_fn` per problem."""
     size = int(np.prod(batch))
     flat, axes = [], []
     for a, k in zip(arrays, _CORE_NDIMS, strict=True):
@@ -524,10 +539,31 @@ def _solve_batch(core, finish, arrays, batch, sigma_px):
     if not batch:  # one problem: a batch of one, so that every stage is written for a batch
         for i in (0, 1, 4):  # object points, image points, weights (never None)
             flat[i], axes[i] = flat[i][None], 0
-    refined = jax.vmap(core, in_axes=axes)(*flat)
     K, dist = flat[2], flat[3]
+    st = jax.vmap(starts_fn, in_axes=axes)(*flat)
+    if refine:
+        poses, its, conv = refine_poses(
+            st.starts,
+            st.go,
+            st.X,
+            st.uv,
+            K,
+            dist,
+            st.w,
+            max_iterations=iterations,
+            axes=axes[2:4],
+        )
+    else:
+        poses = st.starts
+        its = jnp.zeros(st.go.shape, jnp.int32)
+        conv = jnp.ones(st.go.shape, bool)
+    refined = jax.vmap(choose_fn, in_axes=(0, 0, 0, 0, axes[2], axes[3]))(
+        st, poses, its, conv, K, dist
+    )
     cov = _covariances(refined.pose, refined.X, K, dist, refined.w, sigma_px, axes[2:4])
-    out = jax.vmap(finish, in_axes=(0, axes[2], axes[3], None, 0))(refined, K, dist, sigma_px, cov)
+    out = jax.vmap(finish_fn, in_axes=(0, axes[2], axes[3], None, 0))(
+        refined, K, dist, sigma_px, cov
+    )
     return jax.tree.map(lambda leaf: leaf.reshape(*batch, *leaf.shape[1:]), out)
 
 
@@ -550,14 +586,30 @@ def _general_result(refined: _Refined, K, dist, sigma_px, covariance) -> PnPResu
 
 @functools.partial(jax.jit, static_argnames=("batch", "max_iterations"))
 def _solve_general(arrays, sigma_px, *, batch, max_iterations):
-    core = functools.partial(_general_core, max_iterations=max_iterations)
-    return _solve_batch(core, _general_result, arrays, batch, sigma_px)
+    return _solve_batch(
+        _general_starts,
+        _general_choose,
+        _general_result,
+        arrays,
+        batch,
+        sigma_px,
+        refine=True,
+        iterations=max_iterations,
+    )
 
 
 @functools.partial(jax.jit, static_argnames=("batch", "max_iterations", "refine"))
 def _solve_planar(arrays, sigma_px, *, batch, max_iterations, refine):
-    core = functools.partial(_planar_core, max_iterations=max_iterations, refine=refine)
-    return _solve_batch(core, _planar_result, arrays, batch, sigma_px)
+    return _solve_batch(
+        _planar_starts,
+        _planar_choose,
+        _planar_result,
+        arrays,
+        batch,
+        sigma_px,
+        refine=refine,
+        iterations=max_iterations,
+    )
 
 
 # --------------------------------------------------------------------------------------------
