@@ -15,8 +15,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxlie import SE3
+from jaxlie import SE3, SO3
 from jaxtyping import Array, Float
+from scipy.spatial import ConvexHull, QhullError
 
 from jaxreg._icp_core import run
 from jaxreg._icp_setup import Settings, prepare
@@ -38,6 +39,7 @@ class _Model:
     normals: np.ndarray  # (M, 3)
     grid: NeighborGrid
     radius: float  # largest distance from the centroid
+    diameter: float  # largest distance between two points
     centroid: np.ndarray
     axes: np.ndarray  # (3, 3) principal axes as columns, largest extent first
     extents: np.ndarray  # (3,) full extent along each axis
@@ -58,6 +60,18 @@ def _voxel_normals(points: np.ndarray, normals: np.ndarray, voxel: float):
     length = np.linalg.norm(mean_normal, axis=1, keepdims=True)
     unit = np.where(length > 0.5, mean_normal / np.maximum(length, 1e-12), 0.0)
     return sums[:, :3] / counts[:, None], unit
+
+
+def _diameter(points: np.ndarray) -> float:
+    """Largest distance between two of ``points`` ``(N, 3)`` (over their convex hull)."""
+    points = np.asarray(points, np.float64)
+    if len(points) > 8:
+        try:
+            points = points[ConvexHull(points).vertices]
+        except QhullError:  # flat or degenerate: every point is a candidate
+            pass
+    gaps = points[:, None, :] - points[None, :, :]
+    return float(np.sqrt(np.einsum("ijk,ijk->ij", gaps, gaps).max())) if len(points) else 0.0
 
 
 def _prepare_model(model_points, model_normals, voxel_size: float, grid_distance: float):
@@ -88,6 +102,7 @@ def _prepare_model(model_points, model_normals, voxel_size: float, grid_distance
         normals=normals.astype(np.float32),
         grid=grid,
         radius=float(np.linalg.norm(points - centroid, axis=1).max()),
+        diameter=_diameter(points),
         centroid=centroid,
         axes=axes,
         extents=along.max(0) - along.min(0),
@@ -221,19 +236,64 @@ def _front_aligned(inits: SE3, cloud, ok, model_points, eye) -> SE3:
     return moved.inverse()
 
 
+def _resting_starts(cloud, ok, model_points, model_axes, plane, eye, yaws: int) -> SE3:
+    """Starts (object_T_base) of the model resting on the table: each of the model's six
+    principal half-axes ``model_axes`` ``(3, 3)`` (columns, object frame) pointing down the
+    plane's normal, turned to ``yaws`` headings about it, the lowest model point on the
+    plane, and the model slid horizontally toward the camera until its front meets the
+    cloud's (5th percentile along the horizontal line of sight; a partial view's centroid
+    lies on its visible side). Batch ``(6 * yaws,)``."""
+    n = plane.normal
+    dtype = cloud.dtype
+    downs = jnp.concatenate([model_axes.T, -model_axes.T])  # (6, 3) object frame
+    helper = jnp.where(jnp.abs(downs[:, :1]) < 0.9, jnp.eye(3, dtype=dtype)[0], jnp.eye(3)[1])
+    b = jnp.cross(downs, helper)
+    b = b / jnp.linalg.norm(b, axis=-1, keepdims=True)
+    object_frames = jnp.stack([downs, b, jnp.cross(downs, b)], -1)  # (6, 3, 3) columns
+    u = jnp.cross(-n, jnp.where(jnp.abs(n[0]) < 0.9, jnp.eye(3, dtype=dtype)[0], jnp.eye(3)[1]))
+    u = u / jnp.linalg.norm(u)
+    base_frame = jnp.stack([-n, u, jnp.cross(-n, u)], -1)  # (3, 3) columns
+    base_R = jnp.einsum("ij,fkj->fik", base_frame, object_frames)  # (6, 3, 3): down -> -n
+    angles = jnp.arange(yaws, dtype=dtype) * (2 * jnp.pi / yaws)
+    turns = SO3.exp(angles[:, None] * n[None, :]).as_matrix()  # (Y, 3, 3)
+    rotations = jnp.einsum("yij,fjk->fyik", turns, base_R).reshape(-1, 3, 3)
+    moved = jnp.einsum("sij,mj->smi", rotations, model_points)  # (S, M, 3) about the origin
+    centroid = jnp.sum(jnp.where(ok[:, None], cloud, 0.0), 0) / jnp.maximum(ok.sum(), 1)
+    along = (centroid - eye) - ((centroid - eye) @ n) * n
+    along = along / jnp.maximum(jnp.linalg.norm(along), 1e-9)
+    front = jnp.nanpercentile(jnp.where(ok, cloud @ along, jnp.nan), 5.0)
+    model_mid = jnp.mean(moved, axis=1)  # (S, 3)
+    # horizontal: the model's centre over the cloud's centroid, then slid along `along`
+    horizontal = centroid - (centroid @ n) * n - (model_mid - (model_mid @ n)[:, None] * n)
+    horizontal = horizontal - (horizontal @ along)[:, None] * along
+    model_front = jnp.min(moved @ along, axis=1)
+    horizontal = horizontal + (front - model_front)[:, None] * along
+    lift = -plane.offset - jnp.min(moved @ n, axis=1)  # lowest point on the plane
+    translations = horizontal + lift[:, None] * n
+    placed = SE3.from_rotation_and_translation(SO3.from_matrix(rotations), translations)
+    return placed.inverse()
+
+
 @eqx.filter_jit
 def _score_candidates(
-    frame, plane, problem, opts, clouds, used, model_points, tolerance, num_starts
-):
+    frame, plane, problem, opts, clouds, used, model_points, model_axes, tolerance, num_starts,
+    yaws,
+):  # fmt: skip
     """Multi-start ICP of every candidate cloud ``(C, N, 3)`` (NaN padding) into the model,
     its ranked starts, and the evidence for each; slots where ``used`` ``(C,)`` is False are
-    skipped (zeros), so one compiled shape serves any number of candidates up to C."""
+    skipped (zeros), so one compiled shape serves any number of candidates up to C. Starts:
+    ``num_starts`` rotations of a grid over SO(3) and the 4 PCA frames, slid along the line
+    of sight to the cloud's front, and ``6 * yaws`` resting on the table
+    (:func:`_resting_starts`)."""
 
     def one(cloud):
         ok = jnp.all(jnp.isfinite(cloud), -1)
+        eye = frame.base_T_camera.translation()
         grid = rotation_inits(cloud, model_points, num_starts)
         inits = SE3(jnp.concatenate([grid.wxyz_xyz, pca_inits(cloud, model_points).wxyz_xyz]))
-        inits = _front_aligned(inits, cloud, ok, model_points, frame.base_T_camera.translation())
+        inits = _front_aligned(inits, cloud, ok, model_points, eye)
+        resting = _resting_starts(cloud, ok, model_points, model_axes, plane, eye, yaws)
+        inits = SE3(jnp.concatenate([inits.wxyz_xyz, resting.wxyz_xyz]))
         source = (
             jnp.zeros_like(problem.source)
             .at[: cloud.shape[0]]
@@ -255,7 +315,7 @@ def _score_candidates(
         order = jnp.argsort(-score)
         return results.pose.wxyz_xyz[order], explained[order], seen[order]
 
-    starts = num_starts + 4
+    starts = num_starts + 4 + 6 * yaws
     dtype = clouds.dtype
 
     def skip(cloud):

@@ -9,7 +9,9 @@ diagnostics. The stages:
 1. **Segment** (:func:`jaxreg.segment.segment_frame`): the table plane by RANSAC and the
    clusters standing on it, on a strided grid. Each cluster, and each cluster together with
    the clusters within 1.2 model radii of it (one object split by a thin rim), is a
-   candidate if its radius is at most the model's plus ``cluster_margin``; the
+   candidate if its diameter (largest distance between two of its points) is at most the
+   model's plus ``cluster_margin`` (a partial view's centroid lies off the object's centre,
+   so its points can lie farther from it than the model's radius); the
    ``max_candidates`` largest are kept, or a ``pixel`` / ``box`` prompt names the seed
    cluster. Every candidate is scored by registration in one compiled call (below, on its
    grid points): the fraction of its points the model explains (6 mm) times the share of the
@@ -68,6 +70,7 @@ from jaxreg._icp_setup import _bucket
 from jaxreg._register_stage import (
     _coarse_problem,
     _confirmed_share,
+    _diameter,
     _distinct,
     _judge,
     _near_model,
@@ -213,6 +216,7 @@ def estimate_pose(
     cluster_margin: float = 0.02,
     max_candidates: int = 4,
     num_starts: int = 24,
+    resting_yaws: int = 8,
     coarse_points: int = 128,
     max_points: int = 1024,
     min_segment_points: int = 30,
@@ -245,9 +249,12 @@ def estimate_pose(
         lift_min_height: the lifted segment keeps points this high above the plane (metres;
             lower than ``min_height``: the table is no longer a cluster's neighbour here,
             and a low part such as a tray's floor pins the object's height).
-        cluster_margin: a candidate cluster's radius may exceed the model's by this (metres).
+        cluster_margin: a candidate cluster's diameter may exceed the model's by this
+            (metres).
         max_candidates: clusters scored by registration.
         num_starts: rotation-grid starts of the coarse registration (plus 4 PCA starts).
+        resting_yaws: headings of the starts resting on the table on each of the model's six
+            principal half-axes (``6 * resting_yaws`` more starts; 0: none).
         coarse_points: grid points of a candidate given to the coarse registration (static).
         max_points: cloud size given to ICP (static; larger segments are subsampled).
         min_segment_points: fewest lifted points worth registering.
@@ -349,10 +356,9 @@ def estimate_pose(
             if group not in groups:
                 groups.append(group)
     candidates = []
-    for group in groups:
+    for group in groups:  # a partial view's centroid is off the object's: compare diameters
         cloud = grid_points[np.isin(labels, group)]
-        radius = float(np.linalg.norm(cloud - cloud.mean(0), axis=1).max())
-        if radius <= model.radius + cluster_margin:
+        if _diameter(cloud) <= model.diameter + cluster_margin:
             candidates.append((group, cloud))
     candidates.sort(key=lambda item: -len(item[1]))
     candidates = candidates[:max_candidates]
@@ -361,7 +367,8 @@ def estimate_pose(
         return failed(
             "segment",
             f"no cluster of the model's size: cluster radii {diag['cluster_radii_mm']} mm, "
-            f"model radius {model.radius * 1e3:.0f} mm (+{cluster_margin * 1e3:.0f} mm allowed)",
+            f"none spans at most the model's {model.diameter * 1e3:.0f} mm "
+            f"(+{cluster_margin * 1e3:.0f} mm allowed)",
         )
     tolerance = jnp.float32(0.01)
     clouds = np.full((max_candidates, coarse_points, 3), np.nan, np.float32)
@@ -378,8 +385,10 @@ def estimate_pose(
             jnp.asarray(clouds),
             jnp.asarray(used),
             jnp.asarray(model.points),
+            jnp.asarray(model.axes),
             tolerance,
             num_starts,
+            resting_yaws,
         )  # fmt: skip
     )
     scored = []
