@@ -1,6 +1,7 @@
 """estimate_pose on a rendered tabletop frame, and each stage's failure signature built into it:
 a stray table slab, depth holes over the object, phantom edge points, the object missing."""
 
+import jax
 import numpy as np
 import pytest
 import trimesh
@@ -147,3 +148,44 @@ def test_fifty_seeds_of_mixed_objects_are_found_within_5_mm_add_s():
         ok = est.pose is not None
         errors.append(float(add_s(scene.model_points, est.pose, scene.truth)) if ok else np.inf)
     assert np.mean(np.asarray(errors) < 0.005) >= 0.95
+
+
+def test_a_target_seen_from_above_is_a_candidate_though_far_from_its_visible_centroid(scene):
+    """Seed 8: seen mostly from above, the box's visible centroid lies near its top, and its
+    bottom edge is 97 mm from it (model radius 76 mm): the size test compares diameters."""
+    from jaxreg.synth import tabletop_scene
+
+    _, model, symmetry = scene
+    frame8 = tabletop_scene(8, object="box")
+    est = estimate_pose(frame8.frame, model, symmetry=symmetry)
+    assert max(est.stages["segment"]["cluster_radii_mm"]) > 76 + 20
+    assert est.failed_stage is None
+    assert float(add_s(frame8.model_points, est.pose, frame8.truth)) < 0.005
+
+
+def test_resting_starts_stand_the_model_on_the_table_on_each_principal_half_axis():
+    import jax.numpy as jnp
+    from jaxlie import SE3
+
+    from jaxreg._register_stage import _resting_starts
+    from jaxreg.segment import TablePlane
+
+    rng = np.random.default_rng(0)
+    model = (rng.uniform(-1, 1, (500, 3)) * [0.04, 0.025, 0.06]).astype(np.float32)
+    axes = np.eye(3, dtype=np.float32)[:, [2, 0, 1]]  # largest extent first
+    plane = TablePlane(jnp.array([0.0, 0.0, 1.0]), jnp.float32(-0.01), 0, 0.0)  # z = 0.01
+    cloud = jnp.asarray(model + [0.1, 0.0, 0.08], jnp.float32)
+    ok = jnp.ones(len(model), bool)
+    eye = jnp.array([0.6, 0.0, 0.5])
+    starts = _resting_starts(cloud, ok, jnp.asarray(model), jnp.asarray(axes), plane, eye, 4)
+    assert starts.wxyz_xyz.shape == (24, 7)
+    placed = SE3(starts.wxyz_xyz).inverse()  # base_T_object
+    pts = np.asarray(jax.vmap(lambda T: T @ jnp.asarray(model))(placed))
+    np.testing.assert_allclose(pts[..., 2].min(1), 0.01, atol=1e-5)  # lowest point on the table
+    down = np.einsum("sij,j->si", np.asarray(placed.rotation().as_matrix()), [0, 0, 1])
+    # six half-axes down, four headings each: the object's z axis up, down or level
+    assert np.sum(np.isclose(down[:, 2], 1, atol=1e-5)) == 4
+    assert np.sum(np.isclose(down[:, 2], -1, atol=1e-5)) == 4
+    # the front toward the camera meets the cloud's front (slid horizontally toward the eye)
+    front = np.percentile(np.asarray(cloud)[:, 0], 95)
+    np.testing.assert_allclose(pts[..., 0].max(1), front, atol=2e-3)
