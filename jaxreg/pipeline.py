@@ -30,7 +30,9 @@ diagnostics. The stages:
    object is visible. Starts: the four PCA frames (their sign ambiguities) and a near-uniform
    grid of ``num_starts`` rotations about the centroids, each slid along the line of sight
    until the model's front meets the segment's (a partial view's centroid lies on its visible
-   surface); multi-start point-to-plane ICP on the grid points with a shrinking
+   surface), and ``6 * resting_yaws`` starts of the model resting on the table on each of
+   its principal half-axes at ``resting_yaws`` headings, slid horizontally to the segment's
+   front; multi-start point-to-plane ICP on the grid points with a shrinking
    correspondence distance, starts ranked by the score above; the best distinct ones refined
    on the lifted points, trimmed to the overlap the coarse fit measured, and chosen by
    inlier fraction times confirmed share (an upside-down tray fits the segment as well as
