@@ -33,27 +33,42 @@ def main():
     yaws = np.deg2rad(np.arange(0.0, 360.0, 2.0))
     poses = truth @ jr.SE3.from_rotation(jr.SO3.from_z_radians(jnp.asarray(yaws)))
 
-    @jax.jit
-    def rmse(pose):
-        moved = pose @ model
-        d2 = jnp.min(jnp.sum((moved[:, None] - scan[None]) ** 2, -1), -1)
-        return jnp.sqrt(jnp.mean(d2))
+    # centred on the scan, squared distances |a|^2 + |b|^2 - 2 a.b as one matrix product
+    centre = scan.mean(0)
+    scan_c = jnp.asarray(scan - centre)
 
-    residual = np.asarray(jax.lax.map(rmse, poses)) * 1e3
+    def rmse(pose):
+        moved = pose @ model - centre
+        d2 = jnp.sum(moved**2, -1)[:, None] + jnp.sum(scan_c**2, -1)[None] - 2.0 * moved @ scan_c.T
+        return jnp.sqrt(jnp.mean(jnp.maximum(jnp.min(d2, -1), 0.0)))
+
+    residual = np.asarray(jax.jit(lambda p: jax.lax.map(rmse, p, batch_size=15))(poses)) * 1e3
     # estimates on random branches
     k = 40
     branch = rng.integers(0, 4, k)
     noise = rng.normal(0, 1, (k, 6)) * np.array([1e-3] * 3 + [np.deg2rad(1.0)] * 3)
-    quarter = jr.SE3.from_rotation(jr.SO3.from_z_radians(jnp.asarray(branch * np.pi / 2)))
-    estimates = truth @ jr.se3_exp(jnp.asarray(noise, jnp.float32)) @ quarter
-    naive = jr.chordal_mean(estimates.rotation())
-    stats = jr.pose_statistics(estimates, symmetry=symmetry)
-    naive_err = float(np.rad2deg(jr.geodesic_angle(naive, truth.rotation())))
-    canon_err = float(np.rad2deg(jr.rotation_error(stats.mean, truth, symmetry)))
-    raw_err = np.rad2deg(np.asarray(jr.rotation_error(estimates, truth)))
-    aware_err = np.rad2deg(np.asarray(jr.rotation_error(estimates, truth, symmetry)))
-    naive_fit = float(rmse(jr.SE3.from_rotation_and_translation(naive, truth.translation())))
-    canon_fit = float(rmse(stats.mean))
+
+    @jax.jit
+    def summary(noise, yaw):
+        """Errors (deg) and fits (m) of the naive and canonicalised means, in one program."""
+        quarter = jr.SE3.from_rotation(jr.SO3.from_z_radians(yaw))
+        estimates = truth @ jr.se3_exp(noise) @ quarter
+        naive = jr.chordal_mean(estimates.rotation())
+        mean = jr.pose_statistics(estimates, symmetry=symmetry).mean
+        return dict(
+            naive_err=jnp.rad2deg(jr.geodesic_angle(naive, truth.rotation())),
+            canon_err=jnp.rad2deg(jr.rotation_error(mean, truth, symmetry)),
+            raw_err=jnp.rad2deg(jr.rotation_error(estimates, truth)),
+            aware_err=jnp.rad2deg(jr.rotation_error(estimates, truth, symmetry)),
+            naive_fit=rmse(jr.SE3.from_rotation_and_translation(naive, truth.translation())),
+            canon_fit=rmse(mean),
+        )
+
+    out = summary(jnp.asarray(noise, jnp.float32), jnp.asarray(branch * np.pi / 2))
+    naive_err, canon_err, naive_fit, canon_fit = (
+        float(out[n]) for n in ("naive_err", "canon_err", "naive_fit", "canon_fit")
+    )
+    raw_err, aware_err = np.asarray(out["raw_err"]), np.asarray(out["aware_err"])
 
     fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4.2))
     left.plot(np.rad2deg(yaws), residual)
