@@ -17,8 +17,11 @@ and explains which it keeps.
 
 jaxlib 0.10's CPU LAPACK kernels split a large batch over XLA's intra-op thread pool and block a
 pool thread until the pieces finish; two such calls running at once on a 2-thread pool can wait
-for each other forever (seen with eigh and LU side by side from ~5000 tags up). So 2x2 and 3x3
-systems here are closed form and calls that would be independent are batched into one. (An
+for each other forever (seen with eigh and LU side by side from ~5000 tags up). So the PCAs,
+2x2 and 3x3 systems and the four-point homography here are closed form (the planar path makes no
+LAPACK call; on XLA's CPU backend a batched `eigh` or `svd` of tiny matrices is also ~10x
+slower than the elementwise closed form), and EPnP's calls that would be independent are batched
+into one. (An
 `optimization_barrier` cannot order the remaining calls: XLA's CPU compiler strips it before
 scheduling, the compiled program is byte-identical with or without one.)
 """

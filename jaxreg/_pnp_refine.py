@@ -353,10 +353,9 @@ def _run(problem: _Problem, state: Array, max_iterations: int) -> Array:
 
     A step costs in proportion to the lanes it carries, finished or not, and most starts
     converge within ~8 steps while a few in flat valleys take several times that. So the whole
-    batch runs `_FULL_STEPS` steps; then the starts still running (the first `L // 8`, in
-    lane order) are gathered and run on their own to the end; any left after that (more than
-    `L // 8` were still running) finish in the whole batch. A lane's steps and result do not
-    depend on which of these runs carried it."""
+    batch runs `_FULL_STEPS` steps; then the starts still running are gathered, `L // 8` at a
+    time in lane order, and run on their own to the end. A lane's steps and result do not
+    depend on which of these runs carried it (up to float rounding)."""
     lanes = state.shape[0]
     step = jax.vmap(_step)
 
@@ -373,10 +372,15 @@ def _run(problem: _Problem, state: Array, max_iterations: int) -> Array:
     if capacity < 8:
         return loop(problem, state, max_iterations)
     state = loop(problem, state, min(_FULL_STEPS, max_iterations))
-    subset = jnp.argsort(~running(state, max_iterations), stable=True)[:capacity]
-    part = loop(jax.tree.map(lambda a: a[subset], problem), state[subset], max_iterations)
-    state = state.at[subset].set(part)
-    return loop(problem, state, max_iterations)
+
+    def gathered(state):  # the first `capacity` starts still running, run to their end
+        subset = jnp.argsort(~running(state, max_iterations), stable=True)[:capacity]
+        part = loop(jax.tree.map(lambda a: a[subset], problem), state[subset], max_iterations)
+        return state.at[subset].set(part)
+
+    return jax.lax.while_loop(
+        lambda state: jnp.any(running(state, max_iterations)), gathered, state
+    )
 
 
 def _initial_state(problem: _Problem, ok) -> Array:

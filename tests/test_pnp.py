@@ -460,3 +460,103 @@ def test_static_problems_raise_on_the_host(solver):
         solver(TAG_POINTS, np.zeros((4, 2)), K, dist_coeffs=np.zeros(3))
     with pytest.raises(ValueError, match="broadcast"):
         solver(np.zeros((2, 4, 3)), np.zeros((3, 4, 2)), K)
+
+
+# --------------------------------------------------------------------------------------------
+# The closed-form pieces of the batched path, against their references
+# --------------------------------------------------------------------------------------------
+
+
+def test_unrolled_cholesky_solve_and_inverse_match_numpy(x64):
+    from jaxreg._pnp_linalg import spd_inverse, spd_solve
+
+    rng = np.random.default_rng(3)
+    M = rng.normal(size=(5, 8, 6))
+    A = np.einsum("bki,bkj->bij", M, M) + 1e-3 * np.eye(6)
+    b = rng.normal(size=(5, 6))
+    x, ok = spd_solve(jnp.asarray(A), jnp.asarray(b))
+    inv, ok_inv = spd_inverse(jnp.asarray(A))
+    assert np.all(ok) and np.all(ok_inv)
+    np.testing.assert_allclose(x, np.linalg.solve(A, b[..., None])[..., 0], rtol=1e-9)
+    np.testing.assert_allclose(inv, np.linalg.inv(A), rtol=1e-8, atol=1e-10)
+    indefinite = A[0] - 2 * np.linalg.eigvalsh(A[0])[-1] * np.eye(6)
+    assert not spd_solve(jnp.asarray(indefinite), jnp.asarray(b[0]))[1]
+
+
+def test_refinement_normal_equations_match_autodiff(x64):
+    """The closed-form chart Jacobian of the refinement, away from the chart's centre and with
+    distortion, gives the J^T J and J^T r of forward-mode autodiff of its residuals."""
+    from jaxreg._pnp_refine import _evaluate, _Problem, normal_equations
+
+    rng = np.random.default_rng(4)
+    R, t = _tag_view(rng, 25.0)
+    X = jnp.asarray(TAG_POINTS)
+    uv = jnp.asarray(_project_np(R, t, TAG_POINTS) + rng.normal(scale=0.3, size=(4, 2)))
+    sw = jnp.asarray(rng.uniform(0.5, 1.5, 4))
+    scale = jnp.asarray(rng.uniform(50.0, 500.0, 6))
+    problem = _Problem.build(jnp.asarray(R), jnp.asarray(t), X, uv, K, DIST, sw, scale)
+    y = jnp.asarray(rng.normal(scale=2.0, size=6))
+
+    def residuals(y):
+        return jnp.concatenate(_evaluate(problem, y, jacobian=False))
+
+    J = jax.jacfwd(residuals)(y)
+    A, g, cost = normal_equations(*_evaluate(problem, y))
+    np.testing.assert_allclose(A, J.T @ J, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(g, J.T @ residuals(y), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(cost, 0.5 * np.sum(np.asarray(residuals(y)) ** 2), rtol=1e-12)
+
+
+def test_closed_form_covariance_equals_the_eigendecomposition(planar):
+    """Where the closed form decides (every direction determined, or none), it gives what the
+    eigendecomposition gives; it leaves the near-singular lanes to it."""
+    from jaxreg.pnp import _covariance, _covariance_closed_form
+
+    c = planar["result"].candidates
+    X, K_ = jnp.asarray(TAG_POINTS, jnp.float32), jnp.asarray(K, jnp.float32)
+    lanes = list(range(0, N_VIEWS, 8)) + [N_VIEWS + N_DRAWS + 1]  # tilted views, a fronto one
+    for b in lanes:
+        for i in (0, 1):
+            pose = SE3(jnp.asarray(c.pose.wxyz_xyz[b, i]))
+            fast, decided = _covariance_closed_form(pose, X, K_, None, jnp.ones(4), 0.2)
+            exact = _covariance(pose, X, K_, None, jnp.ones(4), 0.2)
+            assert decided
+            # float32 inverses: compare correlations and relative sigmas
+            sd = np.sqrt(np.diagonal(exact[0]))
+            np.testing.assert_allclose(
+                fast[0] / np.outer(sd, sd), exact[0] / np.outer(sd, sd), atol=1e-3
+            )
+            np.testing.assert_allclose(fast[1], exact[1], rtol=1e-3)
+            np.testing.assert_allclose(fast[2], exact[2], rtol=1e-3)
+            assert not fast[3] and not exact[3]
+    pose = SE3(jnp.asarray(c.pose.wxyz_xyz[0, 0]))
+    w = jnp.zeros(4).at[:2].set(1.0)  # two points: rank 4, near singular, undecided
+    assert not _covariance_closed_form(pose, X, K_, None, w, 0.2)[1]
+    none = _covariance_closed_form(pose, X, K_, None, jnp.zeros(4), 0.2)
+    exact = _covariance(pose, X, K_, None, jnp.zeros(4), 0.2)
+    assert none[1] and none[0][3] and np.all(np.isinf(none[0][0]))
+    for a, e in zip(none[0], exact, strict=True):
+        np.testing.assert_array_equal(a, e)
+
+
+def test_a_lane_refines_alike_alone_and_in_a_large_batch(planar):
+    """The refinement gathers the starts still running after a few steps (in the planar
+    fixture's batch of 2,260 starts, the slowest 282 go on alone); which lanes share a run
+    changes neither a lane's steps nor its pose: the slowest lanes solved as a batch of 8
+    (too few to gather) agree."""
+    c = planar["result"].candidates
+    slow = np.argsort(-c.iterations[:N_VIEWS].max(axis=1))[:8]
+    assert c.iterations[slow].max() > 10  # these went through the gathered run
+    small = jax.device_get(
+        solve_pnp_planar(TAG_POINTS, planar["batch"][slow], K, sigma_px=0.2)
+    ).candidates
+    # Candidates that reach one minimum tie, and rounding may order them either way.
+    np.testing.assert_array_equal(
+        np.sort(small.iterations, axis=1), np.sort(c.iterations[slow], axis=1)
+    )
+    for b, lane in enumerate(slow):
+        gaps = [
+            np.abs(small.pose.wxyz_xyz[b] - c.pose.wxyz_xyz[lane][order]).max()
+            for order in ([0, 1], [1, 0])
+        ]
+        assert min(gaps) < 2e-5, (lane, gaps)  # float32 rounding differs by batch size
