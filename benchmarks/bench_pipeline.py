@@ -1,6 +1,6 @@
 """Pixels to pose on synthetic tabletop frames: jaxreg.estimate_pose beside an Open3D pipeline.
 
-Usage: python benchmarks/bench_pipeline.py [--seeds 50] [--no-open3d]
+Usage: python benchmarks/bench_pipeline.py [--seeds 50] [--first-seed 0] [--no-open3d]
 
 Frames: ``jaxreg.synth.tabletop_scene(seed, object=OBJECTS[seed % 4])`` for seeds 0..N-1 (box,
 mug, cylinder, container in turn; two distractors; a RealSense D435's depth noise at 848x480).
@@ -98,6 +98,7 @@ def run_open3d(o3d, scene, model):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=50)
+    parser.add_argument("--first-seed", type=int, default=0, help="e.g. 100: a held-out set")
     parser.add_argument("--no-open3d", action="store_true")
     args = parser.parse_args()
     o3d = None
@@ -111,7 +112,7 @@ def main():
     from jaxlie import SE3
 
     rows, ours, theirs, stage_ms, totals, o3d_ms, failures = [], [], [], [], [], [], []
-    for seed in range(args.seeds):
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
         obj = OBJECTS[seed % len(OBJECTS)]
         scene = tabletop_scene(seed, object=obj)
         model = _model(scene, obj)
@@ -119,14 +120,14 @@ def main():
         pose, total, stages, failed = run_jaxreg(scene, model, noise)
         err = float(add_s(scene.model_points, pose, scene.truth)) * 1e3 if pose else np.inf
         ours.append(err)
-        if seed > 0:
+        if seed > args.first_seed:
             totals.append(total)
             stage_ms.append(stages)
         failures.append(failed)
         o3d_err = None
         if o3d is not None:
             matrix, ms = run_open3d(o3d, scene, model)
-            if seed > 0:
+            if seed > args.first_seed:
                 o3d_ms.append(ms)
             o3d_err = np.inf
             if matrix is not None:
