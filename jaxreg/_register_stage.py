@@ -21,6 +21,7 @@ from scipy.spatial import ConvexHull, QhullError
 
 from jaxreg._icp_core import run
 from jaxreg._icp_setup import Settings, prepare
+from jaxreg._program_cache import persistent_jit
 from jaxreg.camera import RGBDFrame
 from jaxreg.icp import multistart_icp, pca_inits, rotation_inits
 from jaxreg.neighbors import NeighborGrid, build_grid, query_nearest, voxel_downsample
@@ -274,7 +275,7 @@ def _resting_starts(cloud, ok, model_points, model_axes, plane, eye, yaws: int) 
     return placed.inverse()
 
 
-@eqx.filter_jit
+@persistent_jit
 def _score_candidates(
     frame, plane, problem, opts, clouds, used, model_points, model_axes, tolerance, num_starts,
     yaws,
@@ -332,7 +333,7 @@ def _score_candidates(
     return _Coarse(poses, explained, seen)
 
 
-@eqx.filter_jit
+@persistent_jit
 def _near_model(grid, object_T_base, points, distance):
     """``(h, w)`` bool: grid points within ``distance`` of the model at a pose."""
     flat = points.reshape(-1, 3)
@@ -342,7 +343,7 @@ def _near_model(grid, object_T_base, points, distance):
     return (near & ok).reshape(points.shape[:-1])
 
 
-@eqx.filter_jit
+@persistent_jit
 def _judge(frame, plane, object_T_base, model_points, tolerance):
     """:func:`visibility` counts ``(S, 5)`` of a batch of object_T_base ``(S, 7)``."""
     return jax.vmap(lambda q: visibility(frame, SE3(q).inverse(), model_points, tolerance, plane))(
@@ -350,6 +351,7 @@ def _judge(frame, plane, object_T_base, model_points, tolerance):
     )
 
 
+@persistent_jit
 def _register_starts(source, model: _Model, inits, distances, trim, iterations):
     return multistart_icp(
         source, model.points, inits, method="point_to_plane", target_normals=model.normals,

@@ -69,6 +69,7 @@ from jaxlie import SE3
 from jaxtyping import Array, Float
 
 from jaxreg._icp_setup import _bucket
+from jaxreg._program_cache import persistent_jit
 from jaxreg._register_stage import (
     _coarse_problem,
     _confirmed_share,
@@ -174,7 +175,7 @@ def _isolated(points: np.ndarray, voxel: float, need: int = 2) -> np.ndarray:
     return count < need
 
 
-@eqx.filter_jit
+@persistent_jit
 def _lift_pixels(frame: RGBDFrame, rows, cols):
     """Base-frame points ``(P, 3)`` of the given pixels (padded index arrays)."""
     pixels = jnp.stack([cols, rows], -1).astype(frame.depth.dtype)
@@ -520,11 +521,7 @@ def estimate_pose(
     if symmetry is not None:  # report one branch: the equivalent nearest the base axes
         pose = canonicalise(pose, SE3.from_translation(pose.translation()), symmetry)
     object_T_base = best.pose
-    cov_object_T_base = icp_covariance(
-        source, model.points, object_T_base, method="point_to_plane",
-        target_normals=model.normals, max_correspondence_distance=fine_distances[-1],
-        trim_fraction=trim, neighbors=model.grid, source_noise=noise,
-    )  # fmt: skip
+    cov_object_T_base = _covariance(source, model, object_T_base, fine_distances[-1], trim, noise)
     # right perturbation of base_T_object = object_T_base^-1: Ad_{object_T_base} Sigma Ad^T;
     # the symmetry branch re-anchors the object frame (pose = found @ S): Ad_{S^-1}
     covariance = adjoint_transport(object_T_base, cov_object_T_base)
@@ -566,6 +563,17 @@ def estimate_pose(
         f"{fine_distances[-1] * 1e3:.0f} mm of the model, residual {rmse * 1e3:.2f} mm"
     )
     return PoseEstimate(pose, rmse, fraction, covariance, None, reason, stages, mask, points)
+
+
+@persistent_jit
+def _covariance(source, model, object_T_base, distance, trim, noise):
+    """``icp_covariance`` of the final point-to-plane registration, ``(6, 6)`` in the tangent
+    of object_T_base, as one stored program."""
+    return icp_covariance(
+        source, model.points, object_T_base, method="point_to_plane",
+        target_normals=model.normals, max_correspondence_distance=distance,
+        trim_fraction=trim, neighbors=model.grid, source_noise=noise,
+    )  # fmt: skip
 
 
 def _noise(depth_noise: DepthNoise | None, frame: RGBDFrame) -> DepthNoise:

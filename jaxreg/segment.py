@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from jaxreg._program_cache import persistent_jit
 from jaxreg._result import select_status
 from jaxreg.camera import RGBDFrame
 
@@ -321,7 +322,7 @@ def grid_points(frame: RGBDFrame, stride: int) -> Float[Array, "h w 3"]:
     return jnp.where(valid[..., None], base, jnp.nan)
 
 
-@eqx.filter_jit
+@persistent_jit
 def _segment(frame, key, floats, min_plane_inliers, options):
     plane_distance, min_height, max_height, cluster_distance = floats
     stride, num_hypotheses, window, max_clusters, min_cluster_size = options
