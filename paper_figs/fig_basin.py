@@ -22,12 +22,9 @@ ANGLES = [5.0, 15.0, 25.0, 35.0, 45.0, 60.0, 75.0, 90.0, 120.0]
 
 
 def methods(target, scale):
-    """The four variants. Point-to-point keeps every pair through trimming at 1.0 (the same
-    pairs as no trimming): it then shares the trimmed variant's compiled program, whose
-    ``trim_fraction`` is an array."""
     normals = np.asarray(jr.estimate_normals(target, k=20))
     return {
-        "point-to-point": dict(trim_fraction=1.0),
+        "point-to-point": {},
         "point-to-plane": dict(method="point_to_plane", target_normals=normals),
         "trimmed (80%)": dict(trim_fraction=0.8),
         f"Tukey ({scale * 1e3:g} mm)": dict(kernel=jr.Tukey(scale)),
