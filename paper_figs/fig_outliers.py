@@ -61,24 +61,22 @@ SOLVERS = {
 
 def main():
     keys = jax.random.split(jax.random.key(0), DRAWS)
-    fractions = jnp.asarray(FRACTIONS, jnp.float32)
     fig, (rot, trans) = plt.subplots(1, 2, figsize=(11, 4.2))
     rows, at = [], {}
     for name, solve in SOLVERS.items():
 
+        @jax.jit
         def errors(key, fraction, solve=solve):
             source, target, truth = problem(key, fraction)
             t_err, r_err = jr.pose_error(solve(source, target), truth)
             return jnp.rad2deg(r_err), t_err * 1e3
 
-        # every fraction and draw in one compiled call: (fractions, draws) errors
-        grid = jax.jit(jax.vmap(jax.vmap(errors, in_axes=(0, None)), in_axes=(None, 0)))
-        r, t = (np.asarray(e) for e in grid(keys, fractions))
-        med_r, med_t = np.median(r, 1).tolist(), np.median(t, 1).tolist()
-        rows += [
-            [name, f, mr, mt, float(m)]
-            for f, mr, mt, m in zip(FRACTIONS, med_r, med_t, r.max(1), strict=True)
-        ]
+        med_r, med_t = [], []
+        for f in FRACTIONS:
+            r, t = jax.vmap(errors, in_axes=(0, None))(keys, f)
+            med_r.append(float(np.median(r)))
+            med_t.append(float(np.median(t)))
+            rows.append([name, f, med_r[-1], med_t[-1], float(np.max(r))])
         at[name] = dict(zip(FRACTIONS, med_r, strict=True))
         rot.semilogy(FRACTIONS, med_r, "o-", label=name)
         trans.semilogy(FRACTIONS, med_t, "o-", label=name)
