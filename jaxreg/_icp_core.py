@@ -19,9 +19,9 @@ from jaxtyping import Array, Bool, Float, Int
 
 from jaxreg._eig4 import jacobi_eigh
 from jaxreg._result import AbstractResult
-from jaxreg.alignment import _centred_moments, _eps, _shape_invariants
+from jaxreg.alignment import _fit
 from jaxreg.kernels import AbstractRobustKernel, trim_mask
-from jaxreg.lie import procrustes_quaternion_matrix, se3_exp
+from jaxreg.lie import se3_exp
 from jaxreg.neighbors import NeighborGrid, knn, query_nearest
 
 
@@ -228,28 +228,20 @@ def pseudo_inverse(a: Float[Array, "6 6"]) -> tuple[Array, Array, Array]:
     return (vec * inv) @ vec.T, null, ~jnp.all(ok)
 
 
+def _jacobi_top(a: Float[Array, "4 4"]) -> tuple[Array, Array]:
+    eig, vectors = jacobi_eigh(a)
+    return eig, vectors[..., -1]
+
+
 def _horn_step(moved: Array, matched: Array, w: Array) -> tuple[SE3, Array]:
     """Weighted Kabsch of ``moved`` onto ``matched`` and its degeneracy flag: the closed
-    form and tests of :func:`jaxreg.alignment.align` (the same moments and thresholds as its
-    ``_fit``), with Horn's quaternion eigenproblem solved by :func:`jaxreg._eig4.jacobi_eigh`
-    rather than LAPACK, whose batched CPU kernel deadlocks on several host devices (see
-    :mod:`jaxreg._eig4`). Rows with ``w == 0`` are ignored whatever their values."""
-    weight_sum, count, mu, h, cov_src, cov_dst = _centred_moments(moved, matched, w)
-    # q^T K(H^T) q = tr(R(q)^T H^T) = tr(R H): Horn's matrix is K of the transpose.
-    eig, vectors = jacobi_eigh(procrustes_quaternion_matrix(h.T))
-    q = jnp.where(weight_sum > 0, vectors[:, -1], jnp.array([1, 0, 0, 0], h.dtype))
-    tol = 100 * _eps(w.dtype)
-    scale_ref = jnp.abs(eig[-1]) + jnp.abs(eig[0])
-    eigengap = (eig[-1] - eig[-2]) / jnp.where(scale_ref > 0, scale_ref, 1.0) * 2
-
-    def collinear(c):
-        tr, i2, _ = _shape_invariants(c)
-        return i2 <= tol * jnp.where(tr > 0, tr, 1.0) ** 2
-
-    degenerate = (count < 3) | collinear(cov_src) | collinear(cov_dst) | (eigengap <= tol)
-    rotation = SO3(wxyz=q)
-    translation = mu[3:] - rotation @ mu[:3]
-    return SE3.from_rotation_and_translation(rotation, translation), degenerate
+    form and tests of :func:`jaxreg.alignment.align` (its ``_fit``), with Horn's quaternion
+    eigenproblem solved by :func:`jaxreg._eig4.jacobi_eigh` rather than LAPACK, whose batched
+    CPU kernel deadlocks on several host devices (see :mod:`jaxreg._eig4`). Rows with
+    ``w == 0`` are ignored whatever their values."""
+    fit = _fit(moved, matched, w, top_eigen=_jacobi_top)
+    translation = fit.mu_dst - fit.rotation @ fit.mu_src
+    return SE3.from_rotation_and_translation(fit.rotation, translation), fit.degenerate
 
 
 def _increment(problem: Problem, opts: Options, moved: Array, pairs: Pairs):

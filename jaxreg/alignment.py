@@ -230,20 +230,24 @@ def _centred_moments_jvp(primals, tangents):
 
 
 def _fit(
-    src: Float[Array, "... N 3"], dst: Float[Array, "... N 3"], w: Float[Array, "... N"]
+    src: Float[Array, "... N 3"],
+    dst: Float[Array, "... N 3"],
+    w: Float[Array, "... N"],
+    top_eigen=top_eigenpair,
 ) -> _Fit:
     """Weighted centroids, Horn's rotation and the degeneracy signals of :class:`Alignment`.
 
     ``src``, ``dst`` ``(..., N, 3)`` and ``w`` ``(..., N)`` share their batch axes; ``w >= 0``
     and rows with ``w == 0`` are padding, whatever their values. Shared by :func:`align` and
-    the ICP loop, which skips :func:`align`'s input checks. Two passes over the rows (each
-    one variadic reduction): the weighted centroids, then the centred second moments.
+    the ICP loop, which skips :func:`align`'s input checks and passes its own ``top_eigen``
+    (eigenvalues ascending, top eigenvector) for Horn's 4x4 matrix. Two passes over the rows
+    (each one variadic reduction): the weighted centroids, then the centred second moments.
     """
     weight_sum, count, mu, h, cov_src, cov_dst = _centred_moments(src, dst, w)
 
     # q^T K(H^T) q = tr(R(q)^T H^T) = tr(R H): Horn's matrix is K of the transpose.
     horn = procrustes_quaternion_matrix(jnp.swapaxes(h, -1, -2))
-    eig, q = top_eigenpair(horn)
+    eig, q = top_eigen(horn)
     top = jnp.einsum("...i,...ij,...j->...", q, horn, q)  # = tr(R H)
     # No weight at all: the identity (the centroids are then 0, and so is the translation).
     q = jnp.where((weight_sum > 0)[..., None], q, jnp.array([1, 0, 0, 0], q.dtype))
