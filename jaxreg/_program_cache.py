@@ -99,15 +99,13 @@ def _key(fn: Callable, arrays: list, static, in_tree) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:32]
 
 
-def _export(fn: Callable, args, arrays: list, path: Path):
+def _export(fn: Callable, arrays: list, static, in_tree, path: Path):
     """Traces ``fn`` once through :func:`jax.export.export` and writes the program and its
     output tree to ``path``; returns (program, output tree)."""
-    dynamic, static = eqx.partition(args, eqx.is_array)
-    leaves, tree = jax.tree.flatten(dynamic)
     box = []
 
     def flat(*values):
-        out = fn(*eqx.combine(jax.tree.unflatten(tree, values), static))
+        out = fn(*eqx.combine(jax.tree.unflatten(in_tree, values), static))
         out_leaves, out_tree = jax.tree.flatten(out)
         box.append(out_tree)
         return out_leaves
@@ -121,7 +119,7 @@ def _export(fn: Callable, args, arrays: list, path: Path):
     return exported, box[0]
 
 
-def _program(fn: Callable, args, arrays: list, key: str):
+def _program(fn: Callable, arrays: list, static, in_tree, key: str):
     if key in _LOADED:
         return _LOADED[key]
     path = _FOLDER / f"{fn.__name__}-{key}.jaxprog"
@@ -131,7 +129,7 @@ def _program(fn: Callable, args, arrays: list, key: str):
             blob, out_tree = pickle.loads(path.read_bytes())
             exported = jax.export.deserialize(bytearray(blob))
         else:
-            exported, out_tree = _export(fn, args, arrays, path)
+            exported, out_tree = _export(fn, arrays, static, in_tree, path)
         program = (jax.jit(exported.call), out_tree)
     except Exception:  # a program that cannot be stored is compiled the ordinary way
         program = None
@@ -154,7 +152,8 @@ def persistent_jit(fn: Callable) -> Callable:
         if any(isinstance(a, jax.core.Tracer) for a in arrays):
             return jitted(*args)
         arrays = [a if isinstance(a, jax.Array) else jax.device_put(a) for a in arrays]
-        program = _program(fn, args, arrays, _key(fn, arrays, static, in_tree))
+        key = _key(fn, arrays, static, in_tree)
+        program = _program(fn, arrays, static, in_tree, key)
         if program is None:
             return jitted(*args)
         run, out_tree = program
