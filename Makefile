@@ -1,6 +1,8 @@
 # Two commands do all the set-up on a fresh machine: `make demo` and `make test`.
 # Both create .venv from pyproject.toml when it is missing or older than pyproject.toml.
 
+SHELL  := /bin/bash
+.SHELLFLAGS := -o pipefail -c
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
@@ -29,8 +31,15 @@ test: $(STAMP) system-libs
 	$(PY) -m ruff check jaxreg tests benchmarks examples paper_figs
 	$(PY) -m pytest -q -n 2 --dist loadfile
 
+# Every benchmark table, peers in the same run; the whole output (with the date, the machine
+# and the load average before each script) is kept in benchmarks/results/make_bench.txt.
 bench: $(STAMP) system-libs
-	cd benchmarks && for f in bench_*.py; do echo "== $$f"; ../$(PY) $$f || exit 1; done
+	cd benchmarks && { \
+		echo "make bench, $$(date -u '+%Y-%m-%d %H:%M UTC'), $$(uname -m), $$(nproc) cores"; \
+		for f in bench_*.py; do \
+			echo "== $$f (load average $$(cut -d' ' -f1-3 /proc/loadavg), $$(date -u +%H:%M) UTC)"; \
+			PYTHONUNBUFFERED=1 ../$(PY) $$f || exit 1; \
+		done; } 2>&1 | tee results/make_bench.txt
 
 # Every paper figure: PNG, its numbers (CSV) and its caption (TXT) in paper_figs/out/.
 figs: $(STAMP)
