@@ -44,6 +44,8 @@ class _Model:
     centroid: np.ndarray
     axes: np.ndarray  # (3, 3) principal axes as columns, largest extent first
     extents: np.ndarray  # (3,) full extent along each axis
+    # _coarse_problem's, per schedule (not in the repr that keys stored programs)
+    coarse: dict = dataclasses.field(default_factory=dict, repr=False)
 
 
 _MODELS: dict[tuple, _Model] = {}
@@ -195,25 +197,33 @@ def _support(counts: np.ndarray) -> tuple[float, float]:
 
 
 class _Coarse(eqx.Module):
-    """Coarse registration of every candidate, starts ranked best first (by the fraction
-    of the cloud the model explains times the confirmed share of the model's visible
-    surface): ``poses`` ``(C, S, 7)`` object_T_base wxyz_xyz, ``explained`` ``(C, S)``,
-    ``visibility`` ``(C, S, 5)``."""
+    """Coarse registration of every candidate, its refined starts ranked best first (by the
+    fraction of the cloud the model explains times the confirmed share of the model's
+    visible surface): ``poses`` ``(C, K, 7)`` object_T_base wxyz_xyz, ``explained``
+    ``(C, K)``, ``visibility`` ``(C, K, 5)``."""
 
     poses: Array
     explained: Array
     visibility: Array
 
 
-def _coarse_problem(model: _Model, size: int, distances: np.ndarray):
-    """ICP's problem and options for ``size``-point sources against the model (the source
-    rows are replaced per candidate)."""
-    settings = Settings(
-        "point_to_plane", model.normals, distances, len(distances), 1e-5, None, None, None,
-        model.grid,
-    )  # fmt: skip
-    problem, opts, _ = prepare(np.zeros((size, 3), np.float32), model.points, settings)
-    return problem, opts
+def _coarse_problem(model: _Model, size: int, distances: np.ndarray, first: int):
+    """ICP's problem for ``size``-point sources against the model (the source rows are
+    replaced per candidate) and the options of its two rounds: the first ``first``
+    correspondence ``distances`` for every start, the rest for the starts kept. Built once
+    per model and schedule."""
+    key = (size, distances.tobytes(), first)
+    if key not in model.coarse:
+        rounds = []
+        for part in (distances[:first], distances[first:]):
+            settings = Settings(
+                "point_to_plane", model.normals, part, len(part), 1e-5, None, None, None,
+                model.grid,
+            )  # fmt: skip
+            problem, opts, _ = prepare(np.zeros((size, 3), np.float32), model.points, settings)
+            rounds.append(opts)
+        model.coarse[key] = (problem, *rounds)
+    return model.coarse[key]
 
 
 def _front_aligned(inits: SE3, cloud, ok, model_points, eye) -> SE3:
@@ -275,17 +285,39 @@ def _resting_starts(cloud, ok, model_points, model_axes, plane, eye, yaws: int) 
     return placed.inverse()
 
 
+def _spread_best(poses: Array, score: Array, count: int, min_distance: float) -> Array:
+    """Indices ``(count,)`` of the best-scoring rows of ``poses`` ``(S, 7)`` (wxyz_xyz) that
+    differ from every earlier pick by ``min_distance`` metres or 0.2 rad; when fewer rows
+    are that distinct, the best remaining ones fill the rest (jittable)."""
+    quats, trans = poses[:, :4], poses[:, 4:]
+    gap = jnp.linalg.norm(trans[:, None] - trans[None], axis=-1)
+    cos = jnp.abs(quats @ quats.T)
+    near = (gap <= min_distance) & (cos >= jnp.cos(0.1))  # half-angle of 0.2 rad
+    rank = jnp.where(jnp.isfinite(score), score, -1.0)
+
+    def pick(carry, _):
+        distinct, free = carry
+        i = jnp.argmax(jnp.where(distinct, rank + 3.0, jnp.where(free, rank, -jnp.inf)))
+        return (distinct & ~near[i], free.at[i].set(False)), i
+
+    ones = jnp.ones(len(score), bool)
+    _, chosen = jax.lax.scan(pick, (ones, ones), None, length=count)
+    return chosen
+
+
 @persistent_jit
 def _score_candidates(
-    frame, plane, problem, opts, clouds, used, model_points, model_axes, tolerance, num_starts,
-    yaws,
+    frame, plane, problem, first_opts, rest_opts, clouds, used, model_points, model_axes,
+    tolerance, num_starts, yaws, keep,
 ):  # fmt: skip
     """Multi-start ICP of every candidate cloud ``(C, N, 3)`` (NaN padding) into the model,
     its ranked starts, and the evidence for each; slots where ``used`` ``(C,)`` is False are
     skipped (zeros), so one compiled shape serves any number of candidates up to C. Starts:
     ``num_starts`` rotations of a grid over SO(3) and the 4 PCA frames, slid along the line
     of sight to the cloud's front, and ``6 * yaws`` resting on the table
-    (:func:`_resting_starts`)."""
+    (:func:`_resting_starts`). Every start runs ``first_opts``' iterations; the ``keep``
+    distinct ones whose poses then explain most of the cloud (1 cm) run ``rest_opts``' and
+    are judged against the depth image."""
 
     def one(cloud):
         ok = jnp.all(jnp.isfinite(cloud), -1)
@@ -302,27 +334,33 @@ def _score_candidates(
         )
         weights = jnp.zeros_like(problem.source_weights).at[: cloud.shape[0]].set(ok)
         p = eqx.tree_at(lambda q: (q.source, q.source_weights), problem, (source, weights))
-        results = jax.vmap(run, in_axes=(None, None, 0))(p, opts, inits)
         cloud0 = jnp.where(ok[:, None], cloud, 0.0)
 
+        def explains(pose, distance):
+            _, _, near = query_nearest(problem.grid, pose @ cloud0, distance)
+            return jnp.sum(near & ok) / jnp.maximum(ok.sum(), 1)
+
+        first = jax.vmap(run, in_axes=(None, None, 0))(p, first_opts, inits)
+        early = jax.vmap(explains, in_axes=(0, None))(first.pose, 0.01)
+        kept = _spread_best(first.pose.wxyz_xyz, early, keep, 0.01)
+        results = jax.vmap(run, in_axes=(None, None, 0))(
+            p, rest_opts, SE3(first.pose.wxyz_xyz[kept])
+        )
+
         def evidence(pose):
-            _, _, near = query_nearest(problem.grid, pose @ cloud0, 0.006)
-            explained = jnp.sum(near & ok) / jnp.maximum(ok.sum(), 1)
             seen = visibility(frame, pose.inverse(), model_points, tolerance, plane)
-            return explained, seen
+            return explains(pose, 0.006), seen
 
         explained, seen = jax.vmap(evidence)(results.pose)
         score = explained * _confirmed_share(seen)
         order = jnp.argsort(-score)
         return results.pose.wxyz_xyz[order], explained[order], seen[order]
 
-    starts = num_starts + 4 + 6 * yaws
     dtype = clouds.dtype
 
     def skip(cloud):
         return (
-            jnp.zeros((starts, 7), dtype), jnp.zeros(starts, dtype),
-            jnp.zeros((starts, 5), jnp.int32),
+            jnp.zeros((keep, 7), dtype), jnp.zeros(keep, dtype), jnp.zeros((keep, 5), jnp.int32),
         )  # fmt: skip
 
     def slot(args):

@@ -221,6 +221,8 @@ def estimate_pose(
     num_starts: int = 24,
     resting_yaws: int = 8,
     coarse_points: int = 128,
+    coarse_first: int = 6,
+    coarse_keep: int = 8,
     max_points: int = 1024,
     min_segment_points: int = 30,
     min_valid_fraction: float = 0.5,
@@ -378,13 +380,16 @@ def estimate_pose(
     for i, (_, cloud) in enumerate(candidates):
         clouds[i] = _padded(cloud, coarse_points, rng)
     used = np.arange(max_candidates) < len(candidates)
-    problem, opts = _coarse_problem(model, coarse_points, coarse_distances)
+    problem, first_opts, rest_opts = _coarse_problem(
+        model, coarse_points, coarse_distances, coarse_first
+    )
     coarse = jax.block_until_ready(
         _score_candidates(
             frame,
             seg.plane,
             problem,
-            opts,
+            first_opts,
+            rest_opts,
             jnp.asarray(clouds),
             jnp.asarray(used),
             jnp.asarray(model.points),
@@ -392,6 +397,7 @@ def estimate_pose(
             tolerance,
             num_starts,
             resting_yaws,
+            coarse_keep,
         )  # fmt: skip
     )
     scored = []
