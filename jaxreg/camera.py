@@ -51,17 +51,19 @@ def canonical_dist_coeffs(
 
     Four coefficients get `k3 = 0`; any other length raises `ValueError` (at trace time).
     """
-    if dist_coeffs is None:
-        return None
-    dist_coeffs = jnp.asarray(dist_coeffs)
-    if dist_coeffs.shape[-1:] == (4,):
-        dist_coeffs = jnp.concatenate([dist_coeffs, jnp.zeros_like(dist_coeffs[..., :1])], axis=-1)
-    if dist_coeffs.shape[-1:] != (5,):
+    return None if dist_coeffs is None else _canonical_dist(jnp.asarray(dist_coeffs))
+
+
+def _canonical_dist(dist):
+    """`canonical_dist_coeffs` of a numpy or JAX array, in its own kind."""
+    if dist.shape[-1:] == (4,):
+        xp = np if isinstance(dist, np.ndarray) else jnp
+        dist = xp.concatenate([dist, xp.zeros_like(dist[..., :1])], axis=-1)
+    if dist.shape[-1:] != (5,):
         raise ValueError(
-            "dist_coeffs must have 4 or 5 entries (k1, k2, p1, p2[, k3]), "
-            f"got shape {dist_coeffs.shape}"
+            f"dist_coeffs must have 4 or 5 entries (k1, k2, p1, p2[, k3]), got shape {dist.shape}"
         )
-    return dist_coeffs
+    return dist
 
 
 def _radial_tangential(xy: Float[Array, "*batch N 2"], dist: Float[Array, "*batch 5"]):
@@ -260,13 +262,27 @@ def undistort_points(
 # --------------------------------------------------------------------------------------------
 
 
+def _leaf(value, dtype=None) -> Array:
+    """`value` as a JAX array leaf (of `dtype` if given, else JAX's canonical dtype of its
+    own): a traced value through `jnp.asarray`; a concrete one converted in numpy and copied to
+    the device (`jnp.asarray` of host data compiles a small program per shape in each
+    process, a cost every command line run would pay again)."""
+    if isinstance(value, jax.core.Tracer):
+        return jnp.asarray(value, dtype=dtype)
+    array = np.asarray(value)
+    dtype = array.dtype if dtype is None else dtype
+    return jax.device_put(array.astype(jax.dtypes.canonicalize_dtype(dtype)))
+
+
 def _positive_scalar(name: str, value) -> Array:
     """`value` as a float array leaf; a concrete value must be finite and positive."""
-    array = jnp.asarray(value, dtype=jnp.result_type(float))
+    array = _leaf(value, jnp.result_type(float))
     if array.shape != ():
         raise ValueError(f"{name} must be a scalar, got shape {array.shape}")
-    if not isinstance(array, jax.core.Tracer) and not (np.isfinite(array) and array > 0):
-        raise ValueError(f"{name} must be finite and positive, got {float(array)}")
+    if not isinstance(array, jax.core.Tracer):
+        host = np.asarray(array)
+        if not (np.isfinite(host) and host > 0):
+            raise ValueError(f"{name} must be finite and positive, got {float(host)}")
     return array
 
 
@@ -308,9 +324,12 @@ class Intrinsics(eqx.Module):
                 raise ValueError(f"{name} must be a positive int (pixels), got {size!r}")
         self.fx = _positive_scalar("fx", fx)
         self.fy = _positive_scalar("fy", fy)
-        self.cx = jnp.asarray(cx, dtype=self.fx.dtype)
-        self.cy = jnp.asarray(cy, dtype=self.fx.dtype)
-        self.dist_coeffs = None if dist_coeffs is None else canonical_dist_coeffs(dist_coeffs)
+        self.cx = _leaf(cx, self.fx.dtype)
+        self.cy = _leaf(cy, self.fx.dtype)
+        if dist_coeffs is None or isinstance(dist_coeffs, jax.core.Tracer):
+            self.dist_coeffs = canonical_dist_coeffs(dist_coeffs)
+        else:
+            self.dist_coeffs = _leaf(_canonical_dist(np.asarray(dist_coeffs)))
         if self.dist_coeffs is not None and self.dist_coeffs.shape != (5,):
             raise ValueError(
                 f"dist_coeffs must be one vector of 4 or 5, got {self.dist_coeffs.shape}"
@@ -416,17 +435,20 @@ class RGBDFrame(eqx.Module):
         rgb: Shaped[ArrayLike, "H W 3"] | None = None,
         base_T_camera: SE3 | Float[ArrayLike, "4 4"] | None = None,
     ):
-        depth = jnp.asarray(depth)
+        # concrete images are cleaned on the host: no JAX program to compile (see `_leaf`)
+        xp = jnp if isinstance(depth, jax.core.Tracer) else np
+        depth = xp.asarray(depth)
         if depth.shape != intrinsics.shape:
             raise ValueError(
                 f"depth has shape {depth.shape} but the intrinsics are for "
                 f"(height, width) = {intrinsics.shape}: pass the intrinsics of this image size"
             )
-        depth = depth.astype(jnp.result_type(depth, float))
-        self.depth = jnp.where(jnp.isfinite(depth) & (depth > 0), depth, jnp.nan)
+        depth = depth.astype(jnp.result_type(depth.dtype, float))
+        with np.errstate(invalid="ignore"):
+            self.depth = _leaf(xp.where(xp.isfinite(depth) & (depth > 0), depth, np.nan))
         self.intrinsics = intrinsics
         if rgb is not None:
-            rgb = jnp.asarray(rgb)
+            rgb = _leaf(rgb)
             if rgb.shape != (*intrinsics.shape, 3):
                 raise ValueError(
                     f"rgb must be (H, W, 3) = {(*intrinsics.shape, 3)} registered to the depth "
@@ -434,7 +456,7 @@ class RGBDFrame(eqx.Module):
                 )
         self.rgb = rgb
         if base_T_camera is None:
-            base_T_camera = SE3(jnp.array([1.0, 0, 0, 0, 0, 0, 0], self.depth.dtype))
+            base_T_camera = SE3(_leaf(np.array([1.0, 0, 0, 0, 0, 0, 0]), self.depth.dtype))
         elif not isinstance(base_T_camera, SE3):
             base_T_camera = se3_from_matrix(base_T_camera)
         self.base_T_camera = base_T_camera

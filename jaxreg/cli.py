@@ -85,49 +85,66 @@ def _clean(value):
     return value
 
 
-def grasp_prediction(model_points: np.ndarray, covariance: np.ndarray, opening: float) -> dict:
-    """Predicted success of a parallel-jaw grasp across the model's narrowest principal axis.
+def _grasp_axis(model_points: np.ndarray, covariance: np.ndarray):
+    """A parallel-jaw grasp across the model's narrowest principal axis: the axis ``(3,)``
+    (object frame), the model's width along it and the lateral sigma along it (host numpy).
 
-    The jaws close along the axis of least extent (object frame); the margin is
-    :func:`jaxreg.grasp_margin` of the opening and that width, and the lateral error along the
-    axis is Gaussian with the sigma the pose covariance gives it (its translation block,
-    object frame), no bias: the depth noise alone. ``axis`` is returned (object frame) so that
-    a known error can be added as a bias (:func:`measured_grasp`).
+    The jaws close along the axis of least extent; the lateral error along it is Gaussian
+    with the sigma the pose covariance gives it (its translation block, object frame), no
+    bias: the depth noise alone. :func:`_report_numbers` turns them into the margin
+    (:func:`jaxreg.grasp_margin`) and the predicted success; ``axis`` is reported so that a
+    known error can be added as a bias (:func:`measured_grasp`).
     """
-    from jaxreg.uncertainty import grasp_margin, grasp_success_probability
-
     centred = model_points - model_points.mean(0)
     _, vectors = np.linalg.eigh(np.cov(centred.T))
     axis = vectors[:, 0]
     along = centred @ axis
-    width = float(along.max() - along.min())
-    margin = float(grasp_margin(opening, width))
     sigma = float(np.sqrt(max(axis @ covariance[:3, :3] @ axis, 0.0)))
-    probability = (
-        float(grasp_success_probability(sigma, 0.0, margin)) if math.isfinite(sigma) else None
-    )
+    return axis, float(along.max() - along.min()), sigma
+
+
+def _grasp(opening, width, margin, sigma, probability, axis) -> dict:
     return {
         "gripper_opening_mm": round(opening * 1e3, 1),
         "object_width_mm": round(width * 1e3, 1),
         "margin_per_side_mm": round(margin * 1e3, 2),
         "lateral_sigma_mm": round(sigma * 1e3, 3),
-        "probability": probability,
+        "probability": probability if math.isfinite(sigma) else None,
         "axis": axis.tolist(),
     }
 
 
-def measured_grasp(grasp: dict, estimate_pose, truth) -> dict:
-    """The grasp of :func:`grasp_prediction` with this frame's measured error (the true object
-    origin in the estimated object frame, along the jaw axis) as the bias: what the noise-only
-    prediction leaves out (segmentation, model fit, calibration)."""
+@persistent_jit
+def _report_numbers(pose, opening, width, sigma):
+    """The pose's ``(4, 4)`` matrix, the grasp margin per side of a gripper ``opening`` around
+    ``width``, and the grasp's predicted success with lateral ``sigma`` and no bias (all
+    metres), as one compiled program (each eager operation would be a program of its own to
+    load)."""
+    from jaxreg.uncertainty import grasp_margin, grasp_success_probability
+
+    margin = grasp_margin(opening, width)
+    return pose.as_matrix(), margin, grasp_success_probability(sigma, 0.0, margin)
+
+
+@persistent_jit
+def _measured_probability(sigma, bias, margin):
+    """:func:`jaxreg.grasp_success_probability`, as a stored program."""
     from jaxreg.uncertainty import grasp_success_probability
 
-    offset = np.asarray((estimate_pose.inverse() @ truth).translation(), np.float64)
-    bias = abs(float(np.asarray(grasp["axis"]) @ offset))
+    return grasp_success_probability(sigma, bias, margin)
+
+
+def measured_grasp(grasp: dict, offset: np.ndarray) -> dict:
+    """The report's grasp (:func:`build_report`) with this frame's measured error (``offset``, the
+    true object origin in the estimated object frame, ``(3,)`` metres; its component along the
+    jaw axis) as the bias: what the noise-only prediction leaves out (segmentation, model fit,
+    calibration)."""
+    bias = abs(float(np.asarray(grasp["axis"]) @ np.asarray(offset, np.float64)))
     sigma, margin = grasp["lateral_sigma_mm"] * 1e-3, grasp["margin_per_side_mm"] * 1e-3
+    probability = _measured_probability(*np.float32([sigma, bias, margin]))
     return {
         "measured_lateral_error_mm": round(bias * 1e3, 3),
-        "probability_with_measured_error": float(grasp_success_probability(sigma, bias, margin)),
+        "probability_with_measured_error": float(probability),
     }
 
 
@@ -135,7 +152,7 @@ def build_report(estimate, model_points: np.ndarray, opening: float) -> dict:
     """The JSON report of a :class:`jaxreg.pipeline.PoseEstimate`."""
     found = estimate.pose is not None
     report = {
-        "pose": np.asarray(estimate.pose.as_matrix()).tolist() if found else None,
+        "pose": None,
         "failed_stage": estimate.failed_stage,
         "reason": estimate.reason,
         "stages": estimate.stages,
@@ -144,13 +161,18 @@ def build_report(estimate, model_points: np.ndarray, opening: float) -> dict:
         "predicted_grasp_success": None,
     }
     if found:
+        axis, width, lateral = _grasp_axis(model_points, estimate.covariance)
+        matrix, margin, probability = _report_numbers(
+            estimate.pose, *np.float32([opening, width, lateral])
+        )
+        report["pose"] = np.asarray(matrix).tolist()
         sigma = np.sqrt(np.clip(np.diag(estimate.covariance), 0.0, None))
         report["error_bars"] = {
             "translation_sigma_mm": (sigma[:3] * 1e3).round(4).tolist(),
             "rotation_sigma_deg": np.degrees(sigma[3:]).round(4).tolist(),
             "frame": "object axes (right perturbation of base_T_object), 1 sigma, depth noise only",
         }
-        grasp = grasp_prediction(model_points, estimate.covariance, opening)
+        grasp = _grasp(opening, width, float(margin), lateral, float(probability), axis)
         report["grasp"] = grasp
         report["predicted_grasp_success"] = grasp["probability"]
     return _clean(report)
@@ -310,12 +332,14 @@ def _finish(args, report: dict, title: str, frame, estimate, model_points) -> in
 
 @persistent_jit
 def _truth_errors(pose, truth, model_points, symmetry):
-    """Translation (m), rotation (rad) and ADD-S (m) error of ``pose`` against ``truth``, in
-    one compiled program (each eager operation would be a program of its own to load)."""
+    """Translation (m), rotation (rad) and ADD-S (m) error of ``pose`` against ``truth``, and
+    the true object origin in the estimated object frame ``(3,)`` (m), in one compiled program
+    (each eager operation would be a program of its own to load)."""
     from jaxreg.metrics import add_s, pose_error
 
     translation, rotation = pose_error(pose, truth, symmetry=symmetry)
-    return translation, rotation, add_s(model_points, pose, truth)
+    offset = (pose.inverse() @ truth).translation()
+    return translation, rotation, add_s(model_points, pose, truth), offset
 
 
 def run_demo(args) -> int:
@@ -347,14 +371,14 @@ def run_demo(args) -> int:
     report = build_report(estimate, model, args.gripper_opening)
     report.update(translation_error_mm=None, rotation_error_deg=None, add_s_mm=None)
     if estimate.pose is not None:
-        t_err, r_err, add_s_m = _truth_errors(
+        t_err, r_err, add_s_m, offset = _truth_errors(
             estimate.pose, scene.truth, scene.model_points, symmetry
         )
         report["translation_error_mm"] = round(float(t_err) * 1e3, 3)
         report["rotation_error_deg"] = round(float(np.degrees(r_err)), 3)
         report["add_s_mm"] = round(float(add_s_m) * 1e3, 3)
         if report["grasp"]["probability"] is not None:
-            report["grasp"].update(measured_grasp(report["grasp"], estimate.pose, scene.truth))
+            report["grasp"].update(measured_grasp(report["grasp"], offset))
     report["scene"] = {"seed": args.seed, "object": args.object, "distractors": 2}
     title = f"jaxreg demo: a {args.object} (seed {args.seed})"
     return _finish(args, report, title, scene.frame, estimate, model)
