@@ -33,8 +33,8 @@ import jax.numpy as jnp
 from jaxlie import SE3, SO3
 from jaxtyping import Array, Float
 
+from jaxreg._eig3 import eigh3
 from jaxreg.alignment import kabsch
-from jaxreg.normals import _eigh3
 
 __all__ = ["general_starts", "image_spread", "ippe_candidates", "weighted_pca"]
 
@@ -52,7 +52,7 @@ def weighted_pca(X: Float[Array, "N 3"], w: Float[Array, " N"]):
     centred = X - centroid
     scatter = jnp.einsum("n,ni,nj->ij", w, centred, centred) / wsum
     entries = scatter[jnp.array([0, 0, 0, 1, 1, 2]), jnp.array([0, 1, 2, 1, 2, 2])]
-    evals, evecs = _eigh3(entries)
+    evals, evecs = eigh3(entries)
     return centroid, jnp.maximum(evals, 0.0), evecs
 
 

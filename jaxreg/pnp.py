@@ -4,9 +4,10 @@ covariance per problem. One entry per problem: `solve_pnp` for any point set (`P
 candidate poses of the planar two-fold ambiguity).
 
 The camera model (projection, distortion, frames) is `jaxreg.camera`'s; the closed-form starts
-(EPnP, IPPE) are in `jaxreg._pnp_init`, the refinement in `jaxreg._pnp_refine`. Tangent vectors
-are jaxlie's `(vx, vy, vz, wx, wy, wz)`; covariances are of the *right* perturbation
-`T_true = T_est @ SE3.exp(delta)`, i.e. in the object frame. Reprojection RMSE is
+(EPnP, IPPE) are in `jaxreg._pnp_init`, the refinement in `jaxreg._pnp_refine`, the covariance
+in `jaxreg._pnp_covariance`. Tangent vectors are jaxlie's `(vx, vy, vz, wx, wy, wz)`;
+covariances are of the *right* perturbation `T_true = T_est @ SE3.exp(delta)`, i.e. in the
+object frame. Reprojection RMSE is
 `sqrt(mean_i |pi(X_i) - u_i|^2)` over the valid points, in pixels: the root-mean-square of
 per-point Euclidean distances (what `cv2.calibrateCamera` reports; `cv2.solvePnPGeneric`
 reports the per-coordinate RMS, this divided by sqrt(2)).
@@ -57,9 +58,9 @@ import numpy as np
 from jaxlie import SE3, SO3
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from jaxreg._pnp_covariance import covariance as pose_covariance, covariances as pose_covariances
 from jaxreg._pnp_init import general_starts, image_spread, ippe_candidates, weighted_pca
-from jaxreg._pnp_linalg import matmul, spd_inverse
-from jaxreg._pnp_refine import refine_poses, weighted_jacobian
+from jaxreg._pnp_refine import refine_poses
 from jaxreg._result import AbstractResult, select_status
 from jaxreg.camera import canonical_dist_coeffs, project, undistort_points
 from jaxreg.lie import geodesic_angle
@@ -252,102 +253,13 @@ def _ranking(fits: _Fit, converged: Array, eligible: Array | bool = True) -> Arr
     return jnp.lexsort((rmse, ~(tied & converged), tier))
 
 
-def _normalised_information(pose: SE3, X, K, dist, w):
-    """`J^T W J` at `pose` (zero where not finite), its column norms `col` (1 where zero) and
-    `C = J^T W J / outer(col, col)`, whose diagonal is 1 (0 where the column is zero)."""
-    J = weighted_jacobian(pose, X, K, dist, jnp.sqrt(w))
-    info = matmul(J.T, J)
-    info = jnp.where(jnp.all(jnp.isfinite(info)), info, 0.0)
-    col = jnp.sqrt(jnp.diagonal(info))
-    col = jnp.where(col > 0, col, 1.0)
-    return info, col, info / jnp.outer(col, col)
-
-
-def _with_undetermined(cov, free, pose: SE3, tol):
-    """`inf` in the rows and columns of the `free` tangent coordinates, the per-axis sigmas
-    described in `PnPResult`, and whether any coordinate is free."""
-    free_pair = free[:, None] | free[None, :]
-    R = pose.rotation().as_matrix()
-    t_var = jnp.einsum("ij,jk,ik->i", R, jnp.where(free_pair, 0.0, cov)[:3, :3], R)
-    t_free = jnp.any(free[None, :3] & (jnp.abs(R) > jnp.sqrt(tol)), axis=1)
-    t_sigma = jnp.where(t_free, jnp.inf, jnp.sqrt(jnp.maximum(t_var, 0.0)))
-    cov = jnp.where(free_pair, jnp.inf, cov)
-    r_sigma = jnp.rad2deg(jnp.sqrt(jnp.maximum(jnp.diagonal(cov[3:, 3:]), 0.0)))
-    return cov, t_sigma, r_sigma, jnp.any(free)
-
-
-def _covariance(pose: SE3, X, K, dist, w, sigma_px):
-    """`sigma_px^2 (J^T W J)^-1` at `pose` with `inf` on undetermined directions (see the module
-    docstring), the per-axis sigmas described in `PnPResult`, and whether any direction is
-    undetermined. One eigendecomposition per problem: the reference for
-    `_covariance_closed_form`, used where that one cannot decide."""
-    tol = 100 * jnp.finfo(X.dtype).eps
-    _, col, C = _normalised_information(pose, X, K, dist, w)
-    evals, evecs = jnp.linalg.eigh(C)
-    determined = evals > tol * evals[-1]
-    inv = jnp.where(determined, 1.0 / jnp.where(determined, evals, 1.0), 0.0)
-    cov = sigma_px**2 * ((evecs * inv) @ evecs.T) / jnp.outer(col, col)
-    # Tangent coordinates with a share in an undetermined direction (evecs[i, k]: coordinate i).
-    free = jnp.any(~determined & (jnp.abs(evecs) > jnp.sqrt(tol)), axis=1)
-    return _with_undetermined(cov, free, pose, tol)
-
-
-def _covariance_closed_form(pose: SE3, X, K, dist, w, sigma_px):
-    """`_covariance`'s outputs without an eigendecomposition, and whether they are its.
-
-    Two cases are decided here. Every direction is determined when `1 / trace(C^-1)`, a lower
-    bound on C's smallest eigenvalue, exceeds twice `tol` times the largest absolute row sum of
-    C, an upper bound on its largest eigenvalue (the factor 2 covers the rounding of `C^-1`,
-    whose relative error there is ~`eps / tol`): then the covariance is the plain inverse, by
-    Cholesky. No direction is determined when the information is zero (no weight, or a
-    non-finite Jacobian). Between them lie near-singular problems, left to `_covariance`: the
-    returned flag is False there."""
-    tol = 100 * jnp.finfo(X.dtype).eps
-    info, col, C = _normalised_information(pose, X, K, dist, w)
-    C_inv, positive = spd_inverse(C)
-    trace = jnp.trace(C_inv)
-    largest = jnp.max(jnp.sum(jnp.abs(C), axis=1))
-    determined = positive & jnp.isfinite(trace) & (trace * 2 * tol * largest < 1.0)
-    zero = jnp.all(info == 0)
-    cov = jnp.where(zero, 0.0, sigma_px**2 * C_inv / jnp.outer(col, col))
-    return _with_undetermined(cov, jnp.full(6, zero), pose, tol), determined | zero
-
-
-def _covariances(pose: SE3, X, K, dist, w, sigma_px, axes):
-    """`_covariance` of a flat batch of problems `(B,)` (X `(B, N, 3)`, w `(B, N)`, K and dist
-    batched or shared as `axes` says) at poses of batch `(B,)` or `(B, C)` (C candidates each).
-
-    Closed form where it decides (`_covariance_closed_form`), the eigendecomposition elsewhere;
-    that runs only when some lane needs it, and then for the whole batch."""
-
-    def batched(fn):
-        f = lambda T, X, K, dist, w: fn(T, X, K, dist, w, sigma_px)  # noqa: E731
-        if pose.wxyz_xyz.ndim == 3:
-            f = jax.vmap(f, in_axes=(0, None, None, None, None))
-        return jax.vmap(f, in_axes=(0, 0, axes[0], axes[1], 0))
-
-    fast, decided = batched(_covariance_closed_form)(pose, X, K, dist, w)
-
-    def fallback():
-        exact = batched(_covariance)(pose, X, K, dist, w)
-        return jax.tree.map(
-            lambda a, b: jnp.where(
-                decided.reshape(decided.shape + (1,) * (a.ndim - decided.ndim)), a, b
-            ),
-            fast,
-            exact,
-        )
-
-    return jax.lax.cond(jnp.all(decided), lambda: fast, fallback)
-
-
 def _finish(
     pose, fit: _Fit, iterations, lm_converged, status, X, K, dist, w, sigma_px, covariance=None
 ):
-    """The `PnPResult` of one pose: covariance (`_covariance`'s, computed unless given), and the
+    """The `PnPResult` of one pose: covariance (`pose_covariance`'s, computed unless given), and the
     final status (input failures first)."""
     if covariance is None:
-        covariance = _covariance(pose, X, K, dist, w, sigma_px)
+        covariance = pose_covariance(pose, X, K, dist, w, sigma_px)
     cov, t_sigma, r_sigma, undetermined = covariance
     late = select_status(
         [
@@ -525,7 +437,7 @@ def _solve_batch(starts_fn, choose_fn, finish_fn, arrays, batch, sigma_px, *, re
     """Solve every problem of the broadcast leading `batch` axes (one problem when
     `batch == ()`): `starts_fn(X, uv, K, dist, w) -> _Starts` per problem, the refinement of all
     starts of all problems together (`refine_poses`), `choose_fn` per problem, the covariances
-    of the whole batch at once (`_covariances`), then `finish_fn` per problem."""
+    of the whole batch at once (`pose_covariances`), then `finish_fn` per problem."""
     size = int(np.prod(batch))
     flat, axes = [], []
     for a, k in zip(arrays, _CORE_NDIMS, strict=True):
@@ -560,7 +472,7 @@ def _solve_batch(starts_fn, choose_fn, finish_fn, arrays, batch, sigma_px, *, re
     refined = jax.vmap(choose_fn, in_axes=(0, 0, 0, 0, axes[2], axes[3]))(
         st, poses, its, conv, K, dist
     )
-    cov = _covariances(refined.pose, refined.X, K, dist, refined.w, sigma_px, axes[2:4])
+    cov = pose_covariances(refined.pose, refined.X, K, dist, refined.w, sigma_px, axes[2:4])
     out = jax.vmap(finish_fn, in_axes=(0, axes[2], axes[3], None, 0))(
         refined, K, dist, sigma_px, cov
     )

@@ -510,7 +510,7 @@ def test_refinement_normal_equations_match_autodiff(x64):
 def test_closed_form_covariance_equals_the_eigendecomposition(planar):
     """Where the closed form decides (every direction determined, or none), it gives what the
     eigendecomposition gives; it leaves the near-singular lanes to it."""
-    from jaxreg.pnp import _covariance, _covariance_closed_form
+    from jaxreg._pnp_covariance import _covariance_closed_form, covariance
 
     c = planar["result"].candidates
     X, K_ = jnp.asarray(TAG_POINTS, jnp.float32), jnp.asarray(K, jnp.float32)
@@ -519,7 +519,7 @@ def test_closed_form_covariance_equals_the_eigendecomposition(planar):
         for i in (0, 1):
             pose = SE3(jnp.asarray(c.pose.wxyz_xyz[b, i]))
             fast, decided = _covariance_closed_form(pose, X, K_, None, jnp.ones(4), 0.2)
-            exact = _covariance(pose, X, K_, None, jnp.ones(4), 0.2)
+            exact = covariance(pose, X, K_, None, jnp.ones(4), 0.2)
             assert decided
             # float32 inverses: compare correlations and relative sigmas
             sd = np.sqrt(np.diagonal(exact[0]))
@@ -533,7 +533,7 @@ def test_closed_form_covariance_equals_the_eigendecomposition(planar):
     w = jnp.zeros(4).at[:2].set(1.0)  # two points: rank 4, near singular, undecided
     assert not _covariance_closed_form(pose, X, K_, None, w, 0.2)[1]
     none = _covariance_closed_form(pose, X, K_, None, jnp.zeros(4), 0.2)
-    exact = _covariance(pose, X, K_, None, jnp.zeros(4), 0.2)
+    exact = covariance(pose, X, K_, None, jnp.zeros(4), 0.2)
     assert none[1] and none[0][3] and np.all(np.isinf(none[0][0]))
     for a, e in zip(none[0], exact, strict=True):
         np.testing.assert_array_equal(a, e)
