@@ -11,8 +11,10 @@ program and writes it; a later process deserializes it and calls it, and XLA's o
 The folder is off until :func:`set_folder` is called: the command line does it, a library
 import never does. A program's file name is a digest of everything that can change it: the
 function's qualified name, the source of every jaxreg module, the jax and jaxlib versions,
-the backend, ``jax_enable_x64``, the input tree with its static leaves, and each array's
-shape and dtype. Deleting the folder is always safe.
+the backend, ``jax_enable_x64``, the input tree with its static leaves (their repr; for an
+object holding arrays, such as a prepared model closed into the program as constants, also a
+digest of the arrays' bytes, since a repr shortens them), and each array's shape and dtype.
+Deleting the folder is always safe.
 
 Falls back to the plain compiled call, with nothing written, when the call is traced (inside
 ``jit``, ``vmap`` or ``grad``: exported programs are not differentiated here), when the
@@ -21,23 +23,28 @@ output holds something that cannot be pickled, or when the export fails.
 
 from __future__ import annotations
 
+import contextlib
 import copyreg
+import dataclasses
 import functools
 import hashlib
 import io
 import os
 import pickle
 import tempfile
+import weakref
 from collections.abc import Callable
 from pathlib import Path
 
 import equinox as eqx
 import jax
+import numpy as np
 
 __all__ = ["persistent_jit", "set_folder"]
 
 _FOLDER: Path | None = None
 _LOADED: dict[str, tuple[Callable, object] | None] = {}
+_DIGESTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # static leaf -> key text
 
 
 def set_folder(folder: str | os.PathLike | None) -> None:
@@ -82,6 +89,48 @@ def _dumps(value) -> bytes:
     return buffer.getvalue()
 
 
+def _held_arrays(value, depth: int = 0) -> list:
+    """The numpy and JAX arrays inside a static leaf: itself, its pytree leaves, and those of
+    a dataclass's fields or a container's items (a few levels down)."""
+    if isinstance(value, np.ndarray | jax.Array):
+        return [value]
+    if depth > 4 or isinstance(value, str | bytes | int | float | complex | type(None)):
+        return []
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        items = [getattr(value, field.name, None) for field in dataclasses.fields(value)]
+    elif isinstance(value, dict):
+        items = list(value.values())
+    elif isinstance(value, list | tuple):
+        items = list(value)
+    else:
+        return []
+    return [
+        a for item in items for leaf in jax.tree.leaves(item) for a in _held_arrays(leaf, depth + 1)
+    ]
+
+
+def _static_text(leaf) -> str:
+    """A static leaf as key text: its repr, and for an object holding arrays (numpy shortens
+    their repr with '...', an equinox module shows only shapes) a digest of their bytes too,
+    computed once per object while it lives."""
+    try:
+        return _DIGESTS[leaf]
+    except (KeyError, TypeError):  # TypeError: not hashable or not weakly referenceable
+        pass
+    text = repr(leaf)
+    held = _held_arrays(leaf)
+    if held:
+        digest = hashlib.sha256(text.encode())
+        for array in held:
+            host = np.ascontiguousarray(array)
+            digest.update(f"{host.shape} {host.dtype}".encode())
+            digest.update(host.tobytes())
+        text = f"{type(leaf).__qualname__} holding arrays {digest.hexdigest()}"
+        with contextlib.suppress(TypeError):
+            _DIGESTS[leaf] = text
+    return text
+
+
 def _key(fn: Callable, arrays: list, static, in_tree) -> str:
     avals = [(a.shape, str(a.dtype), bool(getattr(a, "weak_type", False))) for a in arrays]
     text = repr(
@@ -92,7 +141,7 @@ def _key(fn: Callable, arrays: list, static, in_tree) -> str:
             bool(jax.config.jax_enable_x64),
             str(in_tree),
             str(jax.tree.structure(static)),
-            [repr(leaf) for leaf in jax.tree.leaves(static)],
+            [_static_text(leaf) for leaf in jax.tree.leaves(static)],
             avals,
         )
     )

@@ -24,7 +24,6 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 
-import equinox as eqx
 import numpy as np
 import trimesh
 from embreex import rtcore_scene
@@ -33,6 +32,7 @@ from jaxlie import SE3
 
 from jaxreg._depth_noise import StereoSensor
 from jaxreg._meshes import OBJECTS, distractor_mesh, object_mesh
+from jaxreg._program_cache import persistent_jit
 from jaxreg.camera import Intrinsics, RGBDFrame
 from jaxreg.lie import se3_from_matrix
 from jaxreg.metrics import Symmetry
@@ -56,9 +56,15 @@ _LIGHT_BASE = np.array([0.3, -0.4, 1.0]) / np.linalg.norm([0.3, -0.4, 1.0])  # t
 _PLACEMENT_REACH = 0.34  # metres from the target: the table is 0.8 m deep, the target within 5 cm
 _LUMA = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 luminance of linear RGB
 
-# One compiled program, not the dozens of small ones `pixel_rays` compiles op by op when
-# called eagerly (the same XLA arithmetic: bitwise the same rays).
-_pixel_rays = eqx.filter_jit(Intrinsics.pixel_rays)
+# One stored program, not the dozens of small ones `pixel_rays` compiles op by op when called
+# eagerly (the same XLA arithmetic: bitwise the same rays; numpy's division rounds otherwise).
+_pixel_rays = persistent_jit(Intrinsics.pixel_rays)
+
+
+@persistent_jit
+def _poses(base_T_camera: np.ndarray, base_T_object: np.ndarray) -> tuple[SE3, SE3]:
+    """`se3_from_matrix` of two `(4, 4)` float32 poses, as one stored program."""
+    return se3_from_matrix(base_T_camera), se3_from_matrix(base_T_object)
 
 
 class _RayCaster:
@@ -395,18 +401,16 @@ def tabletop_scene(
     if noise:
         noise_seed = seed if noise_seed is None else noise_seed
         depth = sensor.measure(rendering, np.random.default_rng([noise_seed, 1]))
+    camera_pose, truth_pose = _poses(base_T_camera.astype(np.float32), truth.astype(np.float32))
     frame = RGBDFrame(
-        depth.astype(np.float32),
-        intrinsics,
-        rgb=rendering.shade(),
-        base_T_camera=se3_from_matrix(base_T_camera.astype(np.float32)),
+        depth.astype(np.float32), intrinsics, rgb=rendering.shade(), base_T_camera=camera_pose
     )
     samples, _ = trimesh.sample.sample_surface(model, model_points, seed=seed)
     return TabletopScene(
         frame=frame,
         model=model,
         model_points=samples.astype(np.float32),
-        truth=se3_from_matrix(truth.astype(np.float32)),
+        truth=truth_pose,
         mask=rendering.labels == 1,
         symmetry=symmetry,
         exact_depth=rendering.depth,

@@ -1,5 +1,6 @@
 """Programs stored on disk between processes (jaxreg._program_cache)."""
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -121,3 +122,28 @@ def test_traced_calls_fall_back_and_store_nothing(fitmod, store):
     grad = jax.grad(lambda s: fit(s, s + 0.5, 2.0).pose.wxyz_xyz[4])(sources[0])
     assert batched.shape == (3, 7) and np.all(np.isfinite(grad))
     assert not list(store.glob("*.jaxprog"))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Held:
+    """A static leaf (not a pytree) holding an array, as the pipeline's prepared model does:
+    its array is closed into the program as a constant."""
+
+    values: np.ndarray
+
+
+def _offset(x, held):
+    return x + jnp.asarray(held.values).sum()
+
+
+def test_static_objects_holding_arrays_are_keyed_by_their_bytes(store):
+    base = np.zeros(2000, np.float32)
+    edited = base.copy()
+    edited[1000] = 1.0
+    assert repr(_Held(base)) == repr(_Held(edited))  # numpy shortens both to the same text
+    run = _program_cache.persistent_jit(_offset)
+    x = jnp.zeros(3)
+    np.testing.assert_array_equal(run(x, _Held(base)), np.zeros(3))
+    np.testing.assert_array_equal(run(x, _Held(edited)), np.ones(3))
+    np.testing.assert_array_equal(run(x, _Held(base.copy())), np.zeros(3))  # same bytes
+    assert len(list(store.glob("*.jaxprog"))) == 2
