@@ -23,25 +23,31 @@ from jaxtyping import Array, Float
 __all__ = ["jacobi_eigh"]
 
 
-def _rotate(carry, p: int, q: int):
-    """One Jacobi rotation zeroing ``a[p, q]``: ``a <- J^T a J``, ``v <- v J``."""
-    a, v = carry
-    apq = a[..., p, q]
-    app, aqq = a[..., p, p], a[..., q, q]
+def _rotate(a: dict, v: list, n: int, p: int, q: int):
+    """One Jacobi rotation zeroing ``a[p, q]`` (``a <- J^T a J``, ``v <- v J``), entry by
+    entry: ``a`` maps ``(i, j)``, ``i <= j``, to the batch of that entry; ``v`` is a list of
+    rows of batches. Only rows and columns ``p`` and ``q`` change."""
+    apq, app, aqq = a[p, q], a[p, p], a[q, q]
     live = apq != 0
     theta = (aqq - app) / (2 * jnp.where(live, apq, 1.0))
     t = jnp.sign(theta) / (jnp.abs(theta) + jnp.sqrt(theta * theta + 1))
     t = jnp.where(live, jnp.where(theta == 0, 1.0, t), 0.0)
     c = 1 / jnp.sqrt(t * t + 1)
     s = t * c
-    c_, s_ = c[..., None], s[..., None]
-    # Columns p and q, then rows p and q (a stays symmetric).
-    col_p, col_q = a[..., :, p], a[..., :, q]
-    a = a.at[..., :, p].set(c_ * col_p - s_ * col_q).at[..., :, q].set(s_ * col_p + c_ * col_q)
-    row_p, row_q = a[..., p, :], a[..., q, :]
-    a = a.at[..., p, :].set(c_ * row_p - s_ * row_q).at[..., q, :].set(s_ * row_p + c_ * row_q)
-    vp, vq = v[..., :, p], v[..., :, q]
-    v = v.at[..., :, p].set(c_ * vp - s_ * vq).at[..., :, q].set(s_ * vp + c_ * vq)
+    a = dict(a)
+    a[p, p] = app - t * apq
+    a[q, q] = aqq + t * apq
+    a[p, q] = jnp.zeros_like(apq)
+    for r in range(n):
+        if r in (p, q):
+            continue
+        rp, rq = (min(r, p), max(r, p)), (min(r, q), max(r, q))
+        arp, arq = a[rp], a[rq]
+        a[rp], a[rq] = c * arp - s * arq, s * arp + c * arq
+    v = [list(row) for row in v]
+    for row in v:
+        vp, vq = row[p], row[q]
+        row[p], row[q] = c * vp - s * vq, s * vp + c * vq
     return a, v
 
 
@@ -51,18 +57,33 @@ def jacobi_eigh(
     """Eigenvalues (ascending) and unit eigenvectors (columns) of symmetric ``a``, like
     ``jnp.linalg.eigh``, by ``sweeps`` cyclic Jacobi sweeps (static; each visits every
     off-diagonal pair once). Meant for tiny ``n`` (4 for Horn's quaternion matrix): the cost
-    is ``sweeps * n (n - 1) / 2`` rotations of ``O(n)`` each. Not differentiated here: ICP
-    differentiates its solution implicitly, not through its iterations."""
+    is ``sweeps * n (n - 1) / 2`` rotations of ``O(n)`` each. Only the upper triangle of
+    ``a`` is read. Not differentiated here: ICP differentiates its solution implicitly, not
+    through its iterations.
+
+    The matrix is held as ``n (n + 1) / 2`` separate batches of its entries, and ``v`` as
+    ``n^2``, so that a rotation is a few elementwise operations on whole batches (no
+    scatter into a ``(..., n, n)`` array), which XLA fuses into one loop and compiles
+    quickly."""
     n = a.shape[-1]
-    v = jnp.broadcast_to(jnp.eye(n, dtype=a.dtype), a.shape)
+    upper = [(i, j) for i in range(n) for j in range(i, n)]
+    zero, one = jnp.zeros_like(a[..., 0, 0]), jnp.ones_like(a[..., 0, 0])
+    start = (
+        tuple(a[..., i, j] for i, j in upper),
+        tuple(one if i == j else zero for i in range(n) for j in range(n)),
+    )
 
     def sweep(_, carry):
+        entries = dict(zip(upper, carry[0], strict=True))
+        v = [list(carry[1][i * n : (i + 1) * n]) for i in range(n)]
         for p, q in itertools.combinations(range(n), 2):
-            carry = _rotate(carry, p, q)
-        return carry
+            entries, v = _rotate(entries, v, n, p, q)
+        return tuple(entries[ij] for ij in upper), tuple(x for row in v for x in row)
 
-    a, v = jax.lax.fori_loop(0, sweeps, sweep, (a, v))
-    lam = jnp.diagonal(a, axis1=-2, axis2=-1)
+    flat_a, flat_v = jax.lax.fori_loop(0, sweeps, sweep, start)
+    entries = dict(zip(upper, flat_a, strict=True))
+    lam = jnp.stack([entries[i, i] for i in range(n)], -1)
+    v = jnp.stack([jnp.stack(flat_v[i * n : (i + 1) * n], -1) for i in range(n)], -2)
     order = jnp.argsort(lam, axis=-1)
     lam = jnp.take_along_axis(lam, order, axis=-1)
     v = jnp.take_along_axis(v, order[..., None, :], axis=-1)
