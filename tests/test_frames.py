@@ -87,6 +87,33 @@ def test_bad_intrinsics_raise():
         jr.RGBDFrame(np.ones((5, 8)), small_frame().intrinsics)
 
 
+def test_frames_of_host_data_compile_no_jax_program():
+    """A command line process pays for every JAX program it compiles or loads (jnp.asarray of
+    host data is one per shape): intrinsics and frames of numpy data are built on the host.
+    The shapes are this test's own, so a program compiled here could not be an earlier one."""
+    compiled = []
+
+    def listen(event, duration, **kwargs):
+        if event.endswith("backend_compile_duration"):
+            compiled.append(kwargs.get("fun_name"))
+
+    depth = np.full((7, 13), 0.5, np.float32)
+    depth[2, 3], depth[4, 5], depth[6, 0] = 0.0, np.nan, -1.0
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        intrinsics = jr.Intrinsics(11.0, 12.0, 6.0, 3.0, 13, 7, [0.01, -0.02, 0.001, 0.0])
+        frame = jr.RGBDFrame(depth, intrinsics, rgb=np.zeros((7, 13, 3), np.uint8))
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert compiled == []
+    holes = np.isnan(np.asarray(frame.depth))
+    assert holes.sum() == 3 and holes[2, 3] and holes[4, 5] and holes[6, 0]
+    np.testing.assert_array_equal(
+        np.asarray(intrinsics.dist_coeffs), np.float32([0.01, -0.02, 0.001, 0.0, 0.0])
+    )
+    assert frame.depth.dtype == intrinsics.fx.dtype == jnp.float32
+
+
 def test_frame_lifts_pixels_to_camera_and_base():
     frame = small_frame()
     depth = np.asarray(frame.depth)
