@@ -44,6 +44,7 @@ class _Model:
     centroid: np.ndarray
     axes: np.ndarray  # (3, 3) principal axes as columns, largest extent first
     extents: np.ndarray  # (3,) full extent along each axis
+    screen: np.ndarray  # (M1, 3) voxelled at 3 voxels: the coarse starts' first judgement
     # _coarse_problem's, per schedule (not in the repr that keys stored programs)
     coarse: dict = dataclasses.field(default_factory=dict, repr=False)
 
@@ -109,6 +110,7 @@ def _prepare_model(model_points, model_normals, voxel_size: float, grid_distance
         centroid=centroid,
         axes=axes,
         extents=along.max(0) - along.min(0),
+        screen=voxel_downsample(points, 3 * voxel_size).astype(np.float32),
     )
     if len(_MODELS) > 8:
         _MODELS.clear()
@@ -307,17 +309,20 @@ def _spread_best(poses: Array, score: Array, count: int, min_distance: float) ->
 
 @persistent_jit
 def _score_candidates(
-    frame, plane, problem, first_opts, rest_opts, clouds, used, model_points, model_axes,
-    tolerance, num_starts, yaws, keep,
+    frame, plane, problem, first_opts, rest_opts, clouds, used, model_points, screen_points,
+    model_axes, tolerance, num_starts, yaws, keep,
 ):  # fmt: skip
     """Multi-start ICP of every candidate cloud ``(C, N, 3)`` (NaN padding) into the model,
     its ranked starts, and the evidence for each; slots where ``used`` ``(C,)`` is False are
     skipped (zeros), so one compiled shape serves any number of candidates up to C. Starts:
     ``num_starts`` rotations of a grid over SO(3) and the 4 PCA frames, slid along the line
     of sight to the cloud's front, and ``6 * yaws`` resting on the table
-    (:func:`_resting_starts`). Every start runs ``first_opts``' iterations; the ``keep``
-    distinct ones whose poses then explain most of the cloud (1 cm) run ``rest_opts``' and
-    are judged against the depth image."""
+    (:func:`_resting_starts`). Every start runs ``first_opts``' iterations and is scored
+    as below with the sparse ``screen_points`` ``(M1, 3)`` (the model voxelled at 3 voxels;
+    :func:`visibility` on 16-pixel cells: the z-buffer's scatter dominates the scoring on a
+    CPU); the ``keep`` best distinct ones run ``rest_opts``' and are scored with
+    ``model_points`` (4-pixel cells; the sparse judgement is too coarse to rank near-equal
+    candidates)."""
 
     def one(cloud):
         ok = jnp.all(jnp.isfinite(cloud), -1)
@@ -340,18 +345,17 @@ def _score_candidates(
             _, _, near = query_nearest(problem.grid, pose @ cloud0, distance)
             return jnp.sum(near & ok) / jnp.maximum(ok.sum(), 1)
 
+        def evidence(pose, points, cell):
+            seen = visibility(frame, pose.inverse(), points, tolerance, plane, cell)
+            return explains(pose, 0.006), seen
+
         first = jax.vmap(run, in_axes=(None, None, 0))(p, first_opts, inits)
-        early = jax.vmap(explains, in_axes=(0, None))(first.pose, 0.01)
-        kept = _spread_best(first.pose.wxyz_xyz, early, keep, 0.01)
+        explained, seen = jax.vmap(evidence, in_axes=(0, None, None))(first.pose, screen_points, 16)
+        kept = _spread_best(first.pose.wxyz_xyz, explained * _confirmed_share(seen), keep, 0.01)
         results = jax.vmap(run, in_axes=(None, None, 0))(
             p, rest_opts, SE3(first.pose.wxyz_xyz[kept])
         )
-
-        def evidence(pose):
-            seen = visibility(frame, pose.inverse(), model_points, tolerance, plane)
-            return explains(pose, 0.006), seen
-
-        explained, seen = jax.vmap(evidence)(results.pose)
+        explained, seen = jax.vmap(evidence, in_axes=(0, None, None))(results.pose, model_points, 4)
         score = explained * _confirmed_share(seen)
         order = jnp.argsort(-score)
         return results.pose.wxyz_xyz[order], explained[order], seen[order]

@@ -33,7 +33,9 @@ diagnostics. The stages:
    surface), and ``6 * resting_yaws`` starts of the model resting on the table on each of
    its principal half-axes at ``resting_yaws`` headings, slid horizontally to the segment's
    front; multi-start point-to-plane ICP on the grid points with a shrinking
-   correspondence distance, starts ranked by the score above; the best distinct ones refined
+   correspondence distance in two rounds (every start takes the first few iterations; the
+   few distinct starts that then explain most of the segment take the rest), those starts
+   ranked by the score above; the best distinct ones refined
    on the lifted points, trimmed to the overlap the coarse fit measured, and chosen by
    inlier fraction times confirmed share (an upside-down tray fits the segment as well as
    the upright one; the image sees through its floor). Equally good refined poses are
@@ -261,6 +263,10 @@ def estimate_pose(
         resting_yaws: headings of the starts resting on the table on each of the model's six
             principal half-axes (``6 * resting_yaws`` more starts; 0: none).
         coarse_points: grid points of a candidate given to the coarse registration (static).
+        coarse_first: coarse ICP iterations (of 20) that every start takes.
+        coarse_keep: distinct starts per candidate (the best after ``coarse_first``
+            iterations) that take the remaining coarse iterations and are judged against the
+            depth image.
         max_points: cloud size given to ICP (static; larger segments are subsampled).
         min_segment_points: fewest lifted points worth registering.
         min_valid_fraction: fewest pixels with depth in the footprint, as a fraction.
@@ -393,6 +399,7 @@ def estimate_pose(
             jnp.asarray(clouds),
             jnp.asarray(used),
             jnp.asarray(model.points),
+            jnp.asarray(model.screen),
             jnp.asarray(model.axes),
             tolerance,
             num_starts,
@@ -534,7 +541,8 @@ def estimate_pose(
     covariance = np.asarray(adjoint_transport((object_T_base @ pose).inverse(), covariance))
     diag = stages["register"] = {
         "ms": _ms(start),
-        "starts": int(coarse_poses.shape[0]),
+        "starts": num_starts + 4 + 6 * resting_yaws,
+        "coarse_kept_starts": int(coarse_poses.shape[0]),
         "refined_starts": len(picks),
         "trim_fraction": round(trim, 3),
         "iterations": int(best.iterations),
