@@ -92,8 +92,7 @@ def _load_json(path: Path) -> dict:
         meta = json.loads(path.read_text())
     except FileNotFoundError:
         raise ValueError(
-            f"intrinsics JSON {path} not found: pass intrinsics=<path to the JSON> or an "
-            "Intrinsics"
+            f"intrinsics JSON {path} not found: pass intrinsics=<path to the JSON> or an Intrinsics"
         ) from None
     except json.JSONDecodeError as error:
         raise ValueError(f"{path}: not valid JSON ({error})") from None

@@ -67,9 +67,9 @@ def _jacobians_and_differences(cam, pose, obj, h):
     batch = pose.get_batch_axes()
     fdp = jax.vmap(
         lambda e: (
-            pixels(jnp.broadcast_to(e, (*batch, 6))) - pixels(jnp.broadcast_to(-e, (*batch, 6)))
+            (pixels(jnp.broadcast_to(e, (*batch, 6))) - pixels(jnp.broadcast_to(-e, (*batch, 6))))
+            / (2 * h)
         )
-        / (2 * h)
     )(tangents)
     return J, jnp.moveaxis(fd, 0, -1), Jp, jnp.moveaxis(fdp, 0, -1), pixels(jnp.zeros(6))
 
