@@ -29,6 +29,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._eig3 import eigh3
 from ._octree import neighbor_moments, self_knn
+from ._program_cache import persistent_jit
 from ._result import select_status
 from .neighbors import knn, valid_rows
 
@@ -118,7 +119,7 @@ def _from_moments(points, ok, cov, count, viewpoint) -> NormalEstimate:
     return NormalEstimate(normal, curvature, valid, status, count.astype(jnp.int32))
 
 
-_finish = jax.jit(_from_moments)
+_finish = persistent_jit(_from_moments)
 
 
 @jax.jit
@@ -173,19 +174,25 @@ def _host_knn(
     return out, out_valid
 
 
-def _host_pca(points: Array, ok: Array, k: int, viewpoint) -> NormalEstimate:
-    """:func:`estimate_normals_with_curvature` of a concrete cloud: the exact kNN and each
-    neighbourhood's covariance (float64) by compiled host loops, the eigenproblems jitted."""
-    host = np.asarray(points, np.float64)
-    ok_host = np.asarray(ok)
-    rows = np.flatnonzero(ok_host)
-    x = np.ascontiguousarray(host[rows])
+def _host_pca(points: np.ndarray, mask, k: int, viewpoint) -> NormalEstimate:
+    """:func:`estimate_normals_with_curvature` of a concrete float cloud: the exact kNN and
+    each neighbourhood's covariance (float64) by compiled host loops, the eigenproblems in one
+    compiled program (kept by the program store: no JAX operation runs eagerly here)."""
+    ok = np.all(np.isfinite(points), axis=-1)
+    if mask is not None:
+        mask = np.asarray(mask)
+        if mask.shape != ok.shape:
+            raise ValueError(f"mask must be ({ok.shape[0]},), got {mask.shape}")
+        ok &= mask.astype(bool)
+    rows = np.flatnonzero(ok)
+    x = np.ascontiguousarray(points[rows], np.float64)
     idx, sq = self_knn(x, k)
-    cov = np.zeros((len(host), 6))
-    count = np.zeros(len(host), np.int32)
+    cov = np.zeros((len(points), 6))
+    count = np.zeros(len(points), np.int32)
     cov[rows], count[rows] = neighbor_moments(x, idx, sq)
-    vp = jnp.zeros(3, points.dtype) if viewpoint is None else jnp.asarray(viewpoint, points.dtype)
-    return _finish(points, ok, cov.astype(points.dtype), count, vp)
+    vp = np.zeros(3) if viewpoint is None else np.asarray(viewpoint)
+    dtype = points.dtype
+    return _finish(points, ok, cov.astype(dtype), count, vp.astype(dtype))
 
 
 def estimate_normals_with_curvature(
@@ -215,7 +222,12 @@ def estimate_normals_with_curvature(
     Returns:
         A :class:`NormalEstimate`.
     """
-    concrete = _is_concrete(points, mask)
+    if neighbors is None and k >= 1 and _is_concrete(points, mask):
+        host = np.asarray(points)
+        if host.ndim != 2 or host.shape[-1] != 3:
+            raise ValueError(f"points must be (N, 3) (vmap for batches), got {host.shape}")
+        dtype = host.dtype if np.issubdtype(host.dtype, np.floating) else jnp.result_type(float)
+        return _host_pca(host.astype(jax.dtypes.canonicalize_dtype(dtype)), mask, k, viewpoint)
     points = jnp.asarray(points)
     if points.ndim != 2 or points.shape[-1] != 3:
         raise ValueError(f"points must be (N, 3) (vmap for batches), got {points.shape}")
@@ -226,10 +238,7 @@ def estimate_normals_with_curvature(
     if neighbors is None:
         if k < 1:
             raise ValueError(f"k must be positive, got {k}")
-        if concrete:
-            return _host_pca(points, ok, k, viewpoint)
-        else:
-            idx, _, nbr_ok = knn(points, points, k, mask=ok)
+        idx, _, nbr_ok = knn(points, points, k, mask=ok)
     else:
         idx, nbr_ok = (jnp.asarray(a) for a in neighbors)
         if idx.ndim != 2 or idx.shape[0] != n or nbr_ok.shape != idx.shape:
