@@ -9,7 +9,8 @@ import jax
 import numpy as np
 from jaxlie import SE3
 
-from jaxreg.camera import Intrinsics, _leaf
+from jaxreg._leaves import as_leaf
+from jaxreg.camera import Intrinsics
 
 if TYPE_CHECKING:
     from jaxreg.synth import Rendering
@@ -144,13 +145,13 @@ class StereoSensor:
         disparity_sigma = np.hypot(self.subpixel_rms_px, self.disparity_step_px / np.sqrt(12))
         b = disparity_sigma / (fx * self.baseline_m)
         if base_T_camera is None:
-            base_T_camera = SE3(_leaf(np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])))
+            base_T_camera = SE3(as_leaf(np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])))
         # device arrays made on the host: each would otherwise be a small program to compile
         return DepthNoise(
-            _leaf(np.array([0.0, 0.0, b])),
+            as_leaf(np.array([0.0, 0.0, b])),
             base_T_camera,
             pixel_sigma=jax.device_put(self.lateral_sigma_px),  # a weak-typed scalar, as given
-            focal_length=_leaf(np.array([fx, float(intrinsics.fy)])),
+            focal_length=as_leaf(np.array([fx, float(intrinsics.fy)])),
         )
 
     @staticmethod

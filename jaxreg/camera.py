@@ -28,6 +28,7 @@ import numpy as np
 from jaxlie import SE3
 from jaxtyping import Array, ArrayLike, Bool, Float, Shaped
 
+from jaxreg._leaves import as_leaf
 from jaxreg.lie import se3_from_matrix
 
 __all__ = [
@@ -262,21 +263,9 @@ def undistort_points(
 # --------------------------------------------------------------------------------------------
 
 
-def _leaf(value, dtype=None) -> Array:
-    """`value` as a JAX array leaf (of `dtype` if given, else JAX's canonical dtype of its
-    own): a traced value through `jnp.asarray`; a concrete one converted in numpy and copied to
-    the device (`jnp.asarray` of host data compiles a small program per shape in each
-    process, a cost every command line run would pay again)."""
-    if isinstance(value, jax.core.Tracer):
-        return jnp.asarray(value, dtype=dtype)
-    array = np.asarray(value)
-    dtype = array.dtype if dtype is None else dtype
-    return jax.device_put(array.astype(jax.dtypes.canonicalize_dtype(dtype)))
-
-
 def _positive_scalar(name: str, value) -> Array:
     """`value` as a float array leaf; a concrete value must be finite and positive."""
-    array = _leaf(value, jnp.result_type(float))
+    array = as_leaf(value, jnp.result_type(float))
     if array.shape != ():
         raise ValueError(f"{name} must be a scalar, got shape {array.shape}")
     if not isinstance(array, jax.core.Tracer):
@@ -324,12 +313,12 @@ class Intrinsics(eqx.Module):
                 raise ValueError(f"{name} must be a positive int (pixels), got {size!r}")
         self.fx = _positive_scalar("fx", fx)
         self.fy = _positive_scalar("fy", fy)
-        self.cx = _leaf(cx, self.fx.dtype)
-        self.cy = _leaf(cy, self.fx.dtype)
+        self.cx = as_leaf(cx, self.fx.dtype)
+        self.cy = as_leaf(cy, self.fx.dtype)
         if dist_coeffs is None or isinstance(dist_coeffs, jax.core.Tracer):
             self.dist_coeffs = canonical_dist_coeffs(dist_coeffs)
         else:
-            self.dist_coeffs = _leaf(_canonical_dist(np.asarray(dist_coeffs)))
+            self.dist_coeffs = as_leaf(_canonical_dist(np.asarray(dist_coeffs)))
         if self.dist_coeffs is not None and self.dist_coeffs.shape != (5,):
             raise ValueError(
                 f"dist_coeffs must be one vector of 4 or 5, got {self.dist_coeffs.shape}"
@@ -435,7 +424,7 @@ class RGBDFrame(eqx.Module):
         rgb: Shaped[ArrayLike, "H W 3"] | None = None,
         base_T_camera: SE3 | Float[ArrayLike, "4 4"] | None = None,
     ):
-        # concrete images are cleaned on the host: no JAX program to compile (see `_leaf`)
+        # concrete images are cleaned on the host: no JAX program to compile (`as_leaf`)
         xp = jnp if isinstance(depth, jax.core.Tracer) else np
         depth = xp.asarray(depth)
         if depth.shape != intrinsics.shape:
@@ -445,10 +434,10 @@ class RGBDFrame(eqx.Module):
             )
         depth = depth.astype(jnp.result_type(depth.dtype, float))
         with np.errstate(invalid="ignore"):
-            self.depth = _leaf(xp.where(xp.isfinite(depth) & (depth > 0), depth, np.nan))
+            self.depth = as_leaf(xp.where(xp.isfinite(depth) & (depth > 0), depth, np.nan))
         self.intrinsics = intrinsics
         if rgb is not None:
-            rgb = _leaf(rgb)
+            rgb = as_leaf(rgb)
             if rgb.shape != (*intrinsics.shape, 3):
                 raise ValueError(
                     f"rgb must be (H, W, 3) = {(*intrinsics.shape, 3)} registered to the depth "
@@ -456,7 +445,7 @@ class RGBDFrame(eqx.Module):
                 )
         self.rgb = rgb
         if base_T_camera is None:
-            base_T_camera = SE3(_leaf(np.array([1.0, 0, 0, 0, 0, 0, 0]), self.depth.dtype))
+            base_T_camera = SE3(as_leaf(np.array([1.0, 0, 0, 0, 0, 0, 0]), self.depth.dtype))
         elif not isinstance(base_T_camera, SE3):
             base_T_camera = se3_from_matrix(base_T_camera)
         self.base_T_camera = base_T_camera

@@ -31,6 +31,7 @@ import numpy as np
 from jaxlie import SE3
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from jaxreg._leaves import as_leaf
 from jaxreg.lie import geodesic_angle, karcher_mean
 from jaxreg.metrics import Symmetry
 
@@ -140,16 +141,29 @@ class DepthNoise(AbstractPointNoise):
         pixel_sigma: Float[ArrayLike, ""] = 0.0,
         focal_length: Float[ArrayLike, " 2"] | None = None,
     ):
-        self.coefficients = jnp.atleast_1d(jnp.asarray(coefficients))
+        # Concrete values become leaves on the host (`as_leaf`): no JAX program per shape.
+        if isinstance(coefficients, jax.core.Tracer):
+            self.coefficients = jnp.atleast_1d(coefficients)
+        else:
+            self.coefficients = as_leaf(np.atleast_1d(np.asarray(coefficients)))
         if self.coefficients.ndim != 1:
             raise ValueError(f"coefficients must be a vector, got {self.coefficients.shape}")
-        self.base_T_camera = SE3.identity() if base_T_camera is None else base_T_camera
-        self.pixel_sigma = jnp.asarray(pixel_sigma)
+        if base_T_camera is None:
+            base_T_camera = SE3(as_leaf(np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])))
+        self.base_T_camera = base_T_camera
+        # a Python scalar stays weakly typed, as jnp.asarray would leave it
+        scalar = isinstance(pixel_sigma, (int, float))
+        self.pixel_sigma = jax.device_put(pixel_sigma) if scalar else as_leaf(pixel_sigma)
         if focal_length is None:
             if isinstance(pixel_sigma, jax.core.Tracer) or np.any(np.asarray(pixel_sigma) != 0):
                 raise ValueError("DepthNoise with pixel_sigma needs focal_length=(fx, fy)")
             focal_length = (1.0, 1.0)  # multiplies a zero pixel noise
-        self.focal_length = jnp.broadcast_to(jnp.asarray(focal_length), (2,))
+        if isinstance(focal_length, jax.core.Tracer):
+            self.focal_length = jnp.broadcast_to(focal_length, (2,))
+        else:
+            focal = np.broadcast_to(np.asarray(focal_length), (2,))
+            floating = np.issubdtype(focal.dtype, np.floating)
+            self.focal_length = as_leaf(focal, None if floating else jnp.result_type(float))
 
     def axial_sigma(self, depth: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
         """``sigma_z`` (metres) at camera depth ``depth`` (metres)."""

@@ -48,6 +48,31 @@ def box_normals(points, size=(0.06, 0.04, 0.03)):
 # Noise models.
 
 
+def test_depth_noise_of_host_values_compiles_no_program():
+    """A command line process pays for every JAX program it compiles or loads: a DepthNoise
+    of Python or numpy values is built on the host, with the leaves jnp.asarray would give."""
+    compiled = []
+
+    def listen(event, duration, **kwargs):
+        if event.endswith("backend_compile_duration"):
+            compiled.append(kwargs.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        plain = DepthNoise((0.001, 0.0, 0.0025))
+        lateral = DepthNoise(np.array([0.0, 0.0, 0.003]), pixel_sigma=0.2, focal_length=(600, 610))
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert compiled == []
+    np.testing.assert_array_equal(np.asarray(plain.base_T_camera.wxyz_xyz), [1, 0, 0, 0, 0, 0, 0])
+    assert plain.pixel_sigma.weak_type and float(plain.pixel_sigma) == 0.0
+    np.testing.assert_array_equal(np.asarray(lateral.focal_length), [600.0, 610.0])
+    for leaf in (*jax.tree.leaves(plain), *jax.tree.leaves(lateral)):
+        assert leaf.dtype == jnp.float32
+    with pytest.raises(ValueError, match="needs focal_length"):
+        DepthNoise((0.001,), pixel_sigma=0.5)
+
+
 def test_noise_samples_have_the_modelled_covariance():
     """Draws of DepthNoise (axial along the camera ray through a hand-eye transform, plus
     pixel jitter) and IsotropicNoise have the covariance each model reports."""
