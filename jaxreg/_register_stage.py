@@ -394,11 +394,14 @@ def _judge(frame, plane, object_T_base, model_points, tolerance):
 
 
 @persistent_jit
-def _register_starts(source, model: _Model, inits, distances, trim, iterations):
+def _register_starts(source, points, normals, grid, inits, distances, trim, iterations):
+    """Point-to-plane multi-start ICP of ``source`` into the model (its points, normals and
+    grid as arguments, not constants of the stored program: a model's arrays closed into it
+    made a ~30 MB executable to load in every process)."""
     return multistart_icp(
-        source, model.points, inits, method="point_to_plane", target_normals=model.normals,
+        source, points, inits, method="point_to_plane", target_normals=normals,
         max_correspondence_distance=distances, max_iterations=iterations, trim_fraction=trim,
-        neighbors=model.grid, tolerance=1e-5,
+        neighbors=grid, tolerance=1e-5,
     )  # fmt: skip
 
 

@@ -74,7 +74,6 @@ from jaxreg._icp_setup import _bucket
 from jaxreg._program_cache import persistent_jit
 from jaxreg._register_stage import (
     _coarse_problem,
-    _confirmed_share,
     _diameter,
     _distinct,
     _judge,
@@ -381,7 +380,7 @@ def estimate_pose(
             f"none spans at most the model's {model.diameter * 1e3:.0f} mm "
             f"(+{cluster_margin * 1e3:.0f} mm allowed)",
         )
-    tolerance = jnp.float32(0.01)
+    tolerance = np.float32(0.01)
     clouds = np.full((max_candidates, coarse_points, 3), np.nan, np.float32)
     for i, (_, cloud) in enumerate(candidates):
         clouds[i] = _padded(cloud, coarse_points, rng)
@@ -396,11 +395,11 @@ def estimate_pose(
             problem,
             first_opts,
             rest_opts,
-            jnp.asarray(clouds),
-            jnp.asarray(used),
-            jnp.asarray(model.points),
-            jnp.asarray(model.screen),
-            jnp.asarray(model.axes),
+            clouds,
+            used,
+            model.points,
+            model.screen,
+            model.axes,
             tolerance,
             num_starts,
             resting_yaws,
@@ -418,9 +417,7 @@ def estimate_pose(
     _, group, chosen, coarse_fraction, _ = scored[0]
     coarse_poses = np.asarray(coarse.poses[chosen])  # object_T_base per start, best first
     # pieces of the object the clustering split off: clusters the coarse pose explains
-    explained = np.asarray(
-        _near_model(model.grid, jnp.asarray(coarse_poses[0]), jnp.asarray(grid_points), 0.01)
-    )
+    explained = np.asarray(_near_model(model.grid, coarse_poses[0], grid_points, np.float32(0.01)))
     joined = sorted({*group, *(k for k in live if explained[labels == k].mean() >= 0.6)})
     diag.update(
         candidates=[
@@ -465,14 +462,14 @@ def estimate_pose(
         )
     z = depth[rows, cols]
     noise = _noise(depth_noise, frame)
-    sigma = np.asarray(noise.axial_sigma(jnp.asarray(z)))
+    sigma = np.polynomial.polynomial.polyval(z, np.asarray(noise.coefficients, np.float64))
     flying = _flying(depth, rows, cols, np.maximum(0.004, 4 * sigma), min_consistent_neighbors)
     rows, cols = rows[~flying], cols[~flying]
     padded = _bucket(max(len(rows), 1))
     r_pad = np.zeros(padded, np.int32)
     c_pad = np.zeros(padded, np.int32)
     r_pad[: len(rows)], c_pad[: len(cols)] = rows, cols
-    lifted = np.asarray(_lift_pixels(frame, jnp.asarray(r_pad), jnp.asarray(c_pad)))[: len(rows)]
+    lifted = np.asarray(_lift_pixels(frame, r_pad, c_pad))[: len(rows)]
     plane_normal, plane_offset = np.asarray(seg.plane.normal), float(seg.plane.offset)
     height = lifted @ plane_normal + plane_offset
     band = (height > lift_min_height) & (height < 0.5)
@@ -504,41 +501,27 @@ def estimate_pose(
     start = time.perf_counter()
     source = _padded(points, max_points, rng)
     picks = _distinct(coarse_poses, 4, 0.01)
-    inits = SE3(jnp.asarray(coarse_poses[picks]))
+    inits = SE3(jax.device_put(coarse_poses[picks]))
     trim = float(np.clip(coarse_fraction, 0.6, 0.95))
-    results = _register_starts(source, model, inits, fine_distances, trim, 30)
+    results = _register_starts(
+        source, model.points, model.normals, model.grid, inits, fine_distances, trim, 30
+    )
     fractions = np.asarray(results.inlier_fraction)
     rmses = np.nan_to_num(np.asarray(results.inlier_rmse), nan=np.inf)
-    seen = np.asarray(
-        _judge(frame, seg.plane, results.pose.wxyz_xyz, jnp.asarray(model.points), tolerance)
-    )
-    scores = fractions * np.asarray(_confirmed_share(seen))
+    seen = np.asarray(_judge(frame, seg.plane, results.pose.wxyz_xyz, model.points, tolerance))
+    scores = fractions * seen[:, 0] / np.maximum(seen[:, :3].sum(1), 1)
     ranked = np.lexsort((rmses, -np.round(scores, 2)))
     best = results[int(ranked[0])]
     fraction, rmse = float(fractions[ranked[0]]), float(rmses[ranked[0]])
     confirmed, contradicted = _support(seen[ranked[0]])
-    pose = best.pose.inverse()
-    equal = [
-        int(i)
-        for i in ranked
-        if scores[i] >= scores[ranked[0]] - 0.02 and rmses[i] <= rmse * 1.1 + 1e-4
-    ]
-    spread_mm, spread_deg = 0.0, 0.0
-    for i in equal[1:]:
-        other = results[i].pose.inverse()
-        if symmetry is not None:
-            other = canonicalise(other, pose, symmetry)
-        offset = float(jnp.linalg.norm(other.translation() - pose.translation()))
-        angle = float(jnp.degrees(geodesic_angle(other.rotation(), pose.rotation())))
-        spread_mm, spread_deg = max(spread_mm, offset), max(spread_deg, angle)
-    if symmetry is not None:  # report one branch: the equivalent nearest the base axes
-        pose = canonicalise(pose, SE3.from_translation(pose.translation()), symmetry)
-    object_T_base = best.pose
-    cov_object_T_base = _covariance(source, model, object_T_base, fine_distances[-1], trim, noise)
-    # right perturbation of base_T_object = object_T_base^-1: Ad_{object_T_base} Sigma Ad^T;
-    # the symmetry branch re-anchors the object frame (pose = found @ S): Ad_{S^-1}
-    covariance = adjoint_transport(object_T_base, cov_object_T_base)
-    covariance = np.asarray(adjoint_transport((object_T_base @ pose).inverse(), covariance))
+    equal = (scores >= scores[ranked[0]] - 0.02) & (rmses <= rmse * 1.1 + 1e-4)
+    wxyz_xyz, spread, covariance = _finish(
+        source, model.points, model.normals, model.grid, results.pose.wxyz_xyz,
+        np.int32(ranked[0]), equal, symmetry, fine_distances[-1], trim, noise,
+    )  # fmt: skip
+    pose = SE3(wxyz_xyz)
+    spread_mm, spread_deg = (float(s) for s in np.asarray(spread))
+    covariance = np.asarray(covariance)
     diag = stages["register"] = {
         "ms": _ms(start),
         "starts": num_starts + 4 + 6 * resting_yaws,
@@ -549,7 +532,7 @@ def estimate_pose(
         "icp_status": str(best.status_message()),
         "inlier_rmse_mm": round(rmse * 1e3, 3),
         "inlier_fraction": round(fraction, 3),
-        "equally_good_starts": len(equal),
+        "equally_good_starts": int(equal.sum()),
         "start_agreement_mm": round(spread_mm * 1e3, 3),
         "start_agreement_deg": round(spread_deg, 3),
         "model_confirmed": round(confirmed, 3),
@@ -580,14 +563,34 @@ def estimate_pose(
 
 
 @persistent_jit
-def _covariance(source, model, object_T_base, distance, trim, noise):
-    """``icp_covariance`` of the final point-to-plane registration, ``(6, 6)`` in the tangent
-    of object_T_base, as one stored program."""
-    return icp_covariance(
-        source, model.points, object_T_base, method="point_to_plane",
-        target_normals=model.normals, max_correspondence_distance=distance,
-        trim_fraction=trim, neighbors=model.grid, source_noise=noise,
+def _finish(
+    source, points, normals, grid, object_T_base, best, equal, symmetry, distance, trim, noise
+):
+    """The answer from the refined starts ``object_T_base (S, 7)``, as one stored program:
+    ``base_T_object`` of start ``best`` (wxyz_xyz; with a ``symmetry``, the equivalent nearest
+    the base axes), the largest offset (metres) and angle (degrees) to the starts flagged
+    ``equal`` ``(S,)`` (compared on the same symmetry branch), and the ``(6, 6)`` covariance
+    of the right perturbation of ``base_T_object`` from ``icp_covariance`` of the final
+    point-to-plane registration."""
+    found = SE3(object_T_base[best])
+    pose = found.inverse()
+    others = SE3(object_T_base).inverse()
+    if symmetry is not None:
+        others = canonicalise(others, pose, symmetry)
+    offset = jnp.linalg.norm(others.translation() - pose.translation(), axis=-1)
+    angle = jnp.degrees(geodesic_angle(others.rotation(), pose.rotation()))
+    spread = jnp.stack([jnp.max(jnp.where(equal, offset, 0)), jnp.max(jnp.where(equal, angle, 0))])
+    if symmetry is not None:  # report one branch: the equivalent nearest the base axes
+        pose = canonicalise(pose, SE3.from_translation(pose.translation()), symmetry)
+    cov = icp_covariance(
+        source, points, found, method="point_to_plane", target_normals=normals,
+        max_correspondence_distance=distance, trim_fraction=trim, neighbors=grid,
+        source_noise=noise,
     )  # fmt: skip
+    # right perturbation of base_T_object = object_T_base^-1: Ad_{object_T_base} Sigma Ad^T;
+    # the symmetry branch re-anchors the object frame (pose = found @ S): Ad_{S^-1}
+    cov = adjoint_transport((found @ pose).inverse(), adjoint_transport(found, cov))
+    return pose.wxyz_xyz, spread, cov
 
 
 def _noise(depth_noise: DepthNoise | None, frame: RGBDFrame) -> DepthNoise:
