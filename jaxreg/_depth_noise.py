@@ -5,11 +5,8 @@ from __future__ import annotations
 import dataclasses
 from typing import TYPE_CHECKING
 
-import jax
 import numpy as np
-from jaxlie import SE3
 
-from jaxreg._leaves import as_leaf
 from jaxreg.camera import Intrinsics
 
 if TYPE_CHECKING:
@@ -144,14 +141,11 @@ class StereoSensor:
         fx = float(intrinsics.fx)
         disparity_sigma = np.hypot(self.subpixel_rms_px, self.disparity_step_px / np.sqrt(12))
         b = disparity_sigma / (fx * self.baseline_m)
-        if base_T_camera is None:
-            base_T_camera = SE3(as_leaf(np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])))
-        # device arrays made on the host: each would otherwise be a small program to compile
         return DepthNoise(
-            as_leaf(np.array([0.0, 0.0, b])),
+            (0.0, 0.0, b),
             base_T_camera,
-            pixel_sigma=jax.device_put(self.lateral_sigma_px),  # a weak-typed scalar, as given
-            focal_length=as_leaf(np.array([fx, float(intrinsics.fy)])),
+            pixel_sigma=self.lateral_sigma_px,
+            focal_length=(fx, float(intrinsics.fy)),
         )
 
     @staticmethod

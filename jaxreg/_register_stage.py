@@ -182,8 +182,9 @@ def visibility(
 
 
 def _confirmed_share(counts: Array) -> Array:
-    """Confirmed over judged (confirmed, contradicted, occluded) model points, ``(...)``."""
-    return counts[..., 0] / jnp.maximum(counts[..., 0] + counts[..., 1] + counts[..., 2], 1)
+    """Confirmed over judged (confirmed, contradicted, occluded) model points, ``(...)``, of
+    numpy or JAX counts ``(..., 5)`` (array methods only: host counts stay on the host)."""
+    return counts[..., 0] / counts[..., :3].sum(-1).clip(min=1)
 
 
 def _support(counts: np.ndarray) -> tuple[float, float]:

@@ -74,6 +74,7 @@ from jaxreg._icp_setup import _bucket
 from jaxreg._program_cache import persistent_jit
 from jaxreg._register_stage import (
     _coarse_problem,
+    _confirmed_share,
     _diameter,
     _distinct,
     _judge,
@@ -509,7 +510,7 @@ def estimate_pose(
     fractions = np.asarray(results.inlier_fraction)
     rmses = np.nan_to_num(np.asarray(results.inlier_rmse), nan=np.inf)
     seen = np.asarray(_judge(frame, seg.plane, results.pose.wxyz_xyz, model.points, tolerance))
-    scores = fractions * seen[:, 0] / np.maximum(seen[:, :3].sum(1), 1)
+    scores = fractions * _confirmed_share(seen)
     ranked = np.lexsort((rmses, -np.round(scores, 2)))
     best = results[int(ranked[0])]
     fraction, rmse = float(fractions[ranked[0]]), float(rmses[ranked[0]])
