@@ -92,8 +92,8 @@ class NeighborGrid(eqx.Module):
 # --------------------------------------------------------------------------------------------
 # Host-side construction.
 #
-# The candidate lists of every level come from compiled loops (:mod:`jaxreg._octree`); numpy
-# here plans the refinement and lays the leaves out as tables. Every box is grown by
+# The candidate lists of every level come from compiled loops (:mod:`jaxreg._octree`), which
+# also lay the leaves out as tables; numpy here plans the refinement. Every box is grown by
 # ``margin`` before it is tested, so float32 rounding (of the stored coordinates, and of the
 # query's choice of leaf) can only keep a candidate that exact arithmetic would drop, never
 # drop one it would keep.
@@ -129,12 +129,13 @@ def _split_plan(node_top, counts, level, map_size, leaf_target, max_depth, max_m
 
 
 def _levels(x, cell, dims, h, margin, r2, k, *budget):
-    """Leaf nodes and candidate pairs of every refinement level (see :mod:`jaxreg._octree`).
+    """Every node of every refinement level with its candidates (see :mod:`jaxreg._octree`).
 
     ``x`` is float64 relative to the grid origin, ``cell`` its top-level cells. Returns
-    ``(levels, cell_depth)``, with per level ``(node_top, node_sub, node, pid)``: the
-    top-level cell and sub-cell coordinates of each node, and the (node, point) pairs of its
-    leaf nodes; ``cell_depth`` is each top-level cell's refinement depth.
+    ``(nodes, counts, leaf, pid, cell_depth)``: ``nodes (L, 5)`` the top-level cell,
+    sub-cell coordinates and level of each node, level by level; ``counts (L,)`` its
+    candidates, ``pid`` in node order; ``leaf (L,)`` it is not split; ``cell_depth`` each
+    top-level cell's refinement depth.
     """
     if k == 1:
         half_spaces = _octree.witnesses(x, _octree.self_knn(x, _NEAR)[0], margin)
@@ -144,96 +145,25 @@ def _levels(x, cell, dims, h, margin, r2, k, *budget):
     node_top, counts, pid = _octree.top_level_nodes(x, cell, np.asarray(dims), h, *tests)
     node_sub = np.zeros((len(node_top), 3), np.int64)
     cell_depth = np.zeros(math.prod(dims), np.int32)
-    levels = []
+    parts = []
     map_size = len(node_top)
     level = 0
     while True:
         plan = _split_plan(node_top, counts, level, map_size, *budget)
-        node = np.repeat(np.arange(len(counts)), counts)
+        split = np.zeros(len(counts), bool) if plan is None else plan[0]
+        nodes = np.column_stack([node_top, node_sub, np.full(len(counts), level)])
+        parts.append((nodes, counts, ~split, pid))
         if plan is None:
-            levels.append((node_top, node_sub, node, pid))
-            return levels, cell_depth
-        split, deeper, grow = plan
+            nodes, counts, leaf, pid = (np.concatenate(p) for p in zip(*parts, strict=True))
+            return nodes, counts, leaf, pid, cell_depth
+        _, deeper, grow = plan
         map_size += grow
         cell_depth[deeper] = level + 1
-        leaf = ~split[node]
-        levels.append((node_top, node_sub, node[leaf], pid[leaf]))
         corner = np.stack(np.unravel_index(node_top, dims), axis=1) * 2**level + node_sub
         level += 1
         counts, pid = _octree.split_nodes(x, corner, counts, pid, split, h / 2**level, *tests)
         node_top = np.repeat(node_top[split], 8)
         node_sub = (2 * node_sub[split][:, None, :] + _OCTANTS[None]).reshape(-1, 3)
-
-
-def _group_order(keys: np.ndarray, n_keys: int) -> np.ndarray:
-    """Stable order sorting integer ``0 <= keys < n_keys < 2^32``: LSD radix on 16-bit digits
-    (numpy's stable sort of uint16 is a counting sort, far faster than a comparison sort)."""
-    if n_keys <= 1 << 16:
-        return np.argsort(keys.astype(np.uint16), kind="stable")
-    low = np.argsort((keys & 0xFFFF).astype(np.uint16), kind="stable")
-    return low[np.argsort((keys[low] >> 16).astype(np.uint16), kind="stable")]
-
-
-def _assemble(levels, cell_depth, dims, h, x, capacity):
-    """Flattened octree tables from the leaf pairs of every level (see :class:`NeighborGrid`).
-
-    Returns ``(cells, leaf_map, rows, slots, pids, cap, overflow, n_rows)``: the table
-    position ``(rows, slots)`` of each kept candidate ``pids`` (row 0 is the empty leaf).
-    """
-    n_cells = math.prod(dims)
-    row_parts, pid_parts, leaf_info = [], [], []
-    n_rows = 1
-    for level, (node_top, node_sub, node, pid) in enumerate(levels):
-        present = np.bincount(node, minlength=len(node_top)) > 0
-        ids = np.flatnonzero(present)
-        row_of = np.zeros(len(node_top), np.int64)
-        row_of[ids] = n_rows + np.arange(len(ids))
-        n_rows += len(ids)
-        row_parts.append(row_of[node])
-        pid_parts.append(pid)
-        leaf_info.append((level, node_top[ids], node_sub[ids], row_of[ids]))
-    rows = np.concatenate([np.zeros(0, np.int64), *row_parts])
-    pids = np.concatenate([np.zeros(0, np.int32), *pid_parts])
-    counts = np.bincount(rows, minlength=n_rows)
-    needed = int(counts.max()) if len(rows) else 0
-    cap = capacity if capacity is not None else max(16, -(-needed // 16) * 16)
-    overflow = needed > cap
-    if overflow:
-        # Truncation keeps each leaf's candidates nearest its centre.
-        centre = np.zeros((n_rows, 3), np.float32)
-        for level, top, sub, row in leaf_info:
-            corner = np.stack(np.unravel_index(top, dims), axis=1) * 2**level + sub
-            centre[row] = (corner + 0.5) * np.float32(h / 2**level)
-        dist = ((x[pids] - centre[rows]) ** 2).sum(1)
-        order = np.lexsort((dist, rows))
-    else:
-        order = _group_order(rows, n_rows)
-    rows, pids = rows[order], pids[order]
-    starts = np.cumsum(counts) - counts
-    slots = np.arange(len(rows)) - starts[rows]
-    fits = slots < cap
-    rows, pids, slots = rows[fits], pids[fits], slots[fits]
-
-    # Each top-level cell with leaves owns a dense block of (2^depth)^3 entries.
-    used = np.zeros(n_cells, bool)
-    for _, top, _, _ in leaf_info:
-        used[top] = True
-    depth = np.where(used, cell_depth, 0)
-    block = np.where(used, 8 ** depth.astype(np.int64), 0)
-    base = np.where(used, 1 + np.cumsum(block) - block, 0)
-    leaf_map = np.zeros(1 + int(block.sum()), np.int32)
-    for level, top, sub, row in leaf_info:
-        extra = depth[top] - level  # the leaf spans 2^extra sub-cells per axis
-        for e in np.unique(extra):
-            sel = np.flatnonzero(extra == e)
-            side = 1 << int(e)
-            span = np.stack(np.unravel_index(np.arange(side**3), (side,) * 3), axis=1)
-            full = (1 << depth[top[sel]].astype(np.int64))[:, None]
-            s = sub[sel][:, None, :].astype(np.int64) * side + span[None]
-            entry = base[top[sel]][:, None] + (s[..., 0] * full + s[..., 1]) * full + s[..., 2]
-            leaf_map[entry] = row[sel][:, None]
-    cells = np.stack([base, depth], axis=1).astype(np.int32)
-    return cells, leaf_map, rows, slots, pids, cap, overflow, n_rows
 
 
 def build_grid(
@@ -339,16 +269,34 @@ def build_grid(
     cell = np.minimum(np.floor(x / h), np.array(dims) - 1).astype(np.int64)
     budget = (leaf_target, max_depth, max_map, max_pairs)
     if len(points):
-        levels, cell_depth = _levels(x, cell, dims, h, margin, (r + margin) ** 2, k, *budget)
+        nodes, counts, leaf, pid, cell_depth = _levels(
+            x, cell, dims, h, margin, (r + margin) ** 2, k, *budget
+        )
     else:
-        levels, cell_depth = [], np.zeros(math.prod(dims), np.int32)
-    cells, leaf_map, slot_rows, slots, pids, cap, overflow, n_rows = _assemble(
-        levels, cell_depth, dims, h, x, capacity
+        nodes, counts, leaf = np.zeros((0, 5), np.int64), np.zeros(0, np.int64), np.zeros(0, bool)
+        pid, cell_depth = np.zeros(0, np.int64), np.zeros(math.prod(dims), np.int32)
+    leaf_counts = counts[leaf]
+    needed = int(leaf_counts.max()) if len(leaf_counts) else 0
+    cap = capacity if capacity is not None else max(16, -(-needed // 16) * 16)
+    overflow = needed > cap
+    # Padded sizes. The candidate table to a bucketed row count; the cell table to the cells
+    # of the cube around the bounding sphere (any rotation of the target fits in it); the
+    # map to 8 entries per table row unless it needs more (it depends on how many cells
+    # refine one level deeper, a threshold effect).
+    n_table = _bucket(1 + np.count_nonzero(leaf_counts))
+    cells, leaf_map, cand_index, cand_points = _octree.leaf_tables(
+        nodes,
+        counts,
+        leaf,
+        pid,
+        cell_depth,
+        np.asarray(dims, np.int64),
+        h,
+        x,
+        points.astype(dtype),
+        rows,
+        (n_table, cap, num_points, overflow),
     )
-    # Padded sizes. The cell table to the cells of the cube around the bounding sphere (any
-    # rotation of the target fits in it); the map to 8 entries per table row unless it needs
-    # more (it depends on how many cells refine one level deeper, a threshold effect).
-    n_table = _bucket(n_rows)
     if len(points):
         radius = float(np.sqrt(((points - points.mean(0)) ** 2).sum(1).max()))
         sphere = min(math.ceil((2 * (radius + r + margin)) / h + 1) ** 3, max_cells)
@@ -356,9 +304,6 @@ def build_grid(
         sphere = 1
     cells = np.pad(cells, ((0, _bucket(max(len(cells), sphere)) - len(cells)), (0, 0)))
     leaf_map = np.pad(leaf_map, (0, max(_bucket(len(leaf_map)), 8 * n_table) - len(leaf_map)))
-    cand_index, cand_points = _octree.candidate_tables(
-        slot_rows, slots, pids, rows, points.astype(dtype), n_table, cap, num_points
-    )
     arrays = jax.device_put(  # one transfer for all leaves
         (
             np.asarray(lo, dtype),

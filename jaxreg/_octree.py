@@ -31,7 +31,7 @@ import numba
 import numpy as np
 
 __all__ = [
-    "candidate_tables",
+    "leaf_tables",
     "neighbor_moments",
     "no_witnesses",
     "self_knn",
@@ -428,9 +428,47 @@ def top_level_nodes(x, cell, dims, h, margin, r2, wd, neg, level, k):
     return node_top, counts, pid[:total]
 
 
+@numba.njit(inline="always")
+def _child_gaps(c, lo0, lo1, edge, margin):
+    """Squared gaps from coordinate ``c`` to the grown intervals ``[lo0, lo0 + edge]`` and
+    ``[lo1, lo1 + edge]`` of the two children along one axis (as in :func:`_within`)."""
+    g0 = max(lo0 - margin - c, c - (lo0 + edge + margin), 0.0)
+    g1 = max(lo1 - margin - c, c - (lo1 + edge + margin), 0.0)
+    return g0 * g0, g1 * g1
+
+
+@numba.njit(inline="always")
+def _child_witness_max(p, lx0, lx1, ly0, ly1, lz0, lz1, edge, wd, neg, level):
+    """:func:`_beyond`'s largest witness margin for the 8 children of a node (octant order),
+    whose lower corners take ``lx0`` or ``lx1`` along x (and so on): per witness 6 products
+    and 8 sums, the same operations in the same order as 8 separate calls."""
+    w0 = w1 = w2 = w3 = w4 = w5 = w6 = w7 = -np.inf
+    for t in range(neg.shape[1]):
+        ax0, ax1 = lx0 * wd[p, 0, t], lx1 * wd[p, 0, t]
+        ay0, ay1 = ly0 * wd[p, 1, t], ly1 * wd[p, 1, t]
+        az0, az1 = lz0 * wd[p, 2, t], lz1 * wd[p, 2, t]
+        shift, lev = edge * neg[p, t], level[p, t]
+        v00, v01, v10, v11 = ax0 + ay0, ax0 + ay1, ax1 + ay0, ax1 + ay1
+        w0 = max(w0, v00 + az0 + shift - lev)
+        w1 = max(w1, v00 + az1 + shift - lev)
+        w2 = max(w2, v01 + az0 + shift - lev)
+        w3 = max(w3, v01 + az1 + shift - lev)
+        w4 = max(w4, v10 + az0 + shift - lev)
+        w5 = max(w5, v10 + az1 + shift - lev)
+        w6 = max(w6, v11 + az0 + shift - lev)
+        w7 = max(w7, v11 + az1 + shift - lev)
+    return w0, w1, w2, w3, w4, w5, w6, w7
+
+
 @numba.njit(**_CACHE)
 def split_nodes(x, corner, counts, pid, split, edge, margin, r2, wd, neg, level, k):
     """Candidates of the 8 children of every node with ``split`` set.
+
+    Each parent candidate is tested against all 8 children at once: the tests of
+    :func:`_keeps` are sums of per-axis terms, and a child's terms are one of two values
+    per axis, so a witness costs 6 products and 8 sums instead of 8 full tests (the same
+    floating-point operations in the same order: the lists are those of child-by-child
+    tests).
 
     Args:
         corner: ``(L, 3)`` integer box corner of each node in units of its own edge
@@ -446,38 +484,119 @@ def split_nodes(x, corner, counts, pid, split, edge, margin, r2, wd, neg, level,
     parents = np.flatnonzero(split)
     out_counts = np.zeros(8 * parents.size, np.int64)
     out = np.empty(8 * counts[parents].sum(), np.int64)
-    far = np.empty(counts.max() if counts.size else 0)
+    widest = counts.max() if counts.size else 0
+    far = np.empty(widest)
+    child = np.empty((8, widest), np.int64)
+    filled = np.zeros(8, np.int64)
+    keep = np.empty(8, np.bool_)
     total = 0
     for rank in range(parents.size):
         a = parents[rank]
+        lx0, ly0, lz0 = 2 * corner[a, 0] * edge, 2 * corner[a, 1] * edge, 2 * corner[a, 2] * edge
+        lx1 = (2 * corner[a, 0] + 1) * edge
+        ly1 = (2 * corner[a, 1] + 1) * edge
+        lz1 = (2 * corner[a, 2] + 1) * edge
+        filled[:] = 0
+        for j in range(starts[a], starts[a] + counts[a]):
+            p = pid[j]
+            gx0, gx1 = _child_gaps(x[p, 0], lx0, lx1, edge, margin)
+            gy0, gy1 = _child_gaps(x[p, 1], ly0, ly1, edge, margin)
+            gz0, gz1 = _child_gaps(x[p, 2], lz0, lz1, edge, margin)
+            w = _child_witness_max(p, lx0, lx1, ly0, ly1, lz0, lz1, edge, wd, neg, level)
+            keep[0] = (gx0 + gy0 + gz0 <= r2) & (w[0] <= 0.0)
+            keep[1] = (gx0 + gy0 + gz1 <= r2) & (w[1] <= 0.0)
+            keep[2] = (gx0 + gy1 + gz0 <= r2) & (w[2] <= 0.0)
+            keep[3] = (gx0 + gy1 + gz1 <= r2) & (w[3] <= 0.0)
+            keep[4] = (gx1 + gy0 + gz0 <= r2) & (w[4] <= 0.0)
+            keep[5] = (gx1 + gy0 + gz1 <= r2) & (w[5] <= 0.0)
+            keep[6] = (gx1 + gy1 + gz0 <= r2) & (w[6] <= 0.0)
+            keep[7] = (gx1 + gy1 + gz1 <= r2) & (w[7] <= 0.0)
+            for octant in range(8):
+                child[octant, filled[octant]] = p
+                filled[octant] += keep[octant]
         for octant in range(8):
-            lx = (2 * corner[a, 0] + ((octant >> 2) & 1)) * edge
-            ly = (2 * corner[a, 1] + ((octant >> 1) & 1)) * edge
-            lz = (2 * corner[a, 2] + (octant & 1)) * edge
+            lx = lx1 if octant & 4 else lx0
+            ly = ly1 if octant & 2 else ly0
+            lz = lz1 if octant & 1 else lz0
             before = total
-            for j in range(starts[a], starts[a] + counts[a]):
-                p = pid[j]
-                if _keeps(x, p, lx, ly, lz, edge, margin, r2, wd, neg, level):
-                    out[total] = p
-                    total += 1
+            out[total : total + filled[octant]] = child[octant, : filled[octant]]
+            total += filled[octant]
             total = _prune_kth(x, out, before, total, lx, ly, lz, edge, margin, k, far)
             out_counts[8 * rank + octant] = total - before
     return out_counts, out[:total]
 
 
 @numba.njit(**_CACHE)
-def candidate_tables(rows, slots, pids, target_rows, points, num_rows, capacity, sentinel):
-    """The grid's candidate tables from its (leaf row, slot, point) triples.
+def leaf_tables(nodes, counts, leaf, pid, cell_depth, dims, h, x, points, target_rows, shape):
+    """The grid's tables from the nodes of every refinement level (see ``NeighborGrid``).
 
-    ``pids`` index ``points (P, 3)``, whose rows are the target rows ``target_rows``.
-    Returns ``index (num_rows, capacity)`` int32, padded with ``sentinel``, and the
-    candidates' coordinates ``(3, num_rows, capacity)`` in ``points``' dtype, ``inf`` in
-    padding slots.
+    Args:
+        nodes: ``(L, 5)`` every node of every level, level by level: top-level cell
+            (linear, x-major), sub-cell coordinates and level; counts: ``(L,)`` its
+            candidates, which are ``pid`` in node order; leaf: ``(L,)`` it is not split.
+        cell_depth: ``(prod(dims),)`` refinement depth of each top-level cell; h: its edge.
+        x: ``(n, 3)`` float64 points relative to the grid origin; points: the same in the
+            grid's dtype; target_rows: ``(n,)`` their target rows.
+        shape: ``(num_rows, capacity, sentinel, truncate)``: table rows (at least 1 + the
+            non-empty leaves), slots per row, the padding index, and whether some leaf has
+            more than ``capacity`` candidates; then every leaf's candidates are ordered by
+            distance to its centre (float32, as stored) and cut to ``capacity``.
+
+    Returns:
+        ``cells (prod(dims), 2)`` int32 block offset and depth, ``leaf_map`` int32 (entry 0
+        and unused entries: row 0, the empty leaf), ``index (num_rows, capacity)`` int32
+        and ``coords (3, num_rows, capacity)`` (``inf`` padding). Non-empty leaves take
+        rows 1, 2, ... in node order.
     """
+    num_rows, capacity, sentinel, truncate = shape
+    d1, d2 = dims[1], dims[2]
+    n_cells = dims[0] * d1 * d2
+    used = np.zeros(n_cells, np.bool_)
+    for i in range(nodes.shape[0]):
+        if leaf[i] and counts[i] > 0:
+            used[nodes[i, 0]] = True
+    cells = np.zeros((n_cells, 2), np.int32)
+    size = 1
+    for c in range(n_cells):
+        if used[c]:
+            cells[c, 0] = size
+            cells[c, 1] = cell_depth[c]
+            size += 8 ** cell_depth[c]
+    leaf_map = np.zeros(size, np.int32)
     index = np.full((num_rows, capacity), sentinel, np.int32)
     coords = np.full((3, num_rows, capacity), np.inf, points.dtype)
-    for t in range(rows.size):
-        index[rows[t], slots[t]] = target_rows[pids[t]]
-        for i in range(3):
-            coords[i, rows[t], slots[t]] = points[pids[t], i]
-    return index, coords
+    dist = np.empty(counts.max() if counts.size else 0)
+    row = 0
+    first = 0
+    for i in range(nodes.shape[0]):
+        count = counts[i]
+        first += count
+        if not leaf[i] or count == 0:
+            continue
+        row += 1
+        top, level = nodes[i, 0], nodes[i, 4]
+        corner = ((top // (d1 * d2)), (top // d2) % d1, top % d2)
+        order = np.arange(first - count, first)
+        if truncate:  # keep the candidates nearest the leaf's centre
+            edge = np.float32(h / 2**level)
+            for j in range(count):
+                total = 0.0
+                for a in range(3):
+                    centre = np.float32((corner[a] * 2**level + nodes[i, 1 + a] + 0.5) * edge)
+                    total += (x[pid[order[j]], a] - centre) ** 2
+                dist[j] = total
+            order = order[np.argsort(dist[:count], kind="mergesort")]
+        for slot in range(min(count, capacity)):
+            q = pid[order[slot]]
+            index[row, slot] = target_rows[q]
+            for a in range(3):
+                coords[a, row, slot] = points[q, a]
+        # The leaf spans 2^extra sub-cells per axis of its top-level cell's block.
+        depth = cells[top, 1]
+        side = 1 << (depth - level)
+        full = 1 << depth
+        for u in range(nodes[i, 1] * side, (nodes[i, 1] + 1) * side):
+            for v in range(nodes[i, 2] * side, (nodes[i, 2] + 1) * side):
+                entry = cells[top, 0] + (u * full + v) * full + nodes[i, 3] * side
+                leaf_map[entry : entry + side] = row
+    return cells, leaf_map, index, coords
