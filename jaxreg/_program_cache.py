@@ -1,24 +1,33 @@
-"""Compiled programs kept on disk, so that a second process neither traces nor lowers them.
+"""Compiled programs kept on disk, so that a second process neither traces, lowers nor compiles
+them.
 
 JAX's persistent compilation cache saves XLA's compile step, but every new process still
 traces each jitted function in Python and lowers it to StableHLO before it can look the
-executable up; for the pipeline's large programs that is most of a warm process's start-up.
-:func:`persistent_jit` is ``equinox.filter_jit`` (arrays traced, everything else static) plus a
-folder of :mod:`jax.export` programs: the first call with a new signature exports the traced
-program and writes it; a later process deserializes it and calls it, and XLA's own cache
-(which the command line enables alongside) supplies the executable.
+executable up. :func:`persistent_jit` is ``equinox.filter_jit`` (arrays traced, everything else
+static) plus a folder of compiled programs: the first call with a new signature traces,
+compiles and writes the XLA executable (:mod:`jax.experimental.serialize_executable`); a later
+process loads it and calls it, with no tracing or lowering at all. Loading is still XLA's
+work, proportional to the program's optimized HLO (tens of microseconds per
+instruction on a CPU); it is reported as the ``jax.monitoring`` duration event
+``/jaxreg/program_cache/executable_load_duration``, since JAX's own compile events do not
+see it.
 
-The folder is off until :func:`set_folder` is called: the command line does it, a library
-import never does. A program's file name is a digest of everything that can change it: the
-function's qualified name, the source of every jaxreg module, the jax and jaxlib versions,
-the backend, ``jax_enable_x64``, the input tree with its static leaves (their repr; for an
-object holding arrays, such as a prepared model closed into the program as constants, also a
-digest of the arrays' bytes, since a repr shortens them), and each array's shape and dtype.
-Deleting the folder is always safe.
+An executable that XLA itself loaded from its persistent cache cannot be serialized again (its
+kernels' code is not kept: it loads, then fails when run), nor can one whose custom calls need a
+host library that only lowering sets up (other than LAPACK's, prepared here): such a program is
+stored as a :mod:`jax.export` program instead (traced once; lowered and looked up in XLA's cache
+in each process). The folder is off until :func:`set_folder` is called: the command line does
+it, a library import never does. A program's file name is a digest of everything that can change
+it: the function's qualified name, the source of every jaxreg module, the jax and jaxlib
+versions, the backend and its platform version, the host CPU (model and feature flags: an
+executable is machine code), ``jax_enable_x64``, the input tree with its static leaves (their
+repr; for an object holding arrays, such as a prepared model closed into the program as
+constants, also a digest of the arrays' bytes, since a repr shortens them), and each array's
+shape and dtype. Deleting the folder is always safe.
 
 Falls back to the plain compiled call, with nothing written, when the call is traced (inside
-``jit``, ``vmap`` or ``grad``: exported programs are not differentiated here), when the
-output holds something that cannot be pickled, or when the export fails.
+``jit``, ``vmap`` or ``grad``: stored programs are not differentiated here), when the output
+holds something that cannot be pickled, or when storing fails.
 """
 
 from __future__ import annotations
@@ -31,7 +40,10 @@ import hashlib
 import io
 import os
 import pickle
+import re
 import tempfile
+import threading
+import time
 import weakref
 from collections.abc import Callable
 from pathlib import Path
@@ -39,16 +51,18 @@ from pathlib import Path
 import equinox as eqx
 import jax
 import numpy as np
+from jax.experimental import serialize_executable
 
 __all__ = ["persistent_jit", "set_folder"]
 
 _FOLDER: Path | None = None
 _LOADED: dict[str, tuple[Callable, object] | None] = {}
 _DIGESTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # static leaf -> key text
+_HITS = threading.local()  # .count: XLA persistent-cache hits seen by this thread
 
 
 def set_folder(folder: str | os.PathLike | None) -> None:
-    """Where exported programs are kept (created if missing); None turns the store off."""
+    """Where compiled programs are kept (created if missing); None turns the store off."""
     global _FOLDER
     _FOLDER = None if folder is None else Path(folder)
     _LOADED.clear()
@@ -64,6 +78,20 @@ def _source_digest() -> str:
         digest.update(path.read_bytes())
     digest.update(f"{jax.__version__} {jax.lib.__version__}".encode())
     return digest.hexdigest()
+
+
+@functools.cache
+def _machine() -> str:
+    """The backend's platform version and the host CPU's model and feature flags (Linux's
+    ``/proc/cpuinfo``; empty elsewhere): a stored executable is machine code."""
+    cpu = ""
+    with contextlib.suppress(OSError):
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+        cpu = " ".join(
+            next((line for line in lines if line.startswith(field)), "")
+            for field in ("model name", "flags")
+        )
+    return f"{jax.devices()[0].client.platform_version} {cpu}"
 
 
 def _missing():
@@ -138,6 +166,7 @@ def _key(fn: Callable, arrays: list, static, in_tree) -> str:
             f"{fn.__module__}.{fn.__qualname__}",
             _source_digest(),
             jax.default_backend(),
+            _machine(),
             bool(jax.config.jax_enable_x64),
             str(in_tree),
             str(jax.tree.structure(static)),
@@ -148,9 +177,55 @@ def _key(fn: Callable, arrays: list, static, in_tree) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:32]
 
 
-def _export(fn: Callable, arrays: list, static, in_tree, path: Path):
-    """Traces ``fn`` once through :func:`jax.export.export` and writes the program and its
-    output tree to ``path``; returns (program, output tree)."""
+def _write(path: Path, payload: tuple) -> None:
+    with tempfile.NamedTemporaryFile(dir=path.parent, delete=False) as handle:
+        handle.write(_dumps(payload))
+    os.replace(handle.name, path)
+
+
+def _custom_calls(compiled) -> list[str]:
+    """The custom-call targets of a compiled program, checked to be ones :func:`_load` can
+    prepare: LAPACK's, whose functions jaxlib fetches from scipy only when a program using
+    them is lowered (a stored executable skips lowering; unprepared, it crashes)."""
+    targets = sorted(set(re.findall(r'custom_call_target="([^"]+)"', compiled.as_text())))
+    if any(not t.startswith("lapack_") for t in targets):
+        raise ValueError(f"custom calls {targets}: store the exported program instead")
+    return targets
+
+
+@functools.cache
+def _count_cache_hits() -> None:
+    """Counts XLA's persistent-cache hits per thread from here on (a ``jax.monitoring``
+    listener, registered once, when the first program is stored)."""
+
+    def listen(event: str, **_) -> None:
+        if event == "/jax/compilation_cache/cache_hits":
+            _HITS.count = getattr(_HITS, "count", 0) + 1
+
+    jax.monitoring.register_event_listener(listen)
+
+
+def _load(blob: bytes, in_tree, out_tree, custom_calls: list[str]) -> Callable:
+    """A serialized executable back as a callable, its load time reported as
+    ``/jaxreg/program_cache/executable_load_duration``."""
+    start = time.perf_counter()
+    if custom_calls:
+        from jax._src.lax.linalg import initialize_lapack
+
+        initialize_lapack()
+    compiled = serialize_executable.deserialize_and_load(
+        blob, in_tree, out_tree, execution_devices=jax.devices()[:1]
+    )
+    jax.monitoring.record_event_duration_secs(
+        "/jaxreg/program_cache/executable_load_duration", time.perf_counter() - start
+    )
+    return compiled
+
+
+def _store(fn: Callable, arrays: list, static, in_tree, path: Path):
+    """Traces and compiles ``fn`` once and writes its executable, or where that does not
+    load back, its :mod:`jax.export` program, with the output tree to ``path``; returns
+    (callable of the flat arrays, output tree)."""
     box = []
 
     def flat(*values):
@@ -160,12 +235,29 @@ def _export(fn: Callable, arrays: list, static, in_tree, path: Path):
         return out_leaves
 
     specs = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type) for a in arrays]
-    exported = jax.export.export(jax.jit(flat))(*specs)
-    payload = _dumps((bytes(exported.serialize()), box[0]))
-    with tempfile.NamedTemporaryFile(dir=path.parent, delete=False) as handle:
-        handle.write(payload)
-    os.replace(handle.name, path)
-    return exported, box[0]
+    _count_cache_hits()
+    hits = getattr(_HITS, "count", 0)
+    compiled = jax.jit(flat).lower(*specs).compile()
+    try:
+        if getattr(_HITS, "count", 0) != hits:  # its kernels' code is gone: it would not run
+            raise ValueError("an executable XLA loaded from its cache cannot be saved again")
+        calls = _custom_calls(compiled)
+        blob, flat_in, flat_out = serialize_executable.serialize(compiled)
+        _write(path, ("executable", blob, flat_in, flat_out, calls, box[0]))
+    except Exception:
+        exported = jax.export.export(jax.jit(flat))(*specs)
+        _write(path, ("export", bytes(exported.serialize()), box[-1]))
+    return compiled, box[0]
+
+
+def _read(path: Path):
+    """The stored program at ``path`` as (callable of the flat arrays, output tree)."""
+    kind, *stored = pickle.loads(path.read_bytes())
+    if kind == "executable":
+        blob, flat_in, flat_out, calls, out_tree = stored
+        return _load(blob, flat_in, flat_out, calls), out_tree
+    blob, out_tree = stored
+    return jax.jit(jax.export.deserialize(bytearray(blob)).call), out_tree
 
 
 def _program(fn: Callable, arrays: list, static, in_tree, key: str):
@@ -173,15 +265,11 @@ def _program(fn: Callable, arrays: list, static, in_tree, key: str):
         return _LOADED[key]
     path = _FOLDER / f"{fn.__name__}-{key}.jaxprog"
     program = None
-    try:
-        if path.is_file():
-            blob, out_tree = pickle.loads(path.read_bytes())
-            exported = jax.export.deserialize(bytearray(blob))
-        else:
-            exported, out_tree = _export(fn, arrays, static, in_tree, path)
-        program = (jax.jit(exported.call), out_tree)
-    except Exception:  # a program that cannot be stored is compiled the ordinary way
-        program = None
+    with contextlib.suppress(Exception):  # unreadable (another jaxlib build?): written anew
+        program = _read(path) if path.is_file() else None
+    if program is None:
+        with contextlib.suppress(Exception):  # a program that cannot be stored is compiled
+            program = _store(fn, arrays, static, in_tree, path)  # the ordinary way
     _LOADED[key] = program
     return program
 

@@ -15,7 +15,7 @@ With ``--json`` stdout is one JSON object (the fields of the design's command li
 drawn at the estimated pose) to DIR. Errors are one line on stderr and exit status 1.
 
 Compilation cache: the commands (never ``import jaxreg``) enable JAX's persistent compilation
-cache, and keep the pipeline's traced programs beside it (:mod:`jaxreg._program_cache`), so a
+cache, and keep the pipeline's compiled programs beside it (:mod:`jaxreg._program_cache`), so a
 second run neither traces, lowers nor compiles them again. It lives in ``$JAXREG_CACHE_DIR`` if
 set, else ``$XDG_CACHE_HOME/jaxreg/jax`` (``~/.cache/jaxreg/jax``), programs in its ``programs``
 folder; set ``JAXREG_CACHE_DIR=""`` to turn both off. Deleting the folder is always safe.

@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import pickle
 import subprocess
 import sys
 import textwrap
@@ -102,6 +103,60 @@ def test_a_second_process_runs_the_stored_program_without_tracing(fitmod, store,
     assert fresh["traces"] == 0  # the function body never ran: the program came from the file
     np.testing.assert_allclose(fresh["pose"], np.asarray(first.pose.wxyz_xyz), atol=1e-6)
     assert fresh["message"] == str(first.status_message())  # the status survives the trip
+
+
+def _fresh(store, tmp_path, source, **env) -> dict:
+    np.save(tmp_path / "source.npy", source)
+    env = {"PYTHONPATH": f"{tmp_path}:{':'.join(sys.path)}", "JAX_PLATFORMS": "cpu", **env}
+    out = subprocess.run(
+        [sys.executable, "-c", FRESH_PROCESS, str(store), str(tmp_path / "source.npy")],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _kinds(store) -> list[str]:
+    return [pickle.loads(path.read_bytes())[0] for path in store.glob("*.jaxprog")]
+
+
+def test_a_program_whose_executable_cannot_be_saved_is_stored_exported(
+    fitmod, store, tmp_path, monkeypatch
+):
+    def refuse(compiled):
+        raise ValueError("not serializable")
+
+    monkeypatch.setattr(_program_cache.serialize_executable, "serialize", refuse)
+    source = _source()
+    first = _program_cache.persistent_jit(fitmod.fit)(source, source + 0.5, 2.0)
+    assert _kinds(store) == ["export"]
+    fresh = _fresh(store, tmp_path, source)
+    assert fresh["traces"] == 0
+    np.testing.assert_allclose(fresh["pose"], np.asarray(first.pose.wxyz_xyz), atol=1e-6)
+
+
+def test_with_xlas_cache_filled_a_new_store_still_serves_a_fresh_process(fitmod, tmp_path):
+    """An executable XLA loaded from its persistent cache may not serialize again (its
+    kernels' code is not kept): the store checks that it loads back, else keeps the exported
+    program; either way a later process runs it without tracing."""
+    store, source = tmp_path / "programs", _source()
+    xla = {
+        "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "xla"),
+        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
+        "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": "0",
+    }
+    first = _fresh(store, tmp_path, source, **xla)  # compiles: stores the executable
+    assert first["traces"] == 1 and _kinds(store) == ["executable"]
+    for path in store.glob("*.jaxprog"):
+        path.unlink()
+    again = _fresh(store, tmp_path, source, **xla)  # XLA's cache answers the compile
+    assert again["traces"] == 1 and len(_kinds(store)) == 1
+    last = _fresh(store, tmp_path, source, **xla)
+    assert last["traces"] == 0
+    np.testing.assert_array_equal(last["pose"], first["pose"])
 
 
 def test_new_shapes_or_static_options_are_new_programs(fitmod, store):
