@@ -10,8 +10,8 @@ is timed in interleaved rounds (each round calls each once) and the medians are 
 the ratio to the OpenCV loop of the same stage (unrefined to unrefined, refined to refined).
 OpenCV runs ``solvePnPGeneric(SOLVEPNP_IPPE_SQUARE)`` per tag in a Python loop, which returns
 the two unrefined IPPE candidates; the refined OpenCV row adds ``solvePnPRefineLM`` on both.
-jaxreg's Levenberg-Marquardt runs on the whole batch for 10 steps, then on the candidates still
-running, gathered (median 5 steps; a few candidates in flat valleys need up to ~40), so the
+jaxreg's Levenberg-Marquardt steps an eighth of the candidates at a time, the first ones still
+running (median 5 steps; a few candidates in flat valleys need up to ~40), so the
 refined rows are repeated per ``--max-iterations`` budget and count the candidates that ran out
 of steps (flagged ``PnPStatus.max_iterations``). OpenCV's ``solvePnPRefineLM`` stops after at
 most 20 steps by default, without saying whether it converged.

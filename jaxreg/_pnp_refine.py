@@ -47,7 +47,6 @@ _QUADRATIC_PX = 1e-2  # below this Gauss-Newton change of the residuals, take th
 _SECANT_PX = 2e-5  # above it, the curvature measured along a step is resolved (float32)
 _LAMBDA_AFTER_REJECT = 1e-3  # a rejected step raises lambda to at least this times nu
 _MIN_RATIO = 0.25  # the secant correction lengthens a step at most 4-fold
-_FULL_STEPS = 10  # steps run on the whole batch before the starts still running are gathered
 
 
 def _tolerance(dtype) -> float:
@@ -76,10 +75,12 @@ def _row_mat(r, M):
 
 
 def _point_sum(x: Array) -> Array:
-    """Sum over the points (the last axis): written out for a few points, so that it fuses with
-    the arithmetic around it."""
-    n = x.shape[-1]
-    return sum((x[..., i] for i in range(1, n)), x[..., 0]) if n <= 8 else jnp.sum(x, axis=-1)
+    """Sum over the points (the last axis), as a reduction. XLA's CPU compiler fuses no
+    elementwise producer into a reduction over the minor axis, so the per-point Jacobian is
+    computed once and each of the 28 sums reads it; written out as additions of slices, each
+    sum became a fusion of its own that recomputed the whole Jacobian (a 2.4x larger step to
+    compile, and no faster to run)."""
+    return jnp.sum(x, axis=-1)
 
 
 def _rotation_coefficients(w):
@@ -292,8 +293,9 @@ def refine_poses(T0: SE3, active, X, uv, K, dist, w, *, max_iterations: int, axe
     flat = lambda a: a.reshape(-1, *a.shape[2:])  # noqa: E731
     state = _run(jax.tree.map(flat, problem), flat(state), max_iterations)
     state = state.reshape(*shape, *state.shape[1:])
-    finish = jax.vmap(jax.vmap(_finish, in_axes=per_start + (0,)), in_axes=in_axes + (0,))
-    return finish(T0, active, X, uv, K, dist, w, state)
+    scale = jnp.stack(problem.scale, axis=-1)
+    finish = jax.vmap(jax.vmap(_finish, in_axes=per_start + (0, 0)), in_axes=in_axes + (0, 0))
+    return finish(T0, active, X, uv, K, dist, w, scale, state)
 
 
 def _start(T0: SE3, active, X, uv, K, dist, w):
@@ -307,27 +309,27 @@ def _start(T0: SE3, active, X, uv, K, dist, w):
     return T0, ok, start, start.rotation().as_matrix(), start.translation(), X, uv, sw
 
 
-def _scale(R0, t0, X, uv, K, dist, sw):
-    """The column norms of the residual Jacobian at the start (1 where zero or not finite)."""
-    problem = _Problem.build(R0, t0, X, uv, K, dist, sw, jnp.ones(6, X.dtype))
-    A, _, _ = _evaluate(problem, jnp.zeros(6, X.dtype))
-    scale = jnp.sqrt(jnp.stack([A[0], A[6], A[11], A[15], A[18], A[20]]))
-    return jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)
-
-
 def _prepare(T0: SE3, active, X, uv, K, dist, w):
-    """One start's problem (constants) and the loop's initial state."""
+    """One start's problem (constants) and the loop's initial state. The normal equations at
+    the start are evaluated once, unscaled: their diagonal gives the column scales (1 where
+    zero or not finite), and rescaled they are the initial state's."""
     T0, ok, _, R0, t0, X, uv, sw = jax.lax.stop_gradient(_start(T0, active, X, uv, K, dist, w))
     K, dist = jax.lax.stop_gradient((K, dist))
-    scale = _scale(R0, t0, X, uv, K, dist, sw)
-    problem = _Problem.build(R0, t0, X, uv, K, dist, sw, scale)
-    return problem, _initial_state(problem, ok)
+    unscaled = _Problem.build(R0, t0, X, uv, K, dist, sw, jnp.ones(6, X.dtype))
+    A, g, cost = _evaluate(unscaled, jnp.zeros(6, X.dtype))
+    rows = packed(A)
+    scale = jnp.sqrt(jnp.stack([rows[i][i] for i in range(6)]))
+    scale = jnp.where(jnp.isfinite(scale) & (scale > 0), scale, 1.0)
+    s = tuple(scale[i] for i in range(6))
+    A = [rows[i][j] / (s[i] * s[j]) for i in range(6) for j in range(i, 6)]
+    g = [g[i] / s[i] for i in range(6)]
+    return unscaled._replace(scale=s), _initial_state(A, g, cost, ok)
 
 
-def _finish(T0: SE3, active, X, uv, K, dist, w, state):
-    """The pose the loop reached, differentiable by the implicit function theorem at it."""
+def _finish(T0: SE3, active, X, uv, K, dist, w, scale, state):
+    """The pose the loop reached, differentiable by the implicit function theorem at it
+    (`scale` `(6,)`: the loop's column scales, a constant)."""
     T0, ok, start, R0, t0, X, uv, sw = _start(T0, active, X, uv, K, dist, w)
-    scale = jax.lax.stop_gradient(_scale(R0, t0, X, uv, K, dist, sw))
     differentiable = _Problem.build(R0, t0, X, uv, K, dist, sw, scale)
 
     def gradient(y):
@@ -352,44 +354,40 @@ def _run(problem: _Problem, state: Array, max_iterations: int) -> Array:
     `max_iterations` steps.
 
     A step costs in proportion to the lanes it carries, finished or not, and most starts
-    converge within ~8 steps while a few in flat valleys take several times that. So the whole
-    batch runs `_FULL_STEPS` steps; then the starts still running are gathered, `L // 8` at a
-    time in lane order, and run on their own to the end. A lane's steps and result do not
-    depend on which of these runs carried it (up to float rounding)."""
+    converge within ~8 steps while a few in flat valleys take several times that. So a step
+    carries `L // 8` starts (all L when L < 64): the first ones still running, gathered afresh
+    every step, so that a start that stops frees its place for the next one at once. There is
+    one loop and one copy of the step to compile; a lane's steps and result do not depend on
+    which lanes share its steps (up to float rounding)."""
     lanes = state.shape[0]
+    capacity = lanes // 8 if lanes >= 64 else lanes
     step = jax.vmap(_step)
 
-    def running(state, limit):
-        return (state[:, 44] == 0) & (state[:, 43] < limit)
+    def running(state):
+        return (state[:, 44] == 0) & (state[:, 43] < max_iterations)
 
-    def loop(problem, state, limit):
-        def body(state):
-            return jnp.where(running(state, limit)[:, None], step(problem, state), state)
+    def body(state):
+        if capacity == lanes:
+            return jnp.where(running(state)[:, None], step(problem, state), state)
+        # Indices past the end fill the places no running start needs: they read the last
+        # lane (clipped) and write nothing (dropped).
+        subset = jnp.nonzero(running(state), size=capacity, fill_value=lanes)[0]
+        part = state.at[subset].get(mode="clip")
+        part_problem = jax.tree.map(lambda a: a.at[subset].get(mode="clip"), problem)
+        live = running(part) & (subset < lanes)
+        part = jnp.where(live[:, None], step(part_problem, part), part)
+        return state.at[subset].set(part, mode="drop")
 
-        return jax.lax.while_loop(lambda state: jnp.any(running(state, limit)), body, state)
-
-    capacity = lanes // 8
-    if capacity < 8:
-        return loop(problem, state, max_iterations)
-    state = loop(problem, state, min(_FULL_STEPS, max_iterations))
-
-    def gathered(state):  # the first `capacity` starts still running, run to their end
-        subset = jnp.argsort(~running(state, max_iterations), stable=True)[:capacity]
-        part = loop(jax.tree.map(lambda a: a[subset], problem), state[subset], max_iterations)
-        return state.at[subset].set(part)
-
-    return jax.lax.while_loop(
-        lambda state: jnp.any(running(state, max_iterations)), gathered, state
-    )
+    return jax.lax.while_loop(lambda state: jnp.any(running(state)), body, state)
 
 
-def _initial_state(problem: _Problem, ok) -> Array:
+def _initial_state(A, g, cost, ok) -> Array:
     """The loop state of one start, one array: y (6), A (21), g (6), cost, lambda, nu, the last
-    accepted step (6), its curvature ratio, iterations, done, converged. (As separate arrays,
-    every carried scalar would be written by a kernel of its own each step.)"""
-    dtype = problem.sw.dtype
+    accepted step (6), its curvature ratio, iterations, done, converged, from the normal
+    equations at the start (`_evaluate`'s). (As separate arrays, every carried scalar would be
+    written by a kernel of its own each step.)"""
+    dtype = cost.dtype
     zero = jnp.zeros((), dtype)
-    A, g, cost = _evaluate(problem, (zero,) * 6)
     notok = jnp.where(ok, 0.0, 1.0).astype(dtype)
     return jnp.stack(
         [*(zero,) * 6, *A, *g, cost, 1e-3 + zero, 2.0 + zero, *(zero,) * 6, 1.0 + zero]
@@ -430,7 +428,8 @@ def _step(problem: _Problem, state: Array) -> Array:
     A_new, g_new, cost_new = _evaluate(problem, y_new)
     predicted = 0.5 * dot(step, [lam * si - gi for si, gi in zip(step, g, strict=True)])
     rho = (cost - cost_new) / jnp.where(predicted > 0, predicted, 1.0)
-    finite = jnp.isfinite(cost_new + sum(A_new))
+    # One reduction (see _point_sum), not 21 additions each output of the step would repeat.
+    finite = jnp.isfinite(jnp.sum(jnp.stack([cost_new, *A_new]), axis=0))
     accept = finite & (quadratic | (cost_new < cost))
     shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
     lam_accept = lam * jnp.where(quadratic, 1.0, shrink)

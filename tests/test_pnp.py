@@ -540,13 +540,13 @@ def test_closed_form_covariance_equals_the_eigendecomposition(planar):
 
 
 def test_a_lane_refines_alike_alone_and_in_a_large_batch(planar):
-    """The refinement gathers the starts still running after a few steps (in the planar
-    fixture's batch of 2,260 starts, the slowest 282 go on alone); which lanes share a run
-    changes neither a lane's steps nor its pose: the slowest lanes solved as a batch of 8
-    (too few to gather) agree."""
+    """The refinement steps the planar fixture's 2,260 starts 282 at a time, the first ones
+    still running gathered afresh at every step; which lanes share a step changes neither a
+    lane's steps nor its pose: the slowest lanes solved as a batch of 8 (too few to gather)
+    agree."""
     c = planar["result"].candidates
     slow = np.argsort(-c.iterations[:N_VIEWS].max(axis=1))[:8]
-    assert c.iterations[slow].max() > 10  # these went through the gathered run
+    assert c.iterations[slow].max() > 10  # stepped in many different companies
     small = jax.device_get(
         solve_pnp_planar(TAG_POINTS, planar["batch"][slow], K, sigma_px=0.2)
     ).candidates
