@@ -428,8 +428,7 @@ def _step(problem: _Problem, state: Array) -> Array:
     A_new, g_new, cost_new = _evaluate(problem, y_new)
     predicted = 0.5 * dot(step, [lam * si - gi for si, gi in zip(step, g, strict=True)])
     rho = (cost - cost_new) / jnp.where(predicted > 0, predicted, 1.0)
-    # One reduction (see _point_sum), not 21 additions each output of the step would repeat.
-    finite = jnp.isfinite(jnp.sum(jnp.stack([cost_new, *A_new]), axis=0))
+    finite = jnp.isfinite(cost_new + sum(A_new))
     accept = finite & (quadratic | (cost_new < cost))
     shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
     lam_accept = lam * jnp.where(quadratic, 1.0, shrink)
