@@ -18,6 +18,7 @@ import numpy as np
 from jaxlie import SE3, SO3
 from jaxtyping import Array, Float
 from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial.transform import Rotation
 
 from jaxreg._icp_core import run
 from jaxreg._icp_setup import Settings, prepare
@@ -44,6 +45,7 @@ class _Model:
     centroid: np.ndarray
     axes: np.ndarray  # (3, 3) principal axes as columns, largest extent first
     extents: np.ndarray  # (3,) full extent along each axis
+    bounds: np.ndarray  # (2, 3) least and greatest coordinate along each axis (given points)
     screen: np.ndarray  # (M1, 3) voxelled at 3 voxels: the coarse starts' first judgement
     # _coarse_problem's, per schedule (not in the repr that keys stored programs)
     coarse: dict = dataclasses.field(default_factory=dict, repr=False)
@@ -101,6 +103,7 @@ def _prepare_model(model_points, model_normals, voxel_size: float, grid_distance
     _, vectors = np.linalg.eigh(np.cov((points - centroid).T))
     axes = vectors[:, ::-1]
     along = (points - centroid) @ axes
+    given = (model_points - centroid) @ axes  # voxel centroids lie up to half a voxel inside
     model = _Model(
         points=points,
         normals=normals.astype(np.float32),
@@ -110,6 +113,7 @@ def _prepare_model(model_points, model_normals, voxel_size: float, grid_distance
         centroid=centroid,
         axes=axes,
         extents=along.max(0) - along.min(0),
+        bounds=np.stack([given.min(0), given.max(0)]),
         screen=voxel_downsample(points, 3 * voxel_size).astype(np.float32),
     )
     if len(_MODELS) > 8:
@@ -179,6 +183,21 @@ def visibility(
             (inside & ~facing).sum(),
         ]
     )
+
+
+def overhang(model: _Model, object_T_base: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """How far a segment spans beyond the model, along each of the model's principal axes
+    (metres, ``(3,)``): the span of ``points`` ``(N, 3)`` (base frame) moved by
+    ``object_T_base`` ``(7,)`` (wxyz_xyz), between their 2% and 98% quantiles, less the model's
+    full span. An object's own points stay within its extent up to the depth noise, whatever
+    part of it is visible (a partial view spans less: negative), so a positive overhang of
+    several millimetres says the segment is a larger object of a similar shape, or the object
+    merged with a neighbour."""
+    rotation = Rotation.from_quat(np.asarray(object_T_base[:4], np.float64), scalar_first=True)
+    moved = rotation.apply(np.asarray(points, np.float64)) + object_T_base[4:]
+    along = (moved - model.centroid) @ model.axes
+    low, high = np.quantile(along, [0.02, 0.98], axis=0)
+    return (high - low) - (model.bounds[1] - model.bounds[0])
 
 
 def _confirmed_share(counts: Array) -> Array:

@@ -17,8 +17,9 @@ diagnostics. The stages:
    grid points): the fraction of its points the model explains (6 mm) times the share of the
    model's camera-facing surface that the depth image confirms (:func:`visibility`; seeing
    through the model, or the model below the table, counts against it). The best candidate
-   wins, and every cluster that its coarse pose explains (60% of its points within 1 cm)
-   joins it.
+   wins, unless its points span beyond the model at its coarse pose (``max_overhang``: a
+   larger object of a similar shape), and every cluster that its coarse pose explains (60%
+   of its points within 1 cm) joins it.
 2. **Lift**: the winning clusters' footprint at full resolution (their pixels and the depth
    holes between them), its valid-depth fraction, the pixels above the table band, flying
    pixels removed (a pixel needs ``min_consistent_neighbors`` of its 8 neighbours within the
@@ -48,8 +49,9 @@ diagnostics. The stages:
 A stage fails on its own evidence, and the estimate then makes no pose claim (``pose`` is
 ``None``): no plane or nothing on it, or no cluster of the model's size (segment); too few
 pixels with depth in the footprint, or too few points left after filtering (lift); too small
-a fraction of the segment explained by the model, too large a residual, or a model that the
-depth image contradicts (surface predicted where the camera sees through it) (register).
+a fraction of the segment explained by the model, too large a residual, a model that the
+depth image contradicts (surface predicted where the camera sees through it), or a segment
+that spans beyond the model (register).
 
 Host-side entry point: bad arguments raise ``ValueError``. The compiled pieces have static
 shapes: the segment grid is fixed by the image size and stride, and the clouds given to ICP
@@ -83,6 +85,7 @@ from jaxreg._register_stage import (
     _register_starts,
     _score_candidates,
     _support,
+    overhang,
     visibility as visibility,
 )
 from jaxreg.camera import RGBDFrame
@@ -232,6 +235,7 @@ def estimate_pose(
     min_inlier_fraction: float = 0.7,
     max_inlier_rmse: float = 0.004,
     max_contradicted: float = 0.25,
+    max_overhang: float = 0.003,
     progress: Callable[[str], object] | None = None,
 ) -> PoseEstimate:
     """Estimate ``base_T_object`` of a model in one depth frame (see the module docstring).
@@ -274,6 +278,10 @@ def estimate_pose(
         min_inlier_fraction, max_inlier_rmse, max_contradicted: the registration's evidence
             that the model is there (fraction of segment points explained, their RMS
             distance in metres, share of the model's judged surface the image sees through).
+        max_overhang: how far (metres) the segment may span beyond the model along one of
+            the model's principal axes at the fitted pose (between its 2% and 98%
+            quantiles; depth noise): a larger object of a similar shape fits the model well
+            by every other measure, but reaches beyond it.
         progress: called with each stage's name as it starts (a command line's progress).
 
     Returns:
@@ -408,14 +416,15 @@ def estimate_pose(
         )  # fmt: skip
     )
     scored = []
-    for i, (group, _) in enumerate(candidates):
+    for i, (group, cloud) in enumerate(candidates):
         counts = np.asarray(coarse.visibility[i, 0])
         confirmed, contradicted = _support(counts)
         explained = float(coarse.explained[i, 0])
         score = explained * confirmed
-        scored.append((score, group, i, explained, contradicted))
-    scored.sort(key=lambda item: -item[0])
-    _, group, chosen, coarse_fraction, _ = scored[0]
+        reach = float(overhang(model, np.asarray(coarse.poses[i, 0]), cloud).max())
+        scored.append((score, group, i, explained, contradicted, reach))
+    scored.sort(key=lambda item: (item[5] > max_overhang, -item[0]))  # larger objects last
+    _, group, chosen, coarse_fraction, _, _ = scored[0]
     coarse_poses = np.asarray(coarse.poses[chosen])  # object_T_base per start, best first
     # pieces of the object the clustering split off: clusters the coarse pose explains
     explained = np.asarray(_near_model(model.grid, coarse_poses[0], grid_points, np.float32(0.01)))
@@ -427,8 +436,9 @@ def estimate_pose(
                 "score": round(sc, 3),
                 "explained": round(f, 3),
                 "contradicted": round(c, 3),
+                "overhang_mm": round(r * 1e3, 1),
             }
-            for sc, g, _, f, c in scored
+            for sc, g, _, f, c, r in scored
         ],  # fmt: skip
         chosen_clusters=list(joined),
         ms=_ms(start),
@@ -503,7 +513,7 @@ def estimate_pose(
     source = _padded(points, max_points, rng)
     picks = _distinct(coarse_poses, 4, 0.01)
     inits = SE3(jax.device_put(coarse_poses[picks]))
-    trim = float(np.clip(coarse_fraction, 0.6, 0.95))
+    trim = np.float32(np.clip(coarse_fraction, 0.6, 0.95))  # an argument: one program for all
     results = _register_starts(
         source, model.points, model.normals, model.grid, inits, fine_distances, trim, 30
     )
@@ -515,6 +525,7 @@ def estimate_pose(
     best = results[int(ranked[0])]
     fraction, rmse = float(fractions[ranked[0]]), float(rmses[ranked[0]])
     confirmed, contradicted = _support(seen[ranked[0]])
+    reach = overhang(model, np.asarray(results.pose.wxyz_xyz[ranked[0]]), points)
     equal = (scores >= scores[ranked[0]] - 0.02) & (rmses <= rmse * 1.1 + 1e-4)
     wxyz_xyz, spread, covariance = _finish(
         source, model.points, model.normals, model.grid, results.pose.wxyz_xyz,
@@ -528,7 +539,7 @@ def estimate_pose(
         "starts": num_starts + 4 + 6 * resting_yaws,
         "coarse_kept_starts": int(coarse_poses.shape[0]),
         "refined_starts": len(picks),
-        "trim_fraction": round(trim, 3),
+        "trim_fraction": round(float(trim), 3),
         "iterations": int(best.iterations),
         "icp_status": str(best.status_message()),
         "inlier_rmse_mm": round(rmse * 1e3, 3),
@@ -538,6 +549,7 @@ def estimate_pose(
         "start_agreement_deg": round(spread_deg, 3),
         "model_confirmed": round(confirmed, 3),
         "model_contradicted": round(contradicted, 3),
+        "overhang_mm": [round(float(r) * 1e3, 1) for r in reach],
     }
     problems = []
     if fraction < min_inlier_fraction:
@@ -551,6 +563,13 @@ def estimate_pose(
         problems.append(
             f"the camera sees through {contradicted:.0%} of the model's surface facing it (at "
             f"most {max_contradicted:.0%})"
+        )
+    if reach.max() > max_overhang:
+        problems.append(
+            f"the segment spans {reach.max() * 1e3:.0f} mm beyond the model along its "
+            f"{('longest', 'middle', 'shortest')[int(reach.argmax())]} axis (at most "
+            f"{max_overhang * 1e3:g}): a larger object of a similar shape, or the object "
+            "merged with a neighbour"
         )
     if problems:
         return failed(
