@@ -138,15 +138,20 @@ def test_covariance_is_the_implicit_jacobian_sandwich(method, x64):
     icp's implicit derivative (itself checked against central differences below and in
     test_icp.py): two independent routes to the same first-order propagation."""
     src, tgt, truth, opts = _box_problem(method, n=150)
-    pose0 = icp(src, tgt, truth, **opts).pose
     rng = np.random.default_rng(3)
     a = rng.normal(size=(len(tgt), 3, 3)) * 1e-3
     target_cov = a @ np.swapaxes(a, 1, 2)
 
     def delta(s, t):
-        return (pose0.inverse() @ icp(s, t, truth, **opts).pose).log()
+        """log(pose0^-1 pose) with pose0 the solution held constant (the same value and
+        derivative as with pose0 from a separate run), and pose0 itself."""
+        pose = icp(s, t, truth, **opts).pose
+        pose0 = jax.lax.stop_gradient(pose)
+        return (pose0.inverse() @ pose).log(), pose0
 
-    j_src, j_tgt = jax.jacrev(delta, argnums=(0, 1))(jnp.asarray(src), jnp.asarray(tgt))
+    (j_src, j_tgt), pose0 = jax.jacrev(delta, argnums=(0, 1), has_aux=True)(
+        jnp.asarray(src), jnp.asarray(tgt)
+    )
     j_src, j_tgt = np.asarray(j_src), np.asarray(j_tgt)
     outer_src = np.einsum("anj,bnj->ab", j_src, j_src)
     cov = icp_covariance(
@@ -299,7 +304,9 @@ def test_point_to_point_closed_form_is_overconfident(milk_scan_to_model):
 
 def test_init_spread_is_zero_for_a_unique_fixed_point_and_large_outside_the_basin():
     src, tgt, truth, opts = _box_problem("point_to_plane", n=200, resample=False, noise=1e-5)
-    opts = dict(opts, max_iterations=40, tolerance=1e-7)
+    # One grid for every call: the 13-start loop compiles once for init_spread and the total.
+    grid = build_grid(tgt, opts["max_correspondence_distance"])
+    opts = dict(opts, max_iterations=40, tolerance=1e-7, neighbors=grid)
     pose = icp(src, tgt, truth, **opts).pose
     small = np.diag([2e-3] * 3 + [np.radians(2)] * 3) ** 2
     inside = np.asarray(init_spread(src, tgt, pose, small, **opts))
@@ -333,18 +340,9 @@ def test_init_spread_sees_the_discrete_fixed_points_of_a_resampled_surface():
 # Implicit gradients of ICP with respect to every differentiable input.
 
 
-@pytest.mark.parametrize(
-    "wrt",
-    [
-        "target",
-        "target_normals",
-        "source_weights",
-        "kernel_scale",
-    ],
-)
-def test_implicit_gradients_match_central_differences(wrt, x64):
-    """d pose / d (target points | target normals | source weights | Cauchy scale) by the
-    implicit function theorem, against central differences of whole ICP runs (float64)."""
+def _gradient_problem():
+    """The float64 point-to-plane problem of the gradient tests, and ``solve``: the pose's
+    log of ICP run on it with any of its differentiable inputs replaced."""
     src, tgt, truth, opts = _box_problem("point_to_plane", n=150, seed=4)
     normals = opts.pop("target_normals")
     weights = np.random.default_rng(2).uniform(0.5, 1.5, len(src))
@@ -352,8 +350,8 @@ def test_implicit_gradients_match_central_differences(wrt, x64):
         target=tgt, target_normals=normals, source_weights=weights, kernel_scale=np.float64(0.002)
     )
 
-    def solve(x):
-        args = dict(values, **{wrt: x})
+    def solve(**replaced):
+        args = dict(values, **replaced)
         return icp(
             src,
             args["target"],
@@ -364,14 +362,40 @@ def test_implicit_gradients_match_central_differences(wrt, x64):
             **opts,
         ).pose.log()
 
+    return values, solve
+
+
+@pytest.fixture(scope="module")
+def implicit_jacobians():
+    """d pose log / d every differentiable input, from one reverse pass through ICP's implicit
+    derivative (one compilation serves the four checks below)."""
+    with jax.enable_x64(True):
+        values, solve = _gradient_problem()
+        jac = jax.jacrev(lambda v: solve(**v))({k: jnp.asarray(x) for k, x in values.items()})
+        return {k: np.asarray(x) for k, x in jac.items()}
+
+
+@pytest.mark.parametrize(
+    "wrt",
+    [
+        "target",
+        "target_normals",
+        "source_weights",
+        "kernel_scale",
+    ],
+)
+def test_implicit_gradients_match_central_differences(wrt, implicit_jacobians, x64):
+    """d pose / d (target points | target normals | source weights | Cauchy scale) by the
+    implicit function theorem, against central differences of whole ICP runs (float64)."""
+    values, solve = _gradient_problem()
     x0 = values[wrt]
-    jac = np.asarray(jax.jacrev(solve)(jnp.asarray(x0)))
-    assert np.all(np.isfinite(jac))
+    jac = implicit_jacobians[wrt]
+    assert jac.shape == (6, *np.shape(x0)) and np.all(np.isfinite(jac))
     entries = [()] if np.ndim(x0) == 0 else [(3, 0), (90, 2)] if np.ndim(x0) == 2 else [(3,), (90,)]
     for index in entries:
         e = np.zeros_like(x0)
         e[index] = 1e-7
-        fd = (np.asarray(solve(x0 + e)) - np.asarray(solve(x0 - e))) / 2e-7
+        fd = (np.asarray(solve(**{wrt: x0 + e})) - np.asarray(solve(**{wrt: x0 - e}))) / 2e-7
         column = jac[(slice(None), *index)]
         assert np.abs(fd - column).max() <= 1e-3 * np.abs(column).max() + 1e-9
 
