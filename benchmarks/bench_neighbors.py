@@ -1,6 +1,7 @@
 """Nearest-neighbour engines on milk.pcd: the grid, blocked brute force, scipy, Open3D.
 
 Usage: python benchmarks/bench_neighbors.py [--data DIR] [--radius 0.02] [--repeats 30]
+(DIR defaults to $JAXREG_DATA/pcl, else ../shared/data/pcl beside the repository)
 
 Prints one table (median milliseconds of repeated runs, after a warm-up call that compiles).
 The ICP case: target = milk.pcd voxel-downsampled at 4 mm (~3.7k points) and in full
@@ -23,7 +24,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _timing import interleaved_medians
+from _timing import DATA, interleaved_medians
 
 from jaxreg.io import load_points
 from jaxreg.neighbors import (
@@ -207,8 +208,7 @@ def normals_case(points: np.ndarray, repeats: int) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    default = Path(__file__).resolve().parents[2] / "shared" / "data" / "pcl"
-    parser.add_argument("--data", type=Path, default=default)
+    parser.add_argument("--data", type=Path, default=DATA / "pcl", help="default $JAXREG_DATA/pcl")
     parser.add_argument("--radius", type=float, default=0.02)
     parser.add_argument("--repeats", type=int, default=30)
     args = parser.parse_args()

@@ -28,7 +28,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._eig3 import eigh3
-from ._octree import neighbor_moments, self_knn
+from ._octree import knn_moments, self_knn
 from ._program_cache import persistent_jit
 from ._result import select_status
 from .neighbors import knn, valid_rows
@@ -184,14 +184,15 @@ def _host_pca(points: np.ndarray, mask, k: int, viewpoint) -> NormalEstimate:
         if mask.shape != ok.shape:
             raise ValueError(f"mask must be ({ok.shape[0]},), got {mask.shape}")
         ok &= mask.astype(bool)
-    rows = np.flatnonzero(ok)
-    x = np.ascontiguousarray(points[rows], np.float64)
-    idx, sq = self_knn(x, k)
-    cov = np.zeros((len(points), 6))
-    count = np.zeros(len(points), np.int32)
-    cov[rows], count[rows] = neighbor_moments(x, idx, sq)
-    vp = np.zeros(3) if viewpoint is None else np.asarray(viewpoint)
     dtype = points.dtype
+    if ok.all():  # no copies of a clean cloud
+        cov, count = knn_moments(np.ascontiguousarray(points, np.float64), k)
+    else:
+        rows = np.flatnonzero(ok)
+        cov = np.zeros((len(points), 6))
+        count = np.zeros(len(points), np.int32)
+        cov[rows], count[rows] = knn_moments(np.ascontiguousarray(points[rows], np.float64), k)
+    vp = np.zeros(3) if viewpoint is None else np.asarray(viewpoint)
     return _finish(points, ok, cov.astype(dtype), count, vp.astype(dtype))
 
 
