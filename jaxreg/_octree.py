@@ -214,7 +214,8 @@ def _median_kth(x, k):
         a = (s * (n - 1)) // max(samples - 1, 1)
         for b in range(n):
             d[b] = (x[a, 0] - x[b, 0]) ** 2 + (x[a, 1] - x[b, 1]) ** 2 + (x[a, 2] - x[b, 2]) ** 2
-        bound = np.partition(d[::stride], kk - 1)[kk - 1] if stride > 1 else np.inf
+        # (a contiguous copy: both selections use one compiled np.partition)
+        bound = np.partition(d[::stride].copy(), kk - 1)[kk - 1] if stride > 1 else np.inf
         m = 0
         for b in range(n):
             d[m] = d[b]
