@@ -89,17 +89,7 @@ def test_a_second_process_runs_the_stored_program_without_tracing(fitmod, store,
     fit(source, source + 0.5, 2.0)  # same signature: no new trace, no new file
     assert len(fitmod.TRACES) == 1 and len(list(store.glob("*.jaxprog"))) == 1
 
-    np.save(tmp_path / "source.npy", source)
-    env = {"PYTHONPATH": f"{tmp_path}:{':'.join(sys.path)}", "JAX_PLATFORMS": "cpu"}
-    out = subprocess.run(
-        [sys.executable, "-c", FRESH_PROCESS, str(store), str(tmp_path / "source.npy")],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-    )
-    assert out.returncode == 0, out.stderr[-2000:]
-    fresh = json.loads(out.stdout.strip().splitlines()[-1])
+    fresh = _fresh(store, tmp_path, source)
     assert fresh["traces"] == 0  # the function body never ran: the program came from the file
     np.testing.assert_allclose(fresh["pose"], np.asarray(first.pose.wxyz_xyz), atol=1e-6)
     assert fresh["message"] == str(first.status_message())  # the status survives the trip
