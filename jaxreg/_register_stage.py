@@ -44,7 +44,6 @@ class _Model:
     diameter: float  # largest distance between two points
     centroid: np.ndarray
     axes: np.ndarray  # (3, 3) principal axes as columns, largest extent first
-    extents: np.ndarray  # (3,) full extent along each axis
     bounds: np.ndarray  # (2, 3) least and greatest coordinate along each axis (given points)
     screen: np.ndarray  # (M1, 3) voxelled at 3 voxels: the coarse starts' first judgement
     # _coarse_problem's, per schedule (not in the repr that keys stored programs)
@@ -102,7 +101,6 @@ def _prepare_model(model_points, model_normals, voxel_size: float, grid_distance
     grid = build_grid(points, grid_distance, mask=np.linalg.norm(normals, axis=1) > 0.5)
     _, vectors = np.linalg.eigh(np.cov((points - centroid).T))
     axes = vectors[:, ::-1]
-    along = (points - centroid) @ axes
     given = (model_points - centroid) @ axes  # voxel centroids lie up to half a voxel inside
     model = _Model(
         points=points,
@@ -112,7 +110,6 @@ def _prepare_model(model_points, model_normals, voxel_size: float, grid_distance
         diameter=_diameter(points),
         centroid=centroid,
         axes=axes,
-        extents=along.max(0) - along.min(0),
         bounds=np.stack([given.min(0), given.max(0)]),
         screen=voxel_downsample(points, 3 * voxel_size).astype(np.float32),
     )
