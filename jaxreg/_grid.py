@@ -19,7 +19,7 @@ import jax
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg import _octree
+from jaxreg import _knn, _octree
 
 __all__ = ["NeighborGrid", "build_grid", "validate_grid"]
 
@@ -138,7 +138,7 @@ def _levels(x, cell, dims, h, margin, r2, k, *budget):
     top-level cell's refinement depth.
     """
     if k == 1:
-        half_spaces = _octree.witnesses(x, _octree.self_knn(x, _NEAR)[0], margin)
+        half_spaces = _octree.witnesses(x, _knn.self_knn(x, _NEAR)[0], margin)
     else:
         half_spaces = _octree.no_witnesses(len(x))
     tests = (margin, r2, *half_spaces, k or 0)

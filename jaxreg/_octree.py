@@ -1,4 +1,4 @@
-"""Compiled host loops (numba) behind :class:`jaxreg.neighbors.NeighborGrid` and exact host kNN.
+"""Compiled host loops (numba) that build :class:`jaxreg.neighbors.NeighborGrid`'s octree.
 
 The grid's octree is built here for every kind of grid (1-NN, kNN, radius): the loops run
 over target points and octree nodes, and need no ``(pairs, 27)`` temporaries, so a build
@@ -13,9 +13,10 @@ rounding of the query's choice of leaf never drops a candidate).
 A target point ``p`` is a candidate of a node unless
 
 * it is farther than ``max_distance`` (``r2`` squared, margin included) from the grown box, or
-* (1-NN grids) one of its witnesses ``q`` (its nearest points, :func:`self_knn`) is strictly
-  closer than ``p`` to every point of the grown box: the box lies beyond the bisecting plane
-  of ``p`` and ``q``, so no query in it has ``p`` as its nearest; or
+* (1-NN grids) one of its witnesses ``q`` (its nearest points,
+  :func:`jaxreg._knn.self_knn`) is strictly closer than ``p`` to every point of the grown
+  box: the box lies beyond the bisecting plane of ``p`` and ``q``, so no query in it has
+  ``p`` as its nearest; or
 * (kNN grids, ``k > 1``) it is farther from the grown box than the ``k``-th smallest
   farthest-corner distance of the node's candidates: ``k`` points are then closer than ``p``
   to every query in the box.
@@ -31,10 +32,9 @@ import numba
 import numpy as np
 
 __all__ = [
-    "knn_moments",
+    "counting_sort",
     "leaf_tables",
     "no_witnesses",
-    "self_knn",
     "split_nodes",
     "top_level_nodes",
     "witnesses",
@@ -44,9 +44,11 @@ _CACHE = dict(cache=True, nogil=True)
 
 
 @numba.njit(**_CACHE)
-def _counting_sort(key: np.ndarray, num_keys: int):
+def counting_sort(key: np.ndarray, num_keys: int):
     """Points grouped by integer ``key < num_keys``: the order that sorts them (stable) and
-    ``start (num_keys + 1,)``, so that key ``k``'s points are ``order[start[k]:start[k + 1]]``."""
+    ``start (num_keys + 1,)``, so that key ``k``'s points are ``order[start[k]:start[k + 1]]``.
+    Also compiled into :mod:`jaxreg._knn`'s cached pass, whose cache a change here does not
+    invalidate."""
     start = np.zeros(num_keys + 1, np.int64)
     for k in key:
         start[k + 1] += 1
@@ -58,284 +60,6 @@ def _counting_sort(key: np.ndarray, num_keys: int):
         order[cursor[key[p]]] = p
         cursor[key[p]] += 1
     return order, start
-
-
-def self_knn(x: np.ndarray, k: int, max_distance: float = np.inf):
-    """Exact ``k`` nearest points of every point of ``x`` (itself included), nearest first,
-    among those closer than ``max_distance`` (a hybrid search, as Open3D's and PCL's radius
-    search with a neighbour cap; the default has no radius).
-
-    ``x`` is ``(n, 3)`` float64 (C order). Returns ``indices (n, k)`` and squared distances
-    ``(n, k)``; slots without a point (fewer than ``k`` points, or within ``max_distance``)
-    hold the sentinel ``n`` and ``inf``. Ties are broken by scan order (:func:`_knn_pass`).
-    """
-    idx, sq, _, _ = _knn_pass(x, int(k), float(max_distance), False)
-    return idx, sq
-
-
-def knn_moments(x: np.ndarray, k: int):
-    """Covariance of each point's exact ``k`` nearest (as :func:`self_knn` finds them, in its
-    order) from the same pass, without the ``(n, k)`` index and distance tables:
-    ``cov (n, 6)`` with entries ``xx, xy, xz, yy, yz, zz`` of
-    ``sum_j (y_j - mean)(y_j - mean)^T / count``, ``y_j`` the neighbours relative to the
-    point (no cancellation far from the origin), and ``count (n,)`` int32."""
-    _, _, cov, count = _knn_pass(x, int(k), np.inf, True)
-    return cov, count
-
-
-@numba.njit(**_CACHE)
-def _knn_pass(x, k, max_distance, moments):
-    """:func:`self_knn` (``moments`` false: ``idx``, ``sq``, empty ``cov``, ``count``) or
-    :func:`knn_moments` (true: empty ``idx``, ``sq``, then ``cov``, ``count``).
-
-    Points are hashed into cubic cells about as wide as a sampled median ``k``-th neighbour
-    distance (at most ``max_distance``) and their coordinates copied in cell order (one
-    array per axis), so a 3x3x3 block is 9 contiguous runs. The points of a cell share the
-    candidates of their block, copied once into a contiguous buffer; each point keeps the
-    candidates within ``tau``, the smaller of (1.2 x the previous point's ``k``-th distance)
-    and its distance to the block's nearest open face, by a branch-free compaction, and
-    selects the ``k`` nearest of the few kept by a bounded insertion sort (stable): branch
-    mispredictions, not arithmetic, are the cost of kNN over ~80 candidates, and a
-    selection over all of them pays one per candidate. When fewer than ``k`` candidates lie
-    within the block's reach, the point scans rings of cells outward instead
-    (:func:`_ring_knn`). Ties are broken by scan order: block order (cells x-major, then
-    input order), or ring by ring for ring searches.
-    """
-    n = x.shape[0]
-    rows = 0 if moments else n
-    idx = np.empty((rows, k), np.int64)
-    sq = np.empty((rows, k))
-    cov = np.zeros((n - rows, 6))
-    count = np.zeros(n - rows, np.int32)
-    r2 = max_distance * max_distance
-    if n == 0:
-        return idx, sq, cov, count
-    lo = np.empty(3)
-    hi = np.empty(3)
-    for i in range(3):
-        lo[i] = x[:, i].min()
-        hi[i] = x[:, i].max()
-    extent = max(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2])
-    size = max(min(_median_kth(x, k), max_distance), extent / (1 << 20), 1e-30)
-    span = np.empty(3, np.int64)
-    while True:  # a bounded table
-        for i in range(3):
-            span[i] = int((hi[i] - lo[i]) / size) + 1
-        if span[0] * span[1] * span[2] <= 1 << 22:
-            break
-        size *= 1.25
-    s1, s2 = span[1], span[2]
-    cell = np.empty((n, 3), np.int64)
-    key = np.empty(n, np.int64)
-    for p in range(n):
-        for i in range(3):
-            cell[p, i] = min(int((x[p, i] - lo[i]) / size), span[i] - 1)
-        key[p] = (cell[p, 0] * s1 + cell[p, 1]) * s2 + cell[p, 2]
-    order, start = _counting_sort(key, span[0] * s1 * s2)
-    xs = np.empty((3, n))  # coordinates in cell order; position t is point order[t]
-    for t in range(n):
-        for i in range(3):
-            xs[i, t] = x[order[t], i]
-    cand = np.empty((3, n))
-    cand_t = np.empty(n, np.int64)
-    dist = np.empty(n)
-    kept_d = np.empty(n + 1)
-    kept_t = np.empty(n + 1, np.int64)
-    face_lo = np.empty(3)
-    face_hi = np.empty(3)
-    rel = np.empty((k, 3))
-    first = 0
-    while first < n:
-        c = key[order[first]]
-        last = start[c + 1]
-        c0, c1, c2 = cell[order[first], 0], cell[order[first], 1], cell[order[first], 2]
-        m = 0
-        for a0 in range(max(c0 - 1, 0), min(c0 + 2, span[0])):
-            for a1 in range(max(c1 - 1, 0), min(c1 + 2, s1)):
-                row = (a0 * s1 + a1) * s2
-                for t in range(start[row + max(c2 - 1, 0)], start[row + min(c2 + 2, s2)]):
-                    cand[0, m], cand[1, m], cand[2, m] = xs[0, t], xs[1, t], xs[2, t]
-                    cand_t[m] = t
-                    m += 1
-        # The block's faces that have cells beyond them (a point nearer to p than the
-        # nearest such face is in the block).
-        for i, ci in enumerate((c0, c1, c2)):
-            face_lo[i] = lo[i] + (ci - 1) * size if ci > 0 else -np.inf
-            face_hi[i] = lo[i] + (ci + 2) * size if ci + 2 < span[i] else np.inf
-        guess = np.inf
-        for j in range(first, last):
-            px, py, pz = xs[0, j], xs[1, j], xs[2, j]
-            reach = min(px - face_lo[0], py - face_lo[1], pz - face_lo[2])
-            reach = min(reach, face_hi[0] - px, face_hi[1] - py, face_hi[2] - pz)
-            reach_sq = reach * reach
-            for t in range(m):  # vectorised: one array per axis
-                dist[t] = (px - cand[0, t]) ** 2 + (py - cand[1, t]) ** 2 + (pz - cand[2, t]) ** 2
-            tau = min(reach_sq, guess)
-            kept = _compact(dist, cand_t, m, tau, r2, kept_d, kept_t)
-            if kept < k and tau < reach_sq:
-                kept = _compact(dist, cand_t, m, reach_sq, r2, kept_d, kept_t)
-            if kept < k and reach_sq < r2:  # points within the radius may lie beyond
-                kept_d[:k] = r2
-                kept_t[:k] = n
-                _ring_knn(xs, j, cell[order[j]], lo, size, span, start, kept_t[:k], kept_d[:k])
-                kept = 0
-                while kept < k and kept_t[kept] < n:
-                    kept += 1
-            else:
-                kept = _insertion_select(kept_d, kept_t, kept, k)
-                if kept == k:
-                    guess = 1.44 * kept_d[k - 1]
-            if moments:
-                _moments(xs, j, kept_t, kept, rel, cov[order[j]])
-                count[order[j]] = kept
-            else:
-                p = order[j]
-                for s in range(kept):
-                    idx[p, s] = order[kept_t[s]]
-                    sq[p, s] = kept_d[s]
-                idx[p, kept:] = n
-                sq[p, kept:] = np.inf
-        first = last
-    return idx, sq, cov, count
-
-
-@numba.njit
-def _median_kth(x, k):
-    """Median ``k``-th neighbour distance of up to 16 sample points of ``x``. Each sample's
-    ``k``-th smallest squared distance is selected among the distances at most the ``k``-th
-    smallest of every 8th (an upper bound), not among all ``n``."""
-    n = x.shape[0]
-    samples = min(n, 16)
-    kth = np.empty(samples)
-    d = np.empty(n)
-    kk = min(k, n)
-    stride = 8 if n >= 8 * kk else 1
-    for s in range(samples):
-        a = (s * (n - 1)) // max(samples - 1, 1)
-        for b in range(n):
-            d[b] = (x[a, 0] - x[b, 0]) ** 2 + (x[a, 1] - x[b, 1]) ** 2 + (x[a, 2] - x[b, 2]) ** 2
-        # (a contiguous copy: both selections use one compiled np.partition)
-        bound = np.partition(d[::stride].copy(), kk - 1)[kk - 1] if stride > 1 else np.inf
-        m = 0
-        for b in range(n):
-            d[m] = d[b]
-            m += d[b] <= bound
-        kth[s] = np.sqrt(np.partition(d[:m], kk - 1)[kk - 1])
-    return np.median(kth)
-
-
-@numba.njit(inline="always")
-def _compact(dist, ids, m, tau, r2, kept_d, kept_id):
-    """Copies the entries of ``dist[:m]`` (and ``ids``) that are ``<= tau`` and ``< r2`` to
-    the front of ``kept_d`` / ``kept_id`` without a branch per entry; returns how many."""
-    count = 0
-    for t in range(m):
-        kept_d[count] = dist[t]
-        kept_id[count] = ids[t]
-        count += (dist[t] <= tau) & (dist[t] < r2)
-    return count
-
-
-@numba.njit(inline="always")
-def _insertion_select(values, ids, count, k):
-    """Moves the ``k`` smallest of ``values[:count]`` (and their ``ids``) to the front in
-    ascending order, earlier entries first among equals; returns ``min(count, k)``."""
-    filled = 0
-    for a in range(count):
-        v, i = values[a], ids[a]
-        if filled < k:
-            b = filled
-            filled += 1
-        elif v < values[k - 1]:
-            b = k - 1
-        else:
-            continue
-        while b > 0 and values[b - 1] > v:
-            values[b] = values[b - 1]
-            ids[b] = ids[b - 1]
-            b -= 1
-        values[b] = v
-        ids[b] = i
-    return filled
-
-
-@numba.njit(inline="always")
-def _moments(xs, j, kept_t, kept, rel, cov):
-    """Covariance ``cov (6,)`` of the points at cell-order positions ``kept_t[:kept]`` around
-    position ``j`` (see :func:`knn_moments`); ``rel (k, 3)`` is scratch."""
-    if kept == 0:
-        return
-    m0 = m1 = m2 = 0.0
-    for s in range(kept):
-        rel[s, 0] = xs[0, kept_t[s]] - xs[0, j]
-        rel[s, 1] = xs[1, kept_t[s]] - xs[1, j]
-        rel[s, 2] = xs[2, kept_t[s]] - xs[2, j]
-        m0 += rel[s, 0]
-        m1 += rel[s, 1]
-        m2 += rel[s, 2]
-    m0, m1, m2 = m0 / kept, m1 / kept, m2 / kept
-    for s in range(kept):
-        d0, d1, d2 = rel[s, 0] - m0, rel[s, 1] - m1, rel[s, 2] - m2
-        cov[0] += d0 * d0
-        cov[1] += d0 * d1
-        cov[2] += d0 * d2
-        cov[3] += d1 * d1
-        cov[4] += d1 * d2
-        cov[5] += d2 * d2
-    for i in range(6):
-        cov[i] /= kept
-
-
-@numba.njit
-def _ring_knn(xs, j, cell, lo, size, span, start, idx, best):
-    """The exact ``k`` nearest of cell-order position ``j`` by rings of cells at growing
-    Chebyshev distance, into its sorted short list ``idx`` / ``best`` (length ``k``, cell
-    order positions), until the cells scanned hold every point within its current ``k``-th
-    distance."""
-    k = best.size
-    cx, cy, cz = cell[0], cell[1], cell[2]
-    for ring in range(max(span[0], span[1], span[2])):
-        # Cells at Chebyshev distance `ring`: whole z-runs on the ring's x or y faces,
-        # the two z caps elsewhere.
-        for ax in range(max(cx - ring, 0), min(cx + ring + 1, span[0])):
-            for ay in range(max(cy - ring, 0), min(cy + ring + 1, span[1])):
-                row = (ax * span[1] + ay) * span[2]
-                if abs(ax - cx) == ring or abs(ay - cy) == ring:
-                    first = start[row + max(cz - ring, 0)]
-                    last = start[row + min(cz + ring + 1, span[2])]
-                    _scan(xs, j, first, last, idx, best)
-                else:
-                    for az in (cz - ring, cz + ring):
-                        if 0 <= az < span[2]:
-                            _scan(xs, j, start[row + az], start[row + az + 1], idx, best)
-        # Every point nearer to p than the scanned block's nearest open face is scanned.
-        reach_sq = np.inf
-        for i in range(3):
-            low, high = cell[i] - ring, cell[i] + ring + 1
-            if low > 0:
-                reach_sq = min(reach_sq, (xs[i, j] - lo[i] - low * size) ** 2)
-            if high < span[i]:
-                reach_sq = min(reach_sq, (lo[i] + high * size - xs[i, j]) ** 2)
-        if best[k - 1] <= reach_sq:
-            break
-
-
-@numba.njit(inline="always")
-def _scan(xs, j, first, last, idx, best):
-    """Inserts cell-order positions ``first:last`` into position ``j``'s sorted short list."""
-    k = best.size
-    px, py, pz = xs[0, j], xs[1, j], xs[2, j]
-    for q in range(first, last):
-        d = (px - xs[0, q]) ** 2 + (py - xs[1, q]) ** 2 + (pz - xs[2, q]) ** 2
-        if d >= best[k - 1]:
-            continue
-        slot = k - 1
-        while slot > 0 and best[slot - 1] > d:
-            best[slot] = best[slot - 1]
-            idx[slot] = idx[slot - 1]
-            slot -= 1
-        best[slot] = d
-        idx[slot] = q
 
 
 @numba.njit(**_CACHE)
@@ -438,7 +162,7 @@ def top_level_nodes(x, cell, dims, h, margin, r2, wd, neg, level, k):
     """
     d1, d2 = dims[1], dims[2]
     lin = (cell[:, 0] * d1 + cell[:, 1]) * d2 + cell[:, 2]
-    order, start = _counting_sort(lin, dims[0] * d1 * d2)
+    order, start = counting_sort(lin, dims[0] * d1 * d2)
     occupied = np.unique(lin)
     around = np.empty(27 * occupied.size, np.int64)
     m = 0

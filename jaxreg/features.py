@@ -28,7 +28,7 @@ Neighbourhoods are Open3D's hybrid search: the ``max_neighbors`` nearest points 
 itself included) within ``radius``. A point with more than that many points in its
 radius keeps the nearest ones and is flagged ``overflow`` (informational: Open3D does the
 same silently). On a concrete cloud they come from exact compiled host loops
-(:func:`jaxreg._octree.self_knn`); under ``jit`` from blocked brute force
+(:func:`jaxreg._knn.self_knn`); under ``jit`` from blocked brute force
 (:func:`jaxreg.neighbors.radius_search`).
 
 **Correspondences** (:func:`match_features`): each source descriptor's nearest target

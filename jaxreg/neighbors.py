@@ -51,7 +51,7 @@ to ~2x between runs):
   (``icp(..., neighbors=grid)``, :func:`jaxreg.icp.multistart_icp`).
 * kNN for normals (one pass, ``k`` ~ 20): :func:`jaxreg.normals.estimate_normals` finds the
   exact ``k`` nearest of a concrete cloud with compiled host loops
-  (:func:`jaxreg._octree.self_knn`, about twice as fast as scipy's cKDTree build + query on
+  (:func:`jaxreg._knn.self_knn`, about twice as fast as scipy's cKDTree build + query on
   the full milk.pcd), and falls back to brute
   force when the cloud is traced. A ``k``-NN grid (``build_grid(k=20)`` then
   :func:`query_knn`) serves jitted code that queries one target repeatedly.

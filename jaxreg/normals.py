@@ -28,7 +28,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._eig3 import eigh3
-from ._octree import knn_moments, self_knn
+from ._knn import knn_moments, self_knn
 from ._program_cache import persistent_jit
 from ._result import select_status
 from .neighbors import knn, valid_rows
@@ -161,7 +161,7 @@ def _host_knn(
     points: np.ndarray, ok: np.ndarray, k: int, max_distance: float = np.inf
 ) -> tuple[np.ndarray, np.ndarray]:
     """Exact ``k`` nearest valid points (closer than ``max_distance``) of every valid point of
-    a concrete cloud, by compiled host loops (:func:`jaxreg._octree.self_knn`). Returns
+    a concrete cloud, by compiled host loops (:func:`jaxreg._knn.self_knn`). Returns
     ``(indices (N, k), valid (N, k))`` with the sentinel ``N``."""
     n = len(points)
     rows = np.flatnonzero(ok)
