@@ -19,6 +19,7 @@ from __future__ import annotations
 import abc
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
@@ -152,13 +153,34 @@ def trim_mask(
     Returns:
         ``(..., N)`` boolean mask of the kept entries. Ties at the cut are broken by index,
         so exactly ``ceil(fraction * n_valid)`` entries are kept.
+
+    The cut is found without sorting: a bisection over the residuals' bit patterns (32
+    counting passes in float32, 64 in float64), several times faster than a sort on a CPU.
     """
     s = jnp.asarray(sq_residuals)
     valid = jnp.ones(s.shape, bool) if valid is None else jnp.asarray(valid, bool)
     valid = valid & ~jnp.isnan(s)
-    keyed = jnp.where(valid, s, jnp.inf)
-    order = jnp.argsort(keyed, axis=-1, stable=True)
-    rank = jnp.argsort(order, axis=-1, stable=True)
+    key = _ordered_bits(jnp.where(valid, s, jnp.inf))
     n_valid = jnp.sum(valid, axis=-1, keepdims=True)
-    n_keep = jnp.ceil(jnp.asarray(fraction) * n_valid - 1e-6).astype(rank.dtype)
-    return valid & (rank < n_keep)
+    n_keep = jnp.ceil(jnp.asarray(fraction) * n_valid - 1e-6).astype(jnp.int32)
+
+    def halve(_, bounds):  # the smallest key with at least n_keep entries at or below it
+        lo, hi = bounds
+        mid = lo + (hi - lo) // 2
+        enough = jnp.sum(key <= mid, axis=-1, keepdims=True) >= n_keep
+        return jnp.where(enough, lo, mid + 1), jnp.where(enough, mid, hi)
+
+    zero = jnp.zeros(n_keep.shape, key.dtype)
+    _, cut = jax.lax.fori_loop(0, 8 * s.dtype.itemsize, halve, (zero, ~zero))
+    below, tie = key < cut, key == cut
+    room = n_keep - jnp.sum(below, axis=-1, keepdims=True)
+    return valid & (below | (tie & (jnp.cumsum(tie, axis=-1) <= room)))
+
+
+def _ordered_bits(x: Float[Array, "..."]) -> Array:
+    """Unsigned integers of the floats ``x`` that order as ``x`` does (negative floats with
+    their bits flipped, non-negative ones with the sign bit set; -0 as +0)."""
+    x = jnp.where(x == 0, jnp.zeros_like(x), x)
+    bits = jax.lax.bitcast_convert_type(x, jnp.uint32 if x.dtype.itemsize == 4 else jnp.uint64)
+    sign = jnp.asarray(1, bits.dtype) << (8 * x.dtype.itemsize - 1)
+    return jnp.where(bits & sign != 0, ~bits, bits | sign)
