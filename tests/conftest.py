@@ -1,6 +1,10 @@
-"""Shared fixtures: the real-data folder, float64 switching, and JAX test settings."""
+"""Shared fixtures: the real-data folder, float64 switching, and JAX test settings. Under
+pytest-xdist: the numba host loops compiled once before the workers start, and files that
+compile the same programs run on one worker."""
 
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import jax
@@ -10,12 +14,79 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 REPO = Path(__file__).resolve().parents[1]
 
+# Two halves of jaxreg's numba kernels (cache=True), compiled side by side in two processes:
+# the kNN pass behind estimate_normals, and the grid build (top level, split, float32 and
+# float64 tables; the k=1 witnesses last, by when the first half has usually cached the kNN
+# pass it calls). Only public entry points, so the split follows any reorganisation.
+_NUMBA_WARMUP = (
+    """
+import numpy as np
+from jaxreg.normals import estimate_normals
+estimate_normals(np.random.default_rng(0).uniform(-0.02, 0.02, (500, 3)), k=8)
+""",
+    """
+import jax
+import numpy as np
+from jaxreg.neighbors import build_grid
+points = np.random.default_rng(0).uniform(-0.02, 0.02, (4000, 3))
+build_grid(points.astype(np.float32), 0.01, k=None, max_depth=2)
+with jax.enable_x64(True):
+    build_grid(points, 0.01, k=None)
+build_grid(points.astype(np.float32), 0.01)
+""",
+)
+
+
+def pytest_configure(config):
+    """With ``-n N`` (the controller, before it starts the workers): fills numba's cache, so
+    the workers load the kernels instead of each compiling all of them at once (on an empty
+    cache, ~35 s of CPU per process). A failed warm-up is a warning; the tests still run."""
+    if hasattr(config, "workerinput") or not config.getoption("numprocesses", None):
+        return
+    runs = [
+        subprocess.Popen(
+            [sys.executable, "-c", code],
+            cwd=REPO,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for code in _NUMBA_WARMUP
+    ]
+    for run in runs:
+        _, err = run.communicate()
+        if run.returncode:
+            config.issue_config_time_warning(
+                pytest.PytestWarning(f"numba warm-up failed, workers compile: {err[-800:]}"), 2
+            )
+
 
 def data_root() -> Path | None:
     """The shared real-data folder: `$JAXREG_DATA`, else `../shared/data` beside the repo."""
     env = os.environ.get("JAXREG_DATA")
     root = Path(env) if env else REPO.parent / "shared" / "data"
     return root if root.is_dir() else None
+
+
+# Files whose tests compile the same JAX programs, mapped to the file they run beside (with
+# ``--dist loadfile`` each file is a unit of work): the demo command estimates the pose on
+# test_pipeline's scene (seed 4 box, 20,000 model samples), ~40 s of CPU compiled once.
+_SAME_WORKER = {"tests/test_cli.py": "tests/test_pipeline.py"}
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile``, with the files of ``_SAME_WORKER`` in one unit."""
+    if config.getoption("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class SharedProgramsScheduling(LoadFileScheduling):
+        def _split_scope(self, nodeid):
+            scope = super()._split_scope(nodeid)
+            return _SAME_WORKER.get(scope, scope)
+
+    return SharedProgramsScheduling(config, log)
 
 
 @pytest.fixture(scope="session")
