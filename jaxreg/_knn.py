@@ -217,13 +217,21 @@ def _insertion_select(values, ids, count, k):
             b = k - 1
         else:
             continue
-        while b > 0 and values[b - 1] > v:
-            values[b] = values[b - 1]
-            ids[b] = ids[b - 1]
-            b -= 1
-        values[b] = v
-        ids[b] = i
+        _insert(values, ids, b, v, i)
     return filled
+
+
+@numba.njit(inline="always")
+def _insert(values, ids, slot, v, i):
+    """Writes ``v`` (and its id ``i``) into the ascending ``values[:slot + 1]``, moving the
+    larger entries up by one from ``slot`` (whose entry is dropped); ``v`` goes after its
+    equals."""
+    while slot > 0 and values[slot - 1] > v:
+        values[slot] = values[slot - 1]
+        ids[slot] = ids[slot - 1]
+        slot -= 1
+    values[slot] = v
+    ids[slot] = i
 
 
 @numba.njit(inline="always")
@@ -294,12 +302,5 @@ def _scan(xs, j, first, last, idx, best):
     px, py, pz = xs[0, j], xs[1, j], xs[2, j]
     for q in range(first, last):
         d = (px - xs[0, q]) ** 2 + (py - xs[1, q]) ** 2 + (pz - xs[2, q]) ** 2
-        if d >= best[k - 1]:
-            continue
-        slot = k - 1
-        while slot > 0 and best[slot - 1] > d:
-            best[slot] = best[slot - 1]
-            idx[slot] = idx[slot - 1]
-            slot -= 1
-        best[slot] = d
-        idx[slot] = q
+        if d < best[k - 1]:
+            _insert(best, idx, k - 1, d, q)
