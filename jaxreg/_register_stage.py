@@ -39,7 +39,8 @@ __all__ = ["visibility"]
 class _Model:
     points: np.ndarray  # (M, 3) object frame, voxelled
     normals: np.ndarray  # (M, 3)
-    grid: NeighborGrid
+    grid: NeighborGrid  # exact to the coarse registration's largest distance
+    fine_grid: NeighborGrid  # exact to the refinement's: shorter candidate lists, faster
     radius: float  # largest distance from the centroid
     diameter: float  # largest distance between two points
     centroid: np.ndarray
@@ -79,10 +80,14 @@ def _diameter(points: np.ndarray) -> float:
     return float(np.sqrt(np.einsum("ijk,ijk->ij", gaps, gaps).max())) if len(points) else 0.0
 
 
-def _prepare_model(model_points, model_normals, voxel_size: float, grid_distance: float):
+def _prepare_model(
+    model_points, model_normals, voxel_size: float, grid_distance: float, fine_distance: float
+):
+    """The model voxelled, with normals and neighbour grids (cached per model array and
+    settings): ``grid`` exact to ``grid_distance``, ``fine_grid`` to ``fine_distance``."""
     arrays = [model_points] + ([] if model_normals is None else [model_normals])
     digest = hashlib.sha1(b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)).hexdigest()
-    key = (digest, model_points.shape, voxel_size, grid_distance)
+    key = (digest, model_points.shape, voxel_size, grid_distance, fine_distance)
     if key in _MODELS:
         return _MODELS[key]
     if model_normals is None:
@@ -98,7 +103,13 @@ def _prepare_model(model_points, model_normals, voxel_size: float, grid_distance
     centroid = points.mean(0)
     if model_normals is None:
         normals = np.asarray(estimate_normals(points, k=20, viewpoint=centroid))
-    grid = build_grid(points, grid_distance, mask=np.linalg.norm(normals, axis=1) > 0.5)
+    usable = np.linalg.norm(normals, axis=1) > 0.5
+    grid = build_grid(points, grid_distance, mask=usable)
+    # leaves of at most 16 candidates: queries ~2x faster than the default 48, built once;
+    # the default where the model's shape needs longer lists (exact either way)
+    fine_grid = build_grid(points, fine_distance, capacity=16, mask=usable)
+    if bool(fine_grid.overflow):
+        fine_grid = build_grid(points, fine_distance, mask=usable)
     _, vectors = np.linalg.eigh(np.cov((points - centroid).T))
     axes = vectors[:, ::-1]
     given = (model_points - centroid) @ axes  # voxel centroids lie up to half a voxel inside
@@ -106,6 +117,7 @@ def _prepare_model(model_points, model_normals, voxel_size: float, grid_distance
         points=points,
         normals=normals.astype(np.float32),
         grid=grid,
+        fine_grid=fine_grid,
         radius=float(np.linalg.norm(points - centroid, axis=1).max()),
         diameter=_diameter(points),
         centroid=centroid,
@@ -226,15 +238,16 @@ class _Coarse(eqx.Module):
     visibility: Array
 
 
-def _coarse_problem(model: _Model, size: int, distances: np.ndarray, first: int):
+def _coarse_problem(model: _Model, size: int, distances: np.ndarray, splits: tuple[int, ...]):
     """ICP's problem for ``size``-point sources against the model (the source rows are
-    replaced per candidate) and the options of its two rounds: the first ``first``
-    correspondence ``distances`` for every start, the rest for the starts kept. Built once
-    per model and schedule."""
-    key = (size, distances.tobytes(), first)
+    replaced per candidate) and the options of its rounds: the correspondence ``distances``
+    cut at ``splits`` (e.g. ``(2, 6)``: the first two for every start, the next four for the
+    starts kept after them, the rest for the starts kept after those). Built once per model
+    and schedule."""
+    key = (size, distances.tobytes(), splits)
     if key not in model.coarse:
         rounds = []
-        for part in (distances[:first], distances[first:]):
+        for part in np.split(distances, splits):
             settings = Settings(
                 "point_to_plane", model.normals, part, len(part), 1e-5, None, None, None,
                 model.grid,
@@ -326,20 +339,24 @@ def _spread_best(poses: Array, score: Array, count: int, min_distance: float) ->
 
 @persistent_jit
 def _score_candidates(
-    frame, plane, problem, first_opts, rest_opts, clouds, used, model_points, screen_points,
-    model_axes, tolerance, num_starts, yaws, keep,
+    frame, plane, problem, rounds, clouds, used, model_points, screen_points, model_axes,
+    tolerance, num_starts, yaws, survivors, keep,
 ):  # fmt: skip
     """Multi-start ICP of every candidate cloud ``(C, N, 3)`` (NaN padding) into the model,
     its ranked starts, and the evidence for each; slots where ``used`` ``(C,)`` is False are
     skipped (zeros), so one compiled shape serves any number of candidates up to C. Starts:
     ``num_starts`` rotations of a grid over SO(3) and the 4 PCA frames, slid along the line
     of sight to the cloud's front, and ``6 * yaws`` resting on the table
-    (:func:`_resting_starts`). Every start runs ``first_opts``' iterations and is scored
-    as below with the sparse ``screen_points`` ``(M1, 3)`` (the model voxelled at 3 voxels;
-    :func:`visibility` on 16-pixel cells: the z-buffer's scatter dominates the scoring on a
-    CPU); the ``keep`` best distinct ones run ``rest_opts``' and are scored with
-    ``model_points`` (4-pixel cells; the sparse judgement is too coarse to rank near-equal
-    candidates)."""
+    (:func:`_resting_starts`). ICP runs in three ``rounds`` (options of
+    :func:`_coarse_problem`), each on fewer starts: every start takes the first; the
+    ``survivors`` whose model then explains most of the cloud (1 cm; not thinned to
+    distinct poses: a start that will win may still sit near a better-fitting one) take the
+    second and are scored as below with the sparse ``screen_points``
+    ``(M1, 3)`` (the model voxelled at 3 voxels; :func:`visibility` on 16-pixel cells: the
+    z-buffer's scatter dominates the scoring on a CPU); the ``keep`` best distinct ones
+    take the third and are scored with ``model_points`` (4-pixel cells; the sparse
+    judgement is too coarse to rank near-equal candidates)."""
+    screen_opts, first_opts, rest_opts = rounds
 
     def one(cloud):
         ok = jnp.all(jnp.isfinite(cloud), -1)
@@ -366,12 +383,14 @@ def _score_candidates(
             seen = visibility(frame, pose.inverse(), points, tolerance, plane, cell)
             return explains(pose, 0.006), seen
 
-        first = jax.vmap(run, in_axes=(None, None, 0))(p, first_opts, inits)
+        icp = jax.vmap(run, in_axes=(None, None, 0))
+        screened = icp(p, screen_opts, inits).pose
+        near = jax.vmap(explains, in_axes=(0, None))(screened, 0.01)
+        alive = jnp.argsort(-near)[:survivors]
+        first = icp(p, first_opts, SE3(screened.wxyz_xyz[alive]))
         explained, seen = jax.vmap(evidence, in_axes=(0, None, None))(first.pose, screen_points, 16)
         kept = _spread_best(first.pose.wxyz_xyz, explained * _confirmed_share(seen), keep, 0.01)
-        results = jax.vmap(run, in_axes=(None, None, 0))(
-            p, rest_opts, SE3(first.pose.wxyz_xyz[kept])
-        )
+        results = icp(p, rest_opts, SE3(first.pose.wxyz_xyz[kept]))
         explained, seen = jax.vmap(evidence, in_axes=(0, None, None))(results.pose, model_points, 4)
         score = explained * _confirmed_share(seen)
         order = jnp.argsort(-score)

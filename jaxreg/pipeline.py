@@ -34,8 +34,9 @@ diagnostics. The stages:
    surface), and ``6 * resting_yaws`` starts of the model resting on the table on each of
    its principal half-axes at ``resting_yaws`` headings, slid horizontally to the segment's
    front; multi-start point-to-plane ICP on the grid points with a shrinking
-   correspondence distance in two rounds (every start takes the first few iterations; the
-   few distinct starts that then explain most of the segment take the rest), those starts
+   correspondence distance in three rounds, each on fewer starts (every start takes the
+   first two iterations; the starts that then explain most of the segment take
+   four more and are judged sparsely; the best few of those take the rest), those starts
    ranked by the score above; the best distinct ones refined
    on the lifted points, trimmed to the overlap the coarse fit measured, and chosen by
    inlier fraction times confirmed share (an upside-down tray fits the segment as well as
@@ -226,6 +227,8 @@ def estimate_pose(
     num_starts: int = 24,
     resting_yaws: int = 8,
     coarse_points: int = 128,
+    coarse_screen: int = 2,
+    coarse_survivors: int = 24,
     coarse_first: int = 6,
     coarse_keep: int = 8,
     max_points: int = 1024,
@@ -267,10 +270,14 @@ def estimate_pose(
         resting_yaws: headings of the starts resting on the table on each of the model's six
             principal half-axes (``6 * resting_yaws`` more starts; 0: none).
         coarse_points: grid points of a candidate given to the coarse registration (static).
-        coarse_first: coarse ICP iterations (of 20) that every start takes.
-        coarse_keep: distinct starts per candidate (the best after ``coarse_first``
+        coarse_screen: coarse ICP iterations (of 20) that every start takes.
+        coarse_survivors: distinct starts per candidate (those whose model explains most of
+            the candidate after ``coarse_screen`` iterations) that go on to ``coarse_first``
+            iterations and are judged against the depth image (sparsely).
+        coarse_first: coarse ICP iterations of the survivors.
+        coarse_keep: distinct survivors per candidate (the best after ``coarse_first``
             iterations) that take the remaining coarse iterations and are judged against the
-            depth image.
+            depth image at full density.
         max_points: cloud size given to ICP (static; larger segments are subsampled).
         min_segment_points: fewest lifted points worth registering.
         min_valid_fraction: fewest pixels with depth in the footprint, as a fraction.
@@ -314,7 +321,10 @@ def estimate_pose(
     progress = progress or (lambda stage: None)
     coarse_distances = np.geomspace(0.04, 0.01, 20).astype(np.float32)
     fine_distances = np.geomspace(0.015, 1.5 * voxel_size, 30).astype(np.float32)
-    model = _prepare_model(model_points, model_normals, voxel_size, float(coarse_distances[0]))
+    model = _prepare_model(
+        model_points, model_normals, voxel_size, float(coarse_distances[0]),
+        float(fine_distances[0]),
+    )  # fmt: skip
     shape = frame.depth.shape
     stages: dict[str, dict[str, Any]] = {}
     rng = np.random.default_rng(0)
@@ -394,27 +404,15 @@ def estimate_pose(
     for i, (_, cloud) in enumerate(candidates):
         clouds[i] = _padded(cloud, coarse_points, rng)
     used = np.arange(max_candidates) < len(candidates)
-    problem, first_opts, rest_opts = _coarse_problem(
-        model, coarse_points, coarse_distances, coarse_first
+    problem, *rounds = _coarse_problem(
+        model, coarse_points, coarse_distances, (coarse_screen, coarse_first)
     )
     coarse = jax.block_until_ready(
         _score_candidates(
-            frame,
-            seg.plane,
-            problem,
-            first_opts,
-            rest_opts,
-            clouds,
-            used,
-            model.points,
-            model.screen,
-            model.axes,
-            tolerance,
-            num_starts,
-            resting_yaws,
-            coarse_keep,
-        )  # fmt: skip
-    )
+            frame, seg.plane, problem, tuple(rounds), clouds, used, model.points, model.screen,
+            model.axes, tolerance, num_starts, resting_yaws, coarse_survivors, coarse_keep,
+        )
+    )  # fmt: skip
     scored = []
     for i, (group, cloud) in enumerate(candidates):
         counts = np.asarray(coarse.visibility[i, 0])
@@ -427,7 +425,9 @@ def estimate_pose(
     _, group, chosen, coarse_fraction, _, _ = scored[0]
     coarse_poses = np.asarray(coarse.poses[chosen])  # object_T_base per start, best first
     # pieces of the object the clustering split off: clusters the coarse pose explains
-    explained = np.asarray(_near_model(model.grid, coarse_poses[0], grid_points, np.float32(0.01)))
+    explained = np.asarray(
+        _near_model(model.fine_grid, coarse_poses[0], grid_points, np.float32(0.01))
+    )
     joined = sorted({*group, *(k for k in live if explained[labels == k].mean() >= 0.6)})
     diag.update(
         candidates=[
@@ -515,7 +515,7 @@ def estimate_pose(
     inits = SE3(jax.device_put(coarse_poses[picks]))
     trim = np.float32(np.clip(coarse_fraction, 0.6, 0.95))  # an argument: one program for all
     results = _register_starts(
-        source, model.points, model.normals, model.grid, inits, fine_distances, trim, 30
+        source, model.points, model.normals, model.fine_grid, inits, fine_distances, trim, 30
     )
     fractions = np.asarray(results.inlier_fraction)
     rmses = np.nan_to_num(np.asarray(results.inlier_rmse), nan=np.inf)
@@ -528,7 +528,7 @@ def estimate_pose(
     reach = overhang(model, np.asarray(results.pose.wxyz_xyz[ranked[0]]), points)
     equal = (scores >= scores[ranked[0]] - 0.02) & (rmses <= rmse * 1.1 + 1e-4)
     wxyz_xyz, spread, covariance = _finish(
-        source, model.points, model.normals, model.grid, results.pose.wxyz_xyz,
+        source, model.points, model.normals, model.fine_grid, results.pose.wxyz_xyz,
         np.int32(ranked[0]), equal, symmetry, fine_distances[-1], trim, noise,
     )  # fmt: skip
     pose = SE3(wxyz_xyz)

@@ -158,7 +158,7 @@ def test_a_larger_box_of_a_similar_shape_is_not_taken_for_the_target(scene):
     assert max(est.stages["register"]["overhang_mm"]) < 0
     # the measure itself: the model's own surface spans the model; a 10% larger copy reaches
     # 10% beyond it (a box's end faces hold more than 2% of its points)
-    prepared = _prepare_model(model, None, 0.004, 0.04)
+    prepared = _prepare_model(model, None, 0.004, 0.04, 0.015)
     identity = np.array([1.0, 0, 0, 0, 0, 0, 0])
     assert np.all(overhang(prepared, identity, model) <= 0)
     larger = overhang(prepared, identity, 1.1 * model)
