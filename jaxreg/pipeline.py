@@ -73,7 +73,7 @@ import numpy as np
 from jaxlie import SE3
 from jaxtyping import Array, Float
 
-from jaxreg._icp_setup import _bucket
+from jaxreg._lift import lift_region
 from jaxreg._program_cache import persistent_jit
 from jaxreg._register_stage import (
     _coarse_problem,
@@ -93,13 +93,13 @@ from jaxreg.camera import RGBDFrame
 from jaxreg.icp import icp_covariance
 from jaxreg.lie import adjoint_transport, geodesic_angle
 from jaxreg.metrics import Symmetry, canonicalise
-from jaxreg.neighbors import voxel_downsample
-from jaxreg.segment import SegmentStatus, choose_cluster, segment_frame
+from jaxreg.segment import SegmentStatus, choose_cluster, cluster_mask, segment_frame
 from jaxreg.uncertainty import DepthNoise
 
 __all__ = ["PoseEstimate", "estimate_pose", "visibility"]
 
 STAGES = ("segment", "lift", "register")
+_TOLERANCE = np.float32(0.01)  # depth agreement (metres) of the image's judgement of a pose
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,55 +141,55 @@ class PoseEstimate:
 
 
 # --------------------------------------------------------------------------------------------
-# Lift.
+# The stages. Each records its diagnostics in ``stages[name]`` and raises ``_Failed`` when its
+# evidence says there is no pose to claim.
 
 
-def _flying(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray, tolerance: np.ndarray, need):
-    """Bool per pixel: fewer than ``need`` of its 8 neighbours have depth within
-    ``tolerance`` of its own."""
-    h, w = depth.shape
-    z = depth[rows, cols]
-    consistent = np.zeros(len(rows), np.int32)
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            if dy == 0 and dx == 0:
-                continue
-            r, c = np.clip(rows + dy, 0, h - 1), np.clip(cols + dx, 0, w - 1)
-            inside = (rows + dy >= 0) & (rows + dy < h) & (cols + dx >= 0) & (cols + dx < w)
-            consistent += inside & (np.abs(depth[r, c] - z) <= tolerance)
-    return consistent < need
+@dataclasses.dataclass(frozen=True)
+class _Settings:
+    """:func:`estimate_pose`'s keyword settings, as its stages read them."""
+
+    pixel: tuple[float, float] | None
+    box: tuple[float, float, float, float] | None
+    voxel_size: float
+    stride: int
+    plane_distance: float
+    min_height: float
+    lift_min_height: float
+    cluster_distance: float
+    cluster_margin: float
+    max_candidates: int
+    num_starts: int
+    resting_yaws: int
+    coarse_points: int
+    coarse_screen: int
+    coarse_survivors: int
+    coarse_first: int
+    coarse_keep: int
+    max_points: int
+    min_segment_points: int
+    min_valid_fraction: float
+    min_consistent_neighbors: int
+    min_inlier_fraction: float
+    max_inlier_rmse: float
+    max_contradicted: float
+    max_overhang: float
+    coarse_distances: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.geomspace(0.04, 0.01, 20).astype(np.float32)
+    )
+
+    @property
+    def fine_distances(self) -> np.ndarray:
+        """The refinement's correspondence distances (metres, 15 mm down to 1.5 voxels)."""
+        return np.geomspace(0.015, 1.5 * self.voxel_size, 30).astype(np.float32)
 
 
-def _isolated(points: np.ndarray, voxel: float, need: int = 2) -> np.ndarray:
-    """Bool per point: fewer than ``need`` other points' voxels among the 26 around its own."""
-    keys = np.floor(points / voxel).astype(np.int64)
-    keys -= keys.min(0) - 1
-    dims = keys.max(0) + 2
-    code = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-    occupied = np.unique(code)
-    count = np.zeros(len(points), np.int32)
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            for dz in (-1, 0, 1):
-                if dx == dy == dz == 0:
-                    continue
-                other = ((keys[:, 0] + dx) * dims[1] + keys[:, 1] + dy) * dims[2] + keys[:, 2] + dz
-                idx = np.searchsorted(occupied, other)
-                count += (idx < len(occupied)) & (
-                    occupied[np.minimum(idx, len(occupied) - 1)] == other
-                )
-    return count < need
+class _Failed(Exception):
+    """A stage found no pose to claim: its name, the reason, and what it had segmented."""
 
-
-@persistent_jit
-def _lift_pixels(frame: RGBDFrame, rows, cols):
-    """Base-frame points ``(P, 3)`` of the given pixels (padded index arrays)."""
-    pixels = jnp.stack([cols, rows], -1).astype(frame.depth.dtype)
-    z = frame.depth[rows, cols]
-    camera = jnp.where(jnp.isfinite(z), z, 0.0)[:, None] * frame.intrinsics.rays(pixels)
-    pose = frame.base_T_camera
-    base = camera @ pose.rotation().as_matrix().T + pose.translation()
-    return jnp.where(jnp.isfinite(z)[:, None], base, jnp.nan)
+    def __init__(self, stage: str, reason: str, mask=None, points=None):
+        super().__init__(reason)
+        self.stage, self.reason, self.mask, self.points = stage, reason, mask, points
 
 
 def _padded(points: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarray:
@@ -319,36 +319,53 @@ def estimate_pose(
         raise ValueError("give at most one prompt: pixel=(u, v) or box=(u0, v0, u1, v1)")
     key = jax.random.PRNGKey(0) if key is None else key
     progress = progress or (lambda stage: None)
-    coarse_distances = np.geomspace(0.04, 0.01, 20).astype(np.float32)
-    fine_distances = np.geomspace(0.015, 1.5 * voxel_size, 30).astype(np.float32)
-    model = _prepare_model(
-        model_points, model_normals, voxel_size, float(coarse_distances[0]),
-        float(fine_distances[0]),
+    settings = _Settings(
+        pixel, box, voxel_size, stride, plane_distance, min_height, lift_min_height,
+        cluster_distance, cluster_margin, max_candidates, num_starts, resting_yaws,
+        coarse_points, coarse_screen, coarse_survivors, coarse_first, coarse_keep, max_points,
+        min_segment_points, min_valid_fraction, min_consistent_neighbors, min_inlier_fraction,
+        max_inlier_rmse, max_contradicted, max_overhang,
     )  # fmt: skip
-    shape = frame.depth.shape
+    model = _prepare_model(
+        model_points, model_normals, voxel_size, float(settings.coarse_distances[0]),
+        float(settings.fine_distances[0]),
+    )  # fmt: skip
+    noise = _noise(depth_noise, frame)
     stages: dict[str, dict[str, Any]] = {}
-    rng = np.random.default_rng(0)
-
-    def failed(stage: str, reason: str, mask=None, points=None) -> PoseEstimate:
+    rng = np.random.default_rng(0)  # the coarse clouds' and the source's subsamples
+    try:
+        progress("segment")
+        seg, joined, coarse_poses, coarse_fraction = _segment(
+            frame, model, settings, key, rng, stages
+        )
+        progress("lift")
+        mask, points = _lift(frame, seg, joined, noise, settings, stages)
+        progress("register")
+        return _register(
+            frame, seg, model, settings, coarse_poses, coarse_fraction, mask, points, noise,
+            symmetry, rng, stages,
+        )  # fmt: skip
+    except _Failed as failure:
         return PoseEstimate(
-            None, float("nan"), float("nan"), np.full((6, 6), np.nan), stage, reason, stages,
-            np.zeros(shape, bool) if mask is None else mask,
-            np.zeros((0, 3), np.float32) if points is None else points,
+            None, float("nan"), float("nan"), np.full((6, 6), np.nan), failure.stage,
+            failure.reason, stages,
+            np.zeros(frame.depth.shape, bool) if failure.mask is None else failure.mask,
+            np.zeros((0, 3), np.float32) if failure.points is None else failure.points,
         )  # fmt: skip
 
-    # ---- segment: plane, clusters, candidates scored by registration ----------------------
-    progress("segment")
+
+def _segment(frame, model, settings: _Settings, key, rng, stages):
+    """Plane, clusters, and the candidate clusters scored by registration: the segment, the
+    winning clusters (with the pieces split off them), the winner's coarse poses
+    (object_T_base ``(K, 7)``, best first) and the fraction of it they explain."""
+    s = settings
     start = time.perf_counter()
     seg = jax.block_until_ready(
         segment_frame(
-            frame,
-            key=key,
-            stride=stride,
-            plane_distance=plane_distance,
-            min_height=min_height,
-            cluster_distance=cluster_distance,
-        )  # fmt: skip
-    )
+            frame, key=key, stride=s.stride, plane_distance=s.plane_distance,
+            min_height=s.min_height, cluster_distance=s.cluster_distance,
+        )
+    )  # fmt: skip
     sizes = np.asarray(seg.clusters.sizes)
     radii = np.asarray(seg.radii)
     diag = stages["segment"] = {
@@ -357,23 +374,26 @@ def estimate_pose(
         "plane_inlier_fraction": round(float(seg.plane.inlier_fraction), 3),
         "valid_grid_points": int(seg.valid_points),
         "above_plane": int(seg.above_plane),
-        "cluster_sizes": [int(s) for s in sizes if s > 0],
+        "cluster_sizes": [int(size) for size in sizes if size > 0],
         "cluster_radii_mm": [
-            round(float(r) * 1e3, 1) for r, s in zip(radii, sizes, strict=True) if s > 0
+            round(float(r) * 1e3, 1) for r, size in zip(radii, sizes, strict=True) if size > 0
         ],
         "overflow": bool(seg.clusters.overflow),
     }
-    if seg.status != SegmentStatus.success:
+
+    def fail(reason: str):
         diag["ms"] = _ms(start)
-        return failed("segment", seg.status_message())
+        raise _Failed("segment", reason)
+
+    if seg.status != SegmentStatus.success:
+        fail(seg.status_message())
     grid_points = np.asarray(seg.points)
     labels = np.asarray(seg.clusters.labels)
     live = [k for k in range(len(sizes)) if sizes[k] > 0]
-    if pixel is not None or box is not None:
-        chosen = choose_cluster(seg, pixel=pixel, box=box)
+    if s.pixel is not None or s.box is not None:
+        chosen = choose_cluster(seg, pixel=s.pixel, box=s.box)
         if chosen is None:
-            diag["ms"] = _ms(start)
-            return failed("segment", f"the prompt {pixel or box} touches no cluster")
+            fail(f"the prompt {s.pixel or s.box} touches no cluster")
         seeds = [chosen]
     else:
         seeds = live
@@ -387,30 +407,28 @@ def estimate_pose(
     candidates = []
     for group in groups:  # a partial view's centroid is off the object's: compare diameters
         cloud = grid_points[np.isin(labels, group)]
-        if _diameter(cloud) <= model.diameter + cluster_margin:
+        if _diameter(cloud) <= model.diameter + s.cluster_margin:
             candidates.append((group, cloud))
     candidates.sort(key=lambda item: -len(item[1]))
-    candidates = candidates[:max_candidates]
+    candidates = candidates[: s.max_candidates]
     if not candidates:
-        diag["ms"] = _ms(start)
-        return failed(
-            "segment",
+        fail(
             f"no cluster of the model's size: cluster radii {diag['cluster_radii_mm']} mm, "
             f"none spans at most the model's {model.diameter * 1e3:.0f} mm "
-            f"(+{cluster_margin * 1e3:.0f} mm allowed)",
+            f"(+{s.cluster_margin * 1e3:.0f} mm allowed)"
         )
-    tolerance = np.float32(0.01)
-    clouds = np.full((max_candidates, coarse_points, 3), np.nan, np.float32)
+    clouds = np.full((s.max_candidates, s.coarse_points, 3), np.nan, np.float32)
     for i, (_, cloud) in enumerate(candidates):
-        clouds[i] = _padded(cloud, coarse_points, rng)
-    used = np.arange(max_candidates) < len(candidates)
+        clouds[i] = _padded(cloud, s.coarse_points, rng)
+    used = np.arange(s.max_candidates) < len(candidates)
     problem, *rounds = _coarse_problem(
-        model, coarse_points, coarse_distances, (coarse_screen, coarse_first)
+        model, s.coarse_points, s.coarse_distances, (s.coarse_screen, s.coarse_first)
     )
     coarse = jax.block_until_ready(
         _score_candidates(
             frame, seg.plane, problem, tuple(rounds), clouds, used, model.points, model.screen,
-            model.axes, tolerance, num_starts, resting_yaws, coarse_survivors, coarse_keep,
+            model.axes, _TOLERANCE, s.num_starts, s.resting_yaws, s.coarse_survivors,
+            s.coarse_keep,
         )
     )  # fmt: skip
     scored = []
@@ -421,7 +439,7 @@ def estimate_pose(
         score = explained * confirmed
         reach = float(overhang(model, np.asarray(coarse.poses[i, 0]), cloud).max())
         scored.append((score, group, i, explained, contradicted, reach))
-    scored.sort(key=lambda item: (item[5] > max_overhang, -item[0]))  # larger objects last
+    scored.sort(key=lambda item: (item[5] > s.max_overhang, -item[0]))  # larger objects last
     _, group, chosen, coarse_fraction, _, _ = scored[0]
     coarse_poses = np.asarray(coarse.poses[chosen])  # object_T_base per start, best first
     # pieces of the object the clustering split off: clusters the coarse pose explains
@@ -443,15 +461,15 @@ def estimate_pose(
         chosen_clusters=list(joined),
         ms=_ms(start),
     )
+    return seg, joined, coarse_poses, coarse_fraction
 
-    # ---- lift -------------------------------------------------------------------------------
-    progress("lift")
+
+def _lift(frame, seg, joined, noise: DepthNoise, settings: _Settings, stages):
+    """The winning clusters' footprint lifted and filtered (:mod:`jaxreg._lift`): the mask
+    of the lifted pixels ``(H, W)`` and the base-frame points ``(K, 3)``."""
+    s = settings
     start = time.perf_counter()
-    footprint = np.isin(np.asarray(seg.footprint), joined)
-    s = seg.stride
-    full = np.repeat(np.repeat(footprint, s, axis=0), s, axis=1)[: shape[0], : shape[1]]
-    region = np.zeros(shape, bool)
-    region[: full.shape[0], : full.shape[1]] = full
+    region = cluster_mask(seg, joined, frame.depth.shape)
     depth = np.asarray(frame.depth)
     rows, cols = np.nonzero(region)
     has_depth = np.isfinite(depth[rows, cols])
@@ -462,55 +480,45 @@ def estimate_pose(
         "footprint_pixels": int(region.sum()),
         "valid_depth_fraction": round(valid_fraction, 3),
     }
-    if valid_fraction < min_valid_fraction:
+    if valid_fraction < s.min_valid_fraction:
         diag["ms"] = _ms(start)
-        return failed(
+        raise _Failed(
             "lift",
             f"too little valid depth: {valid_fraction:.0%} of the segment's {int(region.sum())} "
-            f"pixels have depth (need {min_valid_fraction:.0%}); dark, shiny or grazing "
+            f"pixels have depth (need {s.min_valid_fraction:.0%}); dark, shiny or grazing "
             "surfaces, or the object too near the camera",
             mask=region,
         )
-    z = depth[rows, cols]
-    noise = _noise(depth_noise, frame)
-    sigma = np.polynomial.polynomial.polyval(z, np.asarray(noise.coefficients, np.float64))
-    flying = _flying(depth, rows, cols, np.maximum(0.004, 4 * sigma), min_consistent_neighbors)
-    rows, cols = rows[~flying], cols[~flying]
-    padded = _bucket(max(len(rows), 1))
-    r_pad = np.zeros(padded, np.int32)
-    c_pad = np.zeros(padded, np.int32)
-    r_pad[: len(rows)], c_pad[: len(cols)] = rows, cols
-    lifted = np.asarray(_lift_pixels(frame, r_pad, c_pad))[: len(rows)]
-    plane_normal, plane_offset = np.asarray(seg.plane.normal), float(seg.plane.offset)
-    height = lifted @ plane_normal + plane_offset
-    band = (height > lift_min_height) & (height < 0.5)
-    rows, cols, lifted = rows[band], cols[band], lifted[band]
-    mask = np.zeros(shape, bool)
-    mask[rows, cols] = True
-    points = voxel_downsample(lifted, voxel_size) if len(lifted) else np.zeros((0, 3))
-    isolated = _isolated(points, voxel_size) if len(points) else np.zeros(0, bool)
-    points = points[~isolated].astype(np.float32)
-    diag.update(
-        pixels=int(len(rows)),
-        flying_pixels_removed=int(flying.sum()),
-        below_band_removed=int((~band).sum()),
-        isolated_points_removed=int(isolated.sum()),
-        points=int(len(points)),
-        ms=_ms(start),
+    sigma = np.polynomial.polynomial.polyval(
+        depth[rows, cols], np.asarray(noise.coefficients, np.float64)
     )
-    if len(points) < min_segment_points:
-        return failed(
+    mask, points, counts = lift_region(
+        frame, rows, cols, sigma, np.asarray(seg.plane.normal), float(seg.plane.offset),
+        min_height=s.lift_min_height, voxel_size=s.voxel_size,
+        min_consistent_neighbors=s.min_consistent_neighbors,
+    )  # fmt: skip
+    diag.update(**counts, ms=_ms(start))
+    if len(points) < s.min_segment_points:
+        raise _Failed(
             "lift",
-            f"only {len(points)} points left after filtering (need {min_segment_points}): "
+            f"only {len(points)} points left after filtering (need {s.min_segment_points}): "
             "the segment is too small or too noisy to register",
             mask=mask,
             points=points,
         )
+    return mask, points
 
-    # ---- register -----------------------------------------------------------------------------
-    progress("register")
+
+def _register(
+    frame, seg, model, settings: _Settings, coarse_poses, coarse_fraction, mask, points, noise,
+    symmetry, rng, stages,
+):  # fmt: skip
+    """The best distinct coarse poses refined on the lifted points and judged; the estimate,
+    or ``_Failed`` when the evidence says the model is not there."""
+    s = settings
+    fine_distances = s.fine_distances
     start = time.perf_counter()
-    source = _padded(points, max_points, rng)
+    source = _padded(points, s.max_points, rng)
     picks = _distinct(coarse_poses, 4, 0.01)
     inits = SE3(jax.device_put(coarse_poses[picks]))
     trim = np.float32(np.clip(coarse_fraction, 0.6, 0.95))  # an argument: one program for all
@@ -519,7 +527,7 @@ def estimate_pose(
     )
     fractions = np.asarray(results.inlier_fraction)
     rmses = np.nan_to_num(np.asarray(results.inlier_rmse), nan=np.inf)
-    seen = np.asarray(_judge(frame, seg.plane, results.pose.wxyz_xyz, model.points, tolerance))
+    seen = np.asarray(_judge(frame, seg.plane, results.pose.wxyz_xyz, model.points, _TOLERANCE))
     scores = fractions * _confirmed_share(seen)
     ranked = np.lexsort((rmses, -np.round(scores, 2)))
     best = results[int(ranked[0])]
@@ -531,12 +539,10 @@ def estimate_pose(
         source, model.points, model.normals, model.fine_grid, results.pose.wxyz_xyz,
         np.int32(ranked[0]), equal, symmetry, fine_distances[-1], trim, noise,
     )  # fmt: skip
-    pose = SE3(wxyz_xyz)
-    spread_mm, spread_deg = (float(s) for s in np.asarray(spread))
-    covariance = np.asarray(covariance)
-    diag = stages["register"] = {
+    spread_mm, spread_deg = (float(x) for x in np.asarray(spread))
+    stages["register"] = {
         "ms": _ms(start),
-        "starts": num_starts + 4 + 6 * resting_yaws,
+        "starts": s.num_starts + 4 + 6 * s.resting_yaws,
         "coarse_kept_starts": int(coarse_poses.shape[0]),
         "refined_starts": len(picks),
         "trim_fraction": round(float(trim), 3),
@@ -552,34 +558,38 @@ def estimate_pose(
         "overhang_mm": [round(float(r) * 1e3, 1) for r in reach],
     }
     problems = []
-    if fraction < min_inlier_fraction:
+    if fraction < s.min_inlier_fraction:
         problems.append(
             f"the model explains only {fraction:.0%} of the segment (need "
-            f"{min_inlier_fraction:.0%})"
+            f"{s.min_inlier_fraction:.0%})"
         )
-    if not rmse <= max_inlier_rmse:
-        problems.append(f"the residual is {rmse * 1e3:.1f} mm (at most {max_inlier_rmse * 1e3:g})")
-    if contradicted > max_contradicted:
+    if not rmse <= s.max_inlier_rmse:
+        problems.append(
+            f"the residual is {rmse * 1e3:.1f} mm (at most {s.max_inlier_rmse * 1e3:g})"
+        )
+    if contradicted > s.max_contradicted:
         problems.append(
             f"the camera sees through {contradicted:.0%} of the model's surface facing it (at "
-            f"most {max_contradicted:.0%})"
+            f"most {s.max_contradicted:.0%})"
         )
-    if reach.max() > max_overhang:
+    if reach.max() > s.max_overhang:
         problems.append(
             f"the segment spans {reach.max() * 1e3:.0f} mm beyond the model along its "
             f"{('longest', 'middle', 'shortest')[int(reach.argmax())]} axis (at most "
-            f"{max_overhang * 1e3:g}): a larger object of a similar shape, or the object "
+            f"{s.max_overhang * 1e3:g}): a larger object of a similar shape, or the object "
             "merged with a neighbour"
         )
     if problems:
-        return failed(
+        raise _Failed(
             "register", "the model is not there: " + "; ".join(problems), mask=mask, points=points
         )
     reason = (
         f"found: {fraction:.0%} of {len(points)} segment points within "
         f"{fine_distances[-1] * 1e3:.0f} mm of the model, residual {rmse * 1e3:.2f} mm"
     )
-    return PoseEstimate(pose, rmse, fraction, covariance, None, reason, stages, mask, points)
+    return PoseEstimate(
+        SE3(wxyz_xyz), rmse, fraction, np.asarray(covariance), None, reason, stages, mask, points
+    )
 
 
 @persistent_jit

@@ -31,6 +31,8 @@ something on it.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -418,11 +420,14 @@ def segment_frame(
     return _segment(frame, key, floats, jnp.asarray(min_plane_inliers), options)
 
 
-def cluster_mask(segmentation: Segmentation, index: int, shape: tuple[int, int]) -> np.ndarray:
-    """``(H, W)`` bool host mask of the full-resolution pixels in cluster ``index``'s
-    footprint (each grid point stands for its ``stride`` x ``stride`` block)."""
+def cluster_mask(
+    segmentation: Segmentation, index: int | Sequence[int], shape: tuple[int, int]
+) -> np.ndarray:
+    """``(H, W)`` bool host mask of the full-resolution pixels in the footprint of cluster
+    ``index`` (or of several clusters; each grid point stands for its ``stride`` x
+    ``stride`` block)."""
     s = segmentation.stride
-    grid = np.asarray(segmentation.footprint) == index
+    grid = np.isin(np.asarray(segmentation.footprint), np.atleast_1d(index))
     full = np.repeat(np.repeat(grid, s, axis=0), s, axis=1)
     out = np.zeros(shape, bool)
     out[: min(shape[0], full.shape[0]), : min(shape[1], full.shape[1])] = full[

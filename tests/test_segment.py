@@ -43,6 +43,11 @@ def test_table_plane_and_target_cluster_on_a_rendered_scene(scene):
     assert choose_cluster(seg, pixel=(cols.mean(), rows.mean())) == k
     mask = cluster_mask(seg, k, scene.mask.shape)
     assert np.mean(mask[scene.mask]) > 0.8
+    # several clusters: the union of their masks, and no pixel of a cluster not named
+    others = [j for j in range(int(seg.clusters.num_clusters)) if j != k]
+    union = cluster_mask(seg, [k, others[0]], scene.mask.shape)
+    assert np.array_equal(union, mask | cluster_mask(seg, others[0], scene.mask.shape))
+    assert not np.any(union & cluster_mask(seg, others[1], scene.mask.shape))
 
 
 def test_plane_is_a_function_of_the_key(scene):
