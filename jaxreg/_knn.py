@@ -11,8 +11,9 @@ bit for bit. Uses: the witnesses of 1-NN grids (:mod:`jaxreg._grid`), normals on
 clouds (:mod:`jaxreg.normals`) and FPFH radius neighbourhoods (:mod:`jaxreg.features`).
 
 The loops are compiled on the first call on a machine and cached on disk (``__pycache__``).
-numba checks only this file's timestamp for that cache: a change to the cell sort imported
-from :mod:`jaxreg._octree` needs ``jaxreg/__pycache__/_knn.*`` deleted to take effect.
+numba checks only this file's timestamp for that cache: a change to the cell sort or the
+selection imported from :mod:`jaxreg._octree` needs ``jaxreg/__pycache__/_knn.*`` deleted
+to take effect. Large clouds are searched on one thread per core (:func:`_knn_pass`).
 """
 
 from __future__ import annotations
@@ -20,11 +21,13 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from jaxreg._octree import counting_sort
+from jaxreg._octree import counting_sort, in_pieces, kth_smallest, num_pieces
 
 __all__ = ["knn_moments", "self_knn"]
 
 _CACHE = dict(cache=True, nogil=True)
+# Neighbour slots (points x k) per piece of a threaded pass: ~1 ms of work.
+_GRAIN = 16_000
 
 
 def self_knn(x: np.ndarray, k: int, max_distance: float = np.inf):
@@ -50,23 +53,13 @@ def knn_moments(x: np.ndarray, k: int):
     return cov, count
 
 
-@numba.njit(**_CACHE)
 def _knn_pass(x, k, max_distance, moments):
     """:func:`self_knn` (``moments`` false: ``idx``, ``sq``, empty ``cov``, ``count``) or
     :func:`knn_moments` (true: empty ``idx``, ``sq``, then ``cov``, ``count``).
 
-    Points are hashed into cubic cells about as wide as a sampled median ``k``-th neighbour
-    distance (at most ``max_distance``) and their coordinates copied in cell order (one
-    array per axis), so a 3x3x3 block is 9 contiguous runs. The points of a cell share the
-    candidates of their block, copied once into a contiguous buffer; each point keeps the
-    candidates within ``tau``, the smaller of (1.2 x the previous point's ``k``-th distance)
-    and its distance to the block's nearest open face, by a branch-free compaction, and
-    selects the ``k`` nearest of the few kept by a bounded insertion sort (stable): branch
-    mispredictions, not arithmetic, are the cost of kNN over ~80 candidates, and a
-    selection over all of them pays one per candidate. When fewer than ``k`` candidates lie
-    within the block's reach, the point scans rings of cells outward instead
-    (:func:`_ring_knn`). Ties are broken by scan order: block order (cells x-major, then
-    input order), or ring by ring for ring searches.
+    :func:`_hash` sorts the points into cells, then :func:`_search` answers runs of whole
+    cells, on several threads for large clouds (:func:`jaxreg._octree.in_pieces`): every
+    cell's answers depend on its block alone, so the split never changes a bit.
     """
     n = x.shape[0]
     rows = 0 if moments else n
@@ -74,9 +67,30 @@ def _knn_pass(x, k, max_distance, moments):
     sq = np.empty((rows, k))
     cov = np.zeros((n - rows, 6))
     count = np.zeros(n - rows, np.int32)
-    r2 = max_distance * max_distance
     if n == 0:
         return idx, sq, cov, count
+    cells = _hash(x, k, max_distance)
+    order, start, key = cells[0], cells[1], cells[4]
+    # Pieces end at the first position of the cell holding each n / pieces-th point.
+    pieces = num_pieces(n * k, _GRAIN)
+    cuts = (np.arange(1, pieces) * n) // pieces
+    bounds = np.unique(np.concatenate(([0], start[key[order[cuts]]], [n])))
+    r2 = max_distance * max_distance
+    in_pieces(
+        lambda a, b: _search(*cells, k, r2, moments, a, b, idx, sq, cov, count),
+        zip(bounds[:-1], bounds[1:], strict=True),
+    )
+    return idx, sq, cov, count
+
+
+@numba.njit(**_CACHE)
+def _hash(x, k, max_distance):
+    """Points hashed into cubic cells about as wide as a sampled median ``k``-th neighbour
+    distance (at most ``max_distance``), in a bounded table. Returns the counting sort's
+    ``order`` and ``start``, ``xs (3, n)`` the coordinates in cell order (position ``t`` is
+    point ``order[t]``; one array per axis), each point's ``cell (n, 3)`` and linear ``key
+    (n,)``, and the table's ``lo (3,)`` corner, cell ``size`` and ``span (3,)``."""
+    n = x.shape[0]
     lo = np.empty(3)
     hi = np.empty(3)
     for i in range(3):
@@ -99,20 +113,45 @@ def _knn_pass(x, k, max_distance, moments):
             cell[p, i] = min(int((x[p, i] - lo[i]) / size), span[i] - 1)
         key[p] = (cell[p, 0] * s1 + cell[p, 1]) * s2 + cell[p, 2]
     order, start = counting_sort(key, span[0] * s1 * s2)
-    xs = np.empty((3, n))  # coordinates in cell order; position t is point order[t]
+    xs = np.empty((3, n))
     for t in range(n):
         for i in range(3):
             xs[i, t] = x[order[t], i]
+    return order, start, xs, cell, key, lo, size, span
+
+
+@numba.njit(**_CACHE)
+def _search(
+    order, start, xs, cell, key, lo, size, span, k, r2, moments, first, stop, idx, sq, cov, count
+):
+    """Answers the points at cell-order positions ``first:stop`` (whole cells) into the rows
+    ``order[first:stop]`` of the outputs (see :func:`_knn_pass`); ``r2`` is the squared
+    ``max_distance``.
+
+    A 3x3x3 block of cells is 9 contiguous runs of ``xs``. The points of a cell share the
+    candidates of their block, copied once into a contiguous buffer; each point keeps the
+    candidates within ``tau``, the smaller of (1.2 x the previous point's ``k``-th distance)
+    and its distance to the block's nearest open face, by a branch-free compaction, and
+    selects the ``k`` nearest of the few kept (:func:`_select`, stable): branch
+    mispredictions, not arithmetic, are the cost of kNN over ~80 candidates, and a
+    selection over all of them pays one per candidate. When fewer than ``k`` candidates lie
+    within the block's reach, the point scans rings of cells outward instead
+    (:func:`_ring_knn`). Ties are broken by scan order: block order (cells x-major, then
+    input order), or ring by ring for ring searches.
+    """
+    n = xs.shape[1]
+    s1, s2 = span[1], span[2]
     cand = np.empty((3, n))
     cand_t = np.empty(n, np.int64)
     dist = np.empty(n)
     kept_d = np.empty(n + 1)
     kept_t = np.empty(n + 1, np.int64)
+    best_d = np.empty(k + 1)  # the k nearest, nearest first (and a slot for the rest)
+    best_t = np.empty(k + 1, np.int64)
     face_lo = np.empty(3)
     face_hi = np.empty(3)
     rel = np.empty((k, 3))
-    first = 0
-    while first < n:
+    while first < stop:
         c = key[order[first]]
         last = start[c + 1]
         c0, c1, c2 = cell[order[first], 0], cell[order[first], 1], cell[order[first], 2]
@@ -142,35 +181,34 @@ def _knn_pass(x, k, max_distance, moments):
             if kept < k and tau < reach_sq:
                 kept = _compact(dist, cand_t, m, reach_sq, r2, kept_d, kept_t)
             if kept < k and reach_sq < r2:  # points within the radius may lie beyond
-                kept_d[:k] = r2
-                kept_t[:k] = n
-                _ring_knn(xs, j, cell[order[j]], lo, size, span, start, kept_t[:k], kept_d[:k])
+                best_d[:k] = r2
+                best_t[:k] = n
+                _ring_knn(xs, j, cell[order[j]], lo, size, span, start, best_t[:k], best_d[:k])
                 kept = 0
-                while kept < k and kept_t[kept] < n:
+                while kept < k and best_t[kept] < n:
                     kept += 1
             else:
-                kept = _insertion_select(kept_d, kept_t, kept, k)
+                kept = _select(kept_d, kept_t, kept, k, best_d, best_t)
                 if kept == k:
-                    guess = 1.44 * kept_d[k - 1]
+                    guess = 1.44 * best_d[k - 1]
             if moments:
-                _moments(xs, j, kept_t, kept, rel, cov[order[j]])
+                _moments(xs, j, best_t, kept, rel, cov[order[j]])
                 count[order[j]] = kept
             else:
                 p = order[j]
                 for s in range(kept):
-                    idx[p, s] = order[kept_t[s]]
-                    sq[p, s] = kept_d[s]
+                    idx[p, s] = order[best_t[s]]
+                    sq[p, s] = best_d[s]
                 idx[p, kept:] = n
                 sq[p, kept:] = np.inf
         first = last
-    return idx, sq, cov, count
 
 
 @numba.njit
 def _median_kth(x, k):
-    """Median ``k``-th neighbour distance of up to 16 sample points of ``x``. Each sample's
-    ``k``-th smallest squared distance is selected among the distances at most the ``k``-th
-    smallest of every 8th (an upper bound), not among all ``n``."""
+    """Median ``k``-th neighbour distance of up to 16 sample points of ``x`` (``np.median``'s
+    value). Each sample's ``k``-th smallest squared distance is selected among the distances
+    at most the ``k``-th smallest of every 8th (an upper bound), not among all ``n``."""
     n = x.shape[0]
     samples = min(n, 16)
     kth = np.empty(samples)
@@ -181,14 +219,20 @@ def _median_kth(x, k):
         a = (s * (n - 1)) // max(samples - 1, 1)
         for b in range(n):
             d[b] = (x[a, 0] - x[b, 0]) ** 2 + (x[a, 1] - x[b, 1]) ** 2 + (x[a, 2] - x[b, 2]) ** 2
-        # (a contiguous copy: both selections use one compiled np.partition)
-        bound = np.partition(d[::stride].copy(), kk - 1)[kk - 1] if stride > 1 else np.inf
+        bound = kth_smallest(d[::stride].copy(), kk - 1) if stride > 1 else np.inf
         m = 0
         for b in range(n):
             d[m] = d[b]
             m += d[b] <= bound
-        kth[s] = np.sqrt(np.partition(d[:m], kk - 1)[kk - 1])
-    return np.median(kth)
+        kth[s] = np.sqrt(kth_smallest(d[:m], kk - 1))
+    for s in range(1, samples):  # insertion sort of the few samples
+        v, t = kth[s], s
+        while t > 0 and kth[t - 1] > v:
+            kth[t] = kth[t - 1]
+            t -= 1
+        kth[t] = v
+    half = samples // 2
+    return kth[half] if samples % 2 else (kth[half - 1] + kth[half]) / 2
 
 
 @numba.njit(inline="always")
@@ -201,6 +245,28 @@ def _compact(dist, ids, m, tau, r2, kept_d, kept_id):
         kept_id[count] = ids[t]
         count += (dist[t] <= tau) & (dist[t] < r2)
     return count
+
+
+@numba.njit
+def _select(values, ids, count, k, best, best_ids):
+    """Writes the ``k`` smallest of ``values[:count]`` (and their ``ids``) to ``best`` /
+    ``best_ids`` (``k + 1`` slots) in ascending order, earlier entries first among equals;
+    returns ``min(count, k)``. Up to 64 entries, each goes straight to its rank (the entries
+    before it that are not larger, and after it that are smaller), in branch-free loops:
+    an insertion sort (beyond 64) pays a mispredicted branch per entry."""
+    if count > 64:
+        count = _insertion_select(values, ids, count, k)
+        best[:count] = values[:count]
+        best_ids[:count] = ids[:count]
+        return count
+    for a in range(count):
+        v = values[a]
+        rank = 0
+        for b in range(count):
+            rank += (values[b] < v) | ((values[b] == v) & (b < a))
+        best[min(rank, k)] = v
+        best_ids[min(rank, k)] = ids[a]
+    return min(count, k)
 
 
 @numba.njit(inline="always")
