@@ -413,7 +413,8 @@ def _score_candidates(
 
 @persistent_jit
 def _near_model(grid, object_T_base, points, distance):
-    """``(h, w)`` bool: grid points within ``distance`` of the model at a pose."""
+    """``(...)`` bool: which of ``points`` ``(..., 3)`` (base frame; NaN rows never) lie
+    within ``distance`` of the model at a pose."""
     flat = points.reshape(-1, 3)
     ok = jnp.all(jnp.isfinite(flat), -1)
     moved = SE3(object_T_base) @ jnp.where(ok[:, None], flat, 0.0)

@@ -73,6 +73,7 @@ import numpy as np
 from jaxlie import SE3
 from jaxtyping import Array, Float
 
+from jaxreg._icp_setup import _bucket
 from jaxreg._lift import lift_region
 from jaxreg._program_cache import persistent_jit
 from jaxreg._register_stage import (
@@ -443,10 +444,11 @@ def _segment(frame, model, settings: _Settings, key, rng, stages):
     _, group, chosen, coarse_fraction, _, _ = scored[0]
     coarse_poses = np.asarray(coarse.poses[chosen])  # object_T_base per start, best first
     # pieces of the object the clustering split off: clusters the coarse pose explains
-    explained = np.asarray(
-        _near_model(model.fine_grid, coarse_poses[0], grid_points, np.float32(0.01))
-    )
-    joined = sorted({*group, *(k for k in live if explained[labels == k].mean() >= 0.6)})
+    members = labels >= 0
+    points = _padded(grid_points[members], _bucket(int(members.sum())), rng)
+    near = np.asarray(_near_model(model.fine_grid, coarse_poses[0], points, np.float32(0.01)))
+    near, member_labels = near[: members.sum()], labels[members]
+    joined = sorted({*group, *(k for k in live if near[member_labels == k].mean() >= 0.6)})
     diag.update(
         candidates=[
             {

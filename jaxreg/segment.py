@@ -15,7 +15,8 @@ of nearby points. Everything runs in one compiled call on a strided grid of the 
 * **Euclidean clusters** (:func:`euclidean_clusters`): two grid points are joined when they
   lie within ``window`` grid steps in the image and ``cluster_distance`` in space, and
   clusters are the connected components of that graph, found by min-label propagation with
-  pointer jumping in a bounded ``while_loop``. Searching image neighbours instead of a 3D
+  pointer jumping in a bounded ``while_loop`` over the points above the table alone (up to
+  ``capacity`` of them; the whole grid beyond). Searching image neighbours instead of a 3D
   radius is what the organized image allows: a point's 3D neighbours within a few
   millimetres are its image neighbours, except across occlusions, which separate objects
   anyway. The ``max_clusters`` largest components are kept, largest first; ``overflow``
@@ -206,39 +207,21 @@ def _shift(x: Array, dy: int, dx: int, fill) -> Array:
     return padded[max(dy, 0) : max(dy, 0) + h, max(dx, 0) : max(dx, 0) + w]
 
 
-def euclidean_clusters(
-    points: Float[Array, "h w 3"],
-    mask: Bool[Array, "h w"],
-    *,
-    distance: float | Array,
-    window: int = 2,
-    max_clusters: int = 16,
-    min_size: int = 20,
-    max_iterations: int = 64,
-) -> Clusters:
-    """Connected components of the grid points in ``mask``, joined within ``window`` grid
-    steps and ``distance`` metres (3D), the ``max_clusters`` largest of at least
-    ``min_size`` points. ``window``, ``max_clusters``, ``min_size`` and ``max_iterations``
-    are static. Jittable."""
-    h, w = mask.shape
-    flat_index = jnp.arange(h * w, dtype=jnp.int32).reshape(h, w)
-    d2 = jnp.square(jnp.asarray(distance, points.dtype))
-    half = _offsets(window)[len(_offsets(window)) // 2 :]  # (dy, dx) > (0, 0)
+def _edges_dense(points, mask, d2, window):
+    """Per grid offset ``(dy, dx)``: ``(h, w)`` bool, the point and its neighbour at that
+    offset are both in ``mask`` and within ``sqrt(d2)`` metres."""
     edges = {}
-    for dy, dx in half:
+    for dy, dx in _offsets(window)[len(_offsets(window)) // 2 :]:  # (dy, dx) > (0, 0)
         other = _shift(points, dy, dx, jnp.nan)
         near = jnp.sum(jnp.square(other - points), -1) <= d2  # False where either is NaN
         edges[dy, dx] = near & mask & _shift(mask, dy, dx, False)
         edges[-dy, -dx] = _shift(edges[dy, dx], -dy, -dx, False)  # the same edge, seen back
-    start = jnp.where(mask, flat_index, _NONE)
+    return edges
 
-    def propagate(labels):
-        best = labels
-        for (dy, dx), edge in edges.items():
-            best = jnp.minimum(best, jnp.where(edge, _shift(labels, dy, dx, _NONE), _NONE))
-        for _ in range(2):  # pointer jumping: a label is a grid index whose label is smaller
-            best = jnp.where(mask, best.reshape(-1)[jnp.where(mask, best, 0)], _NONE)
-        return best
+
+def _propagate(propagate, start, max_iterations):
+    """Min-label propagation to a fixed point (or ``max_iterations`` rounds): the labels,
+    whether they were still changing, and the rounds taken."""
 
     def cond(state):
         labels, previous, i = state
@@ -251,15 +234,109 @@ def euclidean_clusters(
     labels, previous, iterations = jax.lax.while_loop(
         cond, body, (propagate(start), start, jnp.int32(1))
     )
-    unconverged = jnp.any(labels != previous)
+    return labels, jnp.any(labels != previous), iterations
+
+
+def _clusters_dense(points, mask, d2, window, max_iterations, max_clusters, min_size):
+    """:func:`euclidean_clusters` on the whole grid: one shifted copy per offset and round;
+    a component's root is the smallest flat grid index in it."""
+    h, w = mask.shape
+    edges = _edges_dense(points, mask, d2, window)
+    start = jnp.where(mask, jnp.arange(h * w, dtype=jnp.int32).reshape(h, w), _NONE)
+
+    def propagate(labels):
+        best = labels
+        for (dy, dx), edge in edges.items():
+            best = jnp.minimum(best, jnp.where(edge, _shift(labels, dy, dx, _NONE), _NONE))
+        for _ in range(2):  # pointer jumping: a label is a grid index whose label is smaller
+            best = jnp.where(mask, best.reshape(-1)[jnp.where(mask, best, 0)], _NONE)
+        return best
+
+    labels, unconverged, iterations = _propagate(propagate, start, max_iterations)
     roots = jnp.where(mask, labels, h * w).reshape(-1)
-    counts = jax.ops.segment_sum(jnp.ones_like(roots), roots, num_segments=h * w + 1)[: h * w]
-    k = min(max_clusters + 1, h * w)
+    clusters = _largest(roots, max_clusters, min_size, unconverged, iterations)
+    return eqx.tree_at(lambda c: c.labels, clusters, clusters.labels.reshape(h, w))
+
+
+def _clusters_compact(points, mask, d2, window, max_iterations, max_clusters, min_size, capacity):
+    """:func:`_clusters_dense` on the masked points alone, gathered into ``capacity`` slots
+    (static; at least ``mask.sum()``) with each slot's neighbour slots listed once: a
+    tabletop's few hundred points above the plane cost a few hundred, not the grid's tens of
+    thousands. The same clusters (slots keep the grid's order, so ties break alike)."""
+    h, w = mask.shape
+    n = h * w
+    (index,) = jnp.nonzero(mask.reshape(-1), size=capacity, fill_value=n)  # flat, n: padding
+    live = index < n
+    slot = jnp.full(n + 1, capacity, jnp.int32).at[index].set(jnp.arange(capacity, dtype=jnp.int32))
+    slot = slot.at[n].set(capacity)  # grid index -> slot; capacity: not a masked point
+    flat = points.reshape(-1, 3)
+    here = flat[jnp.minimum(index, n - 1)]
+    row, col = index // w, index % w
+    neighbours = []
+    for dy, dx in _offsets(window):
+        r, c = row + dy, col + dx
+        inside = live & (r >= 0) & (r < h) & (c >= 0) & (c < w)
+        other = jnp.where(inside, r * w + c, n)
+        near = jnp.sum(jnp.square(flat[jnp.minimum(other, n - 1)] - here), -1) <= d2
+        neighbours.append(jnp.where(inside & near, slot[other], capacity))
+    neighbours = jnp.stack(neighbours, -1)  # (capacity, offsets); capacity: no edge
+    start = jnp.where(live, index, _NONE)
+
+    def propagate(labels):
+        best = jnp.minimum(labels, jnp.append(labels, _NONE)[neighbours].min(-1))
+        for _ in range(2):  # pointer jumping, as in _clusters_dense
+            best = jnp.where(live, jnp.append(best, _NONE)[slot[jnp.where(live, best, n)]], _NONE)
+        return best
+
+    labels, unconverged, iterations = _propagate(propagate, start, max_iterations)
+    roots = slot[jnp.where(live, labels, n)]  # the root's slot; capacity for padding
+    clusters = _largest(roots, max_clusters, min_size, unconverged, iterations)
+    grid = jnp.full(n, -1, jnp.int32).at[index].set(clusters.labels, mode="drop")
+    return eqx.tree_at(lambda c: c.labels, clusters, grid.reshape(h, w))
+
+
+def euclidean_clusters(
+    points: Float[Array, "h w 3"],
+    mask: Bool[Array, "h w"],
+    *,
+    distance: float | Array,
+    window: int = 2,
+    max_clusters: int = 16,
+    min_size: int = 20,
+    max_iterations: int = 64,
+    capacity: int = 4096,
+) -> Clusters:
+    """Connected components of the grid points in ``mask``, joined within ``window`` grid
+    steps and ``distance`` metres (3D), the ``max_clusters`` largest of at least
+    ``min_size`` points. When at most ``capacity`` points are masked, the propagation runs
+    on those points alone; otherwise on the whole grid (same answer). ``window``,
+    ``max_clusters``, ``min_size``, ``max_iterations`` and ``capacity`` are static.
+    Jittable."""
+    h, w = mask.shape
+    if capacity <= max_clusters:
+        raise ValueError(f"capacity ({capacity}) must exceed max_clusters ({max_clusters})")
+    d2 = jnp.square(jnp.asarray(distance, points.dtype))
+    args = (points, mask, d2, window, max_iterations, max_clusters, min_size)
+    if capacity >= h * w:
+        return _clusters_dense(*args)
+    return jax.lax.cond(
+        mask.sum() <= capacity,
+        lambda: _clusters_compact(*args, capacity),
+        lambda: _clusters_dense(*args),
+    )
+
+
+def _largest(roots, max_clusters, min_size, unconverged, iterations) -> Clusters:
+    """The ``max_clusters`` largest components of at least ``min_size`` points, from each
+    point's root ``(P,)`` (an id below ``P``; ``P`` for a point in none); labels ``(P,)``."""
+    size = roots.shape[0]
+    counts = jax.ops.segment_sum(jnp.ones_like(roots), roots, num_segments=size + 1)[:size]
+    k = min(max_clusters + 1, size)
     sizes, ids = jax.lax.top_k(counts, k)
     keep = sizes[:max_clusters] >= min_size
     extra = sizes[max_clusters] >= min_size if k > max_clusters else jnp.bool_(False)
     match = (roots[:, None] == ids[None, :max_clusters]) & keep[None, :]
-    out = jnp.where(match.any(-1), jnp.argmax(match, -1), -1).astype(jnp.int32).reshape(h, w)
+    out = jnp.where(match.any(-1), jnp.argmax(match, -1), -1).astype(jnp.int32)
     sizes = jnp.where(keep, sizes[:max_clusters], 0)
     return Clusters(out, sizes, keep.sum(), extra | unconverged, iterations)
 

@@ -101,6 +101,33 @@ def test_clusters_by_size_with_small_ones_dropped_and_overflow_flagged():
     assert int(clusters(points, mask, 0.004, 4).num_clusters) == 0
 
 
+def test_compact_and_whole_grid_propagation_find_the_same_clusters(scene):
+    """The masked points alone (capacity above their count) and the whole grid (capacity
+    below it) give identical clusters: on the objects (a few hundred points) and on the
+    objects with the table (tens of thousands, where ties between equal sizes occur)."""
+    from jaxreg.segment import grid_points
+
+    seg = segment_frame(scene.frame)
+    points = grid_points(scene.frame, seg.stride)
+    height = seg.plane.height(points)
+
+    @functools.partial(jax.jit, static_argnames="capacity")
+    def clusters(mask, capacity):
+        return euclidean_clusters(
+            points, mask, distance=0.015, max_clusters=16, min_size=15, capacity=capacity
+        )
+
+    for low in (0.01, -0.02):
+        mask = (height > low) & (height < 0.5)
+        count = int(mask.sum())
+        compact, whole = clusters(mask, count + 1), clusters(mask, 17)
+        for a, b in zip(jax.tree.leaves(compact), jax.tree.leaves(whole), strict=True):
+            assert np.array_equal(np.asarray(a), np.asarray(b))
+        assert int(whole.num_clusters) >= 2
+    with pytest.raises(ValueError, match="capacity"):
+        euclidean_clusters(points, mask, distance=0.015, max_clusters=16, capacity=16)
+
+
 def _flat_frame(depth):
     intrinsics = Intrinsics(300.0, 300.0, 79.5, 59.5, 160, 120)
     return RGBDFrame(depth, intrinsics)
