@@ -11,6 +11,7 @@ without overflow.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 
@@ -102,6 +103,8 @@ _NEAR = 9  # witnesses per target point (itself among them) pruning 1-NN candida
 # Default refinement target of 1-NN leaves. Measured on milk.pcd (bench_neighbors.py): 48
 # builds 1.3-1.6x faster than 32 for 40 queries costing 1.1-1.2x more.
 _LEAF_TARGET = 48
+# Candidate tests (node, point) per piece of a threaded level: ~0.5 ms of work.
+_GRAIN = 30_000
 
 
 def _bucket(n: int) -> int:
@@ -128,6 +131,32 @@ def _split_plan(node_top, counts, level, map_size, leaf_target, max_depth, max_m
     return split, deeper, grow
 
 
+def _top_piece(x, order, start, node_top, dims, h, tests, a, b):
+    """Top-level nodes ``a:b`` of :func:`jaxreg._octree.stencil_cells`' list."""
+    return _octree.top_level_nodes(x, order, start, node_top[a:b], dims, h, *tests)
+
+
+def _split_piece(x, corner, counts, pid, split, edge, tests, a, b):
+    """The children of the nodes ``a:b`` that ``split`` marks."""
+    mine = np.zeros_like(split)
+    mine[a:b] = split[a:b]
+    return _octree.split_nodes(x, corner, counts, pid, mine, edge, *tests)
+
+
+def _in_pieces(fill, work):
+    """The candidate lists of a level's nodes, filled in pieces of consecutive nodes of about
+    equal ``work (L,)`` (on one thread per core: :func:`jaxreg._octree.in_pieces`): ``fill(a,
+    b)`` returns ``(counts, pid)`` of nodes ``a:b``, concatenated here in node order."""
+    cumulative = np.cumsum(work)
+    pieces = _octree.num_pieces(int(cumulative[-1]) if len(work) else 0, _GRAIN)
+    cuts = np.searchsorted(cumulative, cumulative[-1] * np.arange(1, pieces) / pieces)
+    bounds = np.unique(np.concatenate(([0], cuts, [len(work)])))
+    parts = _octree.in_pieces(fill, zip(bounds[:-1], bounds[1:], strict=True))
+    if len(parts) == 1:
+        return parts[0]
+    return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
+
+
 def _levels(x, cell, dims, h, margin, r2, k, *budget):
     """Every node of every refinement level with its candidates (see :mod:`jaxreg._octree`).
 
@@ -142,7 +171,11 @@ def _levels(x, cell, dims, h, margin, r2, k, *budget):
     else:
         half_spaces = _octree.no_witnesses(len(x))
     tests = (margin, r2, *half_spaces, k or 0)
-    node_top, counts, pid = _octree.top_level_nodes(x, cell, np.asarray(dims), h, *tests)
+    order, start, node_top = _octree.stencil_cells(cell, np.asarray(dims))
+    args = (x, order, start, node_top, np.asarray(dims), h, tests)
+    # A node's tests are about 27 x / (nodes) on average.
+    work = np.full(len(node_top), 27 * len(x) / len(node_top))
+    counts, pid = _in_pieces(functools.partial(_top_piece, *args), work)
     node_sub = np.zeros((len(node_top), 3), np.int64)
     cell_depth = np.zeros(math.prod(dims), np.int32)
     parts = []
@@ -161,7 +194,8 @@ def _levels(x, cell, dims, h, margin, r2, k, *budget):
         cell_depth[deeper] = level + 1
         corner = np.stack(np.unravel_index(node_top, dims), axis=1) * 2**level + node_sub
         level += 1
-        counts, pid = _octree.split_nodes(x, corner, counts, pid, split, h / 2**level, *tests)
+        args = (x, corner, counts, pid, split, h / 2**level, tests)
+        counts, pid = _in_pieces(functools.partial(_split_piece, *args), np.where(split, counts, 0))
         node_top = np.repeat(node_top[split], 8)
         node_sub = (2 * node_sub[split][:, None, :] + _OCTANTS[None]).reshape(-1, 3)
 

@@ -141,11 +141,22 @@ def _search(
     """
     n = xs.shape[1]
     s1, s2 = span[1], span[2]
-    cand = np.empty((3, n))
-    cand_t = np.empty(n, np.int64)
-    dist = np.empty(n)
-    kept_d = np.empty(n + 1)
-    kept_t = np.empty(n + 1, np.int64)
+    widest = 0  # the most candidates of a block of these cells: the scratch's length
+    t = first
+    while t < stop:
+        c0, c1, c2 = cell[order[t], 0], cell[order[t], 1], cell[order[t], 2]
+        m = 0
+        for a0 in range(max(c0 - 1, 0), min(c0 + 2, span[0])):
+            for a1 in range(max(c1 - 1, 0), min(c1 + 2, s1)):
+                row = (a0 * s1 + a1) * s2
+                m += start[row + min(c2 + 2, s2)] - start[row + max(c2 - 1, 0)]
+        widest = max(widest, m)
+        t = start[key[order[t]] + 1]
+    cand = np.empty((3, widest))
+    cand_t = np.empty(widest, np.int64)
+    dist = np.empty(widest)
+    kept_d = np.empty(widest + 1)
+    kept_t = np.empty(widest + 1, np.int64)
     best_d = np.empty(k + 1)  # the k nearest, nearest first (and a slot for the rest)
     best_t = np.empty(k + 1, np.int64)
     face_lo = np.empty(3)

@@ -42,6 +42,7 @@ __all__ = [
     "no_witnesses",
     "num_pieces",
     "split_nodes",
+    "stencil_cells",
     "top_level_nodes",
     "witnesses",
 ]
@@ -201,24 +202,13 @@ def _prune_kth(x, out, first, last, lx, ly, lz, edge, margin, k, far):
 
 
 @numba.njit(**_CACHE)
-def top_level_nodes(x, cell, dims, h, margin, r2, wd, neg, level, k):
-    """Candidates of every top-level cell within the 27-cell stencil of an occupied one.
-
-    Args:
-        x: ``(n, 3)`` points relative to the grid origin; cell: ``(n, 3)`` their top-level
-            cells; dims: ``(3,)`` cells per axis; h: cell edge; wd, neg, level:
-            :func:`witnesses` (or :func:`no_witnesses`); k: the kNN pruning's ``k``
-            (0 or 1: none).
-
-    Returns:
-        ``node_top (L,)`` linear cell ids (x-major, ascending), ``counts (L,)`` and ``pid``:
-        the candidates of node ``i`` are ``pid[starts[i] : starts[i] + counts[i]]`` with
-        ``starts`` the exclusive cumulative sum of ``counts``.
-    """
+def stencil_cells(cell, dims):
+    """The top-level cells within the 27-cell stencil of an occupied one, and the points
+    grouped by cell: ``(order, start, node_top)`` (:func:`counting_sort` of the cells'
+    linear ids, x-major; ``node_top (L,)`` ascending), for :func:`top_level_nodes`."""
     d1, d2 = dims[1], dims[2]
     lin = (cell[:, 0] * d1 + cell[:, 1]) * d2 + cell[:, 2]
     order, start = counting_sort(lin, dims[0] * d1 * d2)
-    # The cells within the stencil of an occupied cell, ascending: marked, then listed.
     near = np.zeros(dims[0] * d1 * d2, np.bool_)
     for c in range(dims[0] * d1 * d2):
         if start[c + 1] > start[c]:
@@ -227,10 +217,28 @@ def top_level_nodes(x, cell, dims, h, margin, r2, wd, neg, level, k):
                 for ay in range(max(cy - 1, 0), min(cy + 2, d1)):
                     row = (ax * d1 + ay) * d2
                     near[row + max(cz - 1, 0) : row + min(cz + 2, d2)] = True
-    node_top = np.flatnonzero(near)
+    return order, start, np.flatnonzero(near)
+
+
+@numba.njit(**_CACHE)
+def top_level_nodes(x, order, start, node_top, dims, h, margin, r2, wd, neg, level, k):
+    """Candidates of the top-level cells ``node_top`` (some of :func:`stencil_cells`).
+
+    Args:
+        x: ``(n, 3)`` points relative to the grid origin; order, start: from
+            :func:`stencil_cells`; node_top: ``(L,)`` linear cell ids; dims: ``(3,)``
+            cells per axis; h: cell edge; wd, neg, level: :func:`witnesses` (or
+            :func:`no_witnesses`); k: the kNN pruning's ``k`` (0 or 1: none).
+
+    Returns:
+        ``counts (L,)`` and ``pid``: the candidates of node ``i`` are
+        ``pid[starts[i] : starts[i] + counts[i]]`` with ``starts`` the exclusive cumulative
+        sum of ``counts``.
+    """
+    d1, d2 = dims[1], dims[2]
     counts = np.zeros(node_top.size, np.int64)
-    pid = np.empty(27 * cell.shape[0], np.int64)  # a point lies in at most 27 stencils
-    far = np.empty(cell.shape[0])
+    pid = np.empty(27 * x.shape[0], np.int64)  # a point lies in at most 27 stencils
+    far = np.empty(x.shape[0])
     total = 0
     for i in range(node_top.size):
         c = node_top[i]
@@ -248,7 +256,7 @@ def top_level_nodes(x, cell, dims, h, margin, r2, wd, neg, level, k):
                         total += 1
         total = _prune_kth(x, pid, before, total, lx, ly, lz, h, margin, k, far)
         counts[i] = total - before
-    return node_top, counts, pid[:total]
+    return counts, pid[:total]
 
 
 @numba.njit(inline="always")
