@@ -53,9 +53,13 @@ _pool: tuple[int, concurrent.futures.ThreadPoolExecutor] | None = None  # (pid, 
 
 
 def num_pieces(work: int, grain: int) -> int:
-    """Pieces to cut ``work`` units into for :func:`in_pieces`: one per ``grain`` units, at
-    most 4 per core (uneven pieces and a loaded machine even out), at least 1."""
-    return max(1, min(work // grain, 4 * _WORKERS if _WORKERS > 1 else 1))
+    """Pieces to cut ``work`` units into for :func:`in_pieces`: about one per ``grain``
+    units, at most 4 per core (uneven pieces and a loaded machine even out), a multiple of
+    the cores when more than one each (3 pieces on 2 cores take as long as 4), at least 1."""
+    if _WORKERS < 2:
+        return 1
+    pieces = min(work // grain, 4 * _WORKERS)
+    return max(1, pieces - pieces % _WORKERS if pieces > _WORKERS else pieces)
 
 
 def in_pieces(fn, pieces) -> list:
