@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _lzf
+from . import _lzf, _pcd
 
 __all__ = [
     "PointCloud",
@@ -41,14 +41,6 @@ __all__ = [
     "write_ply",
 ]
 
-_IDENTITY_VIEWPOINT = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # jaxlie wxyz_xyz
-_HEADER_KEYS = frozenset(
-    "VERSION FIELDS COLUMNS SIZE TYPE COUNT WIDTH HEIGHT VIEWPOINT POINTS DATA".split()
-)
-_TYPE_SIZES = {"F": (4, 8), "U": (1, 2, 4, 8), "I": (1, 2, 4, 8)}
-_NUMPY_KIND = {"F": "f", "U": "u", "I": "i"}
-_DATA_KINDS = ("ascii", "binary", "binary_compressed")
-_COLOR_FIELDS = ("rgb", "rgba")
 _ASCII_FORMATS = {np.dtype(np.float32): "%.9g", np.dtype(np.float64): "%.17g"}  # bit-exact
 
 
@@ -98,212 +90,6 @@ class PointCloud:
         return self.points[self.finite_mask]
 
 
-# --------------------------------------------------------------------------------------------
-# PCD reading.
-
-
-@dataclasses.dataclass(frozen=True)
-class _Field:
-    name: str
-    dtype: np.dtype  # little-endian scalar dtype
-    count: int
-
-    @property
-    def nbytes(self) -> int:
-        return self.dtype.itemsize * self.count
-
-
-@dataclasses.dataclass(frozen=True)
-class _Header:
-    fields: tuple[_Field, ...]
-    width: int
-    height: int
-    points: int
-    viewpoint: np.ndarray
-    data: str
-
-    @property
-    def point_step(self) -> int:
-        return sum(f.nbytes for f in self.fields)
-
-
-def _ints(key: str, values: list[str]) -> list[int]:
-    if not all(v.isascii() and v.isdigit() for v in values):
-        raise ValueError(f"{key} needs non-negative integers, got {' '.join(values)!r}")
-    return [int(v) for v in values]
-
-
-def _one_int(entries: dict[str, list[str]], key: str) -> int | None:
-    if key not in entries:
-        return None
-    values = _ints(key, entries[key])
-    if len(values) != 1:
-        raise ValueError(f"{key} needs one integer, got {' '.join(entries[key])!r}")
-    return values[0]
-
-
-def _parse_header(raw: bytes) -> tuple[_Header, int]:
-    """Returns the header and the byte offset where the data starts."""
-    entries: dict[str, list[str]] = {}
-    pos = 0
-    line_no = 0
-    while "DATA" not in entries:
-        end = raw.find(b"\n", pos)
-        if end < 0:
-            raise ValueError("no DATA line: the header is truncated or this is not a PCD file")
-        line_no += 1
-        try:
-            text = raw[pos:end].decode("ascii")
-        except UnicodeDecodeError:
-            raise ValueError(f"header line {line_no} is not text: not a PCD file") from None
-        pos = end + 1
-        tokens = text.split()
-        if not tokens or tokens[0].startswith("#"):
-            continue
-        key = tokens[0]
-        if key not in _HEADER_KEYS:
-            raise ValueError(f"header line {line_no} starts with unknown keyword {key[:32]!r}")
-        entries["FIELDS" if key == "COLUMNS" else key] = tokens[1:]
-
-    names = entries.get("FIELDS")
-    if not names:
-        raise ValueError("the header has no FIELDS")
-    n_fields = len(names)
-    sizes = _ints("SIZE", entries.get("SIZE", ["4"] * n_fields))
-    types = entries.get("TYPE", ["F"] * n_fields)
-    counts = _ints("COUNT", entries.get("COUNT", ["1"] * n_fields))
-    for key, values in (("SIZE", sizes), ("TYPE", types), ("COUNT", counts)):
-        if len(values) != n_fields:
-            raise ValueError(f"{key} has {len(values)} entries but FIELDS has {n_fields}")
-    fields = []
-    for name, size, kind, count in zip(names, sizes, types, counts, strict=True):
-        if kind not in _TYPE_SIZES:
-            raise ValueError(f"field {name!r} has unknown TYPE {kind[:8]!r} (expected F, U or I)")
-        if size not in _TYPE_SIZES[kind]:
-            raise ValueError(f"field {name!r} has TYPE {kind} with unsupported SIZE {size}")
-        if count < 1:
-            raise ValueError(f"field {name!r} has COUNT {count}")
-        fields.append(_Field(name, np.dtype(f"<{_NUMPY_KIND[kind]}{size}"), count))
-    real = [f.name for f in fields if f.name != "_"]
-    if len(set(real)) != len(real):
-        raise ValueError(f"FIELDS repeats a name: {' '.join(names)}")
-
-    points = _one_int(entries, "POINTS")
-    width = _one_int(entries, "WIDTH")
-    height = _one_int(entries, "HEIGHT")
-    if points is None:
-        if width is None:
-            raise ValueError("the header has neither POINTS nor WIDTH")
-        points = width * (1 if height is None else height)
-    if width is None:
-        if height not in (None, 1):
-            raise ValueError(f"HEIGHT {height} is given without WIDTH")
-        width = points
-    if height is None:
-        height = 1
-    if width * height != points:
-        raise ValueError(f"WIDTH {width} x HEIGHT {height} != POINTS {points}")
-
-    viewpoint = np.array(_IDENTITY_VIEWPOINT)
-    if "VIEWPOINT" in entries:
-        try:
-            values = [float(v) for v in entries["VIEWPOINT"]]
-        except ValueError:
-            values = []
-        if len(values) != 7:
-            raise ValueError("VIEWPOINT needs 7 numbers: tx ty tz qw qx qy qz")
-        viewpoint = np.array(values[3:] + values[:3])
-
-    data = entries["DATA"][0] if entries["DATA"] else ""
-    if data not in _DATA_KINDS:
-        raise ValueError(
-            f"unknown DATA kind {data[:32]!r} (expected one of {', '.join(_DATA_KINDS)})"
-        )
-    return _Header(tuple(fields), width, height, points, viewpoint, data), pos
-
-
-def _parse_ascii_values(tokens: list[bytes], field: _Field) -> np.ndarray:
-    """Converts one component's tokens (one per point) to the field's dtype.
-
-    Python's ``float``/``int`` parse each token, so a very long token costs its own length
-    only (a fixed-width numpy string table would cost it for every token).
-    """
-    if field.dtype.kind != "f":
-        return np.array([int(t) for t in tokens], field.dtype)
-    values = np.array([float(t) for t in tokens], field.dtype)
-    if field.name in _COLOR_FIELDS and field.dtype == np.float32:
-        # PCL writes a float rgb as its uint32 bit pattern in decimal; older files print the float.
-        integer = np.array([t.isdigit() for t in tokens], bool)
-        bits = values.view(np.uint32)
-        bits[integer] = np.array([int(t) for t in tokens if t.isdigit()], np.uint32)
-    return values
-
-
-def _read_ascii(body: bytes, header: _Header) -> list[np.ndarray]:
-    n = header.points
-    width = sum(f.count for f in header.fields)
-    rows = [row for row in body.splitlines() if row.strip()]
-    if len(rows) < n:
-        raise ValueError(f"POINTS declares {n} points but the ascii data holds {len(rows)} rows")
-    tokens = b" ".join(rows[:n]).split()
-    if len(tokens) != n * width:
-        raise ValueError(
-            f"the {n} ascii rows hold {len(tokens)} values; the fields need {width} per row"
-        )
-    columns, start = [], 0
-    for field in header.fields:
-        parts = [_parse_ascii_values(tokens[start + k :: width], field) for k in range(field.count)]
-        columns.append(np.stack(parts, axis=-1).reshape(n, field.count))
-        start += field.count
-    return columns
-
-
-def _read_binary(body: memoryview, header: _Header) -> list[np.ndarray]:
-    n, step = header.points, header.point_step
-    if len(body) < n * step:
-        raise ValueError(
-            f"POINTS {n} x {step} bytes per point needs {n * step} bytes of binary data, "
-            f"the file holds {len(body)}"
-        )
-    table = np.frombuffer(body, np.uint8, count=n * step).reshape(n, step)
-    columns, start = [], 0
-    for field in header.fields:
-        block = np.ascontiguousarray(table[:, start : start + field.nbytes])
-        columns.append(block.view(field.dtype).reshape(n, field.count))
-        start += field.nbytes
-    return columns
-
-
-def _read_compressed(body: memoryview, header: _Header) -> list[np.ndarray]:
-    n, step = header.points, header.point_step
-    expected = n * step
-    if len(body) < 8:
-        if expected == 0:
-            return [np.empty((0, f.count), f.dtype) for f in header.fields]
-        raise ValueError("binary_compressed data is truncated before its size header")
-    compressed, uncompressed = struct.unpack("<II", body[:8])
-    if uncompressed != expected:
-        raise ValueError(
-            f"binary_compressed uncompressed size {uncompressed} != POINTS {n} x {step} bytes "
-            f"per point = {expected}"
-        )
-    if compressed > len(body) - 8:
-        raise ValueError(
-            f"binary_compressed declares {compressed} compressed bytes, the file holds "
-            f"{len(body) - 8}"
-        )
-    buffer = _lzf.decompress(bytes(body[8 : 8 + compressed]), uncompressed)
-    columns, start = [], 0
-    for field in header.fields:  # column-major: all of field 1, then all of field 2, ...
-        columns.append(
-            np.frombuffer(buffer, field.dtype, count=n * field.count, offset=start)
-            .reshape(n, field.count)
-            .copy()
-        )
-        start += n * field.nbytes
-    return columns
-
-
 def read_pcd(path: str | Path) -> PointCloud:
     """Reads a PCD file of any version, DATA kind and field set PCL writes.
 
@@ -323,16 +109,7 @@ def read_pcd(path: str | Path) -> PointCloud:
     path = Path(path)
     raw = path.read_bytes()
     try:
-        if not raw:
-            raise ValueError("the file is empty")
-        header, offset = _parse_header(raw)
-        body = memoryview(raw)[offset:]
-        if header.data == "ascii":
-            columns = _read_ascii(bytes(body), header)
-        elif header.data == "binary":
-            columns = _read_binary(body, header)
-        else:
-            columns = _read_compressed(body, header)
+        header, columns = _pcd.decode(raw)
     except (ValueError, OverflowError) as error:
         raise ValueError(f"{path}: {error}") from None
 
@@ -351,7 +128,7 @@ def read_pcd(path: str | Path) -> PointCloud:
         return np.stack(parts, axis=-1).astype(np.result_type(*parts, np.float32))
 
     colors = None
-    for name in _COLOR_FIELDS:
+    for name in _pcd.COLOR_FIELDS:
         if name in fields and fields[name].shape == shape and fields[name].dtype.itemsize == 4:
             bits = fields[name].view(np.uint32)
             colors = np.stack([bits >> 16, bits >> 8, bits], axis=-1).astype(np.uint8)
@@ -552,7 +329,7 @@ def write_pcd(
         viewpoint: optional ``(7,)`` sensor pose in jaxlie ``wxyz_xyz`` order (identity by
             default), the convention of `PointCloud.viewpoint`.
     """
-    _check_data(data, _DATA_KINDS)
+    _check_data(data, _pcd.DATA_KINDS)
     xyz, nxyz, rgb, grid = _flatten_inputs(points, colors, normals)
     named = [(name, xyz[:, k]) for k, name in enumerate("xyz")]
     if nxyz is not None:
@@ -561,7 +338,7 @@ def write_pcd(
         rgb = rgb.astype(np.uint32)
         named.append(("rgb", (rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]))
     if viewpoint is None:
-        viewpoint = _IDENTITY_VIEWPOINT
+        viewpoint = _pcd.IDENTITY_VIEWPOINT
     viewpoint = np.asarray(viewpoint, np.float64)
     if viewpoint.shape != (7,):
         raise ValueError(f"viewpoint must have shape (7,) (wxyz_xyz), got {viewpoint.shape}")
