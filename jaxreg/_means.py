@@ -7,7 +7,7 @@ Both average the *last* batch axis: `x` with batch `(..., K)` gives a mean with 
 Weights `(..., K)` broadcast to the batch, are non-negative and are normalised per set; an
 element with weight `<= 0` or non-finite parameters is ignored, so padding and holes may hold
 NaN. A set with nothing left has a NaN mean under `jit` and raises `ValueError` on concrete
-input. Returned quaternions have `w >= 0`.
+input.
 """
 
 from __future__ import annotations
