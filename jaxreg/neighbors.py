@@ -295,9 +295,13 @@ def voxel_downsample(points: ArrayLike, voxel_size: float) -> np.ndarray:
     if len(pts) == 0:
         return np.zeros((0, 3), dtype)
     origin = pts.min(0) - 0.5 * voxel_size
-    key = np.floor((pts - origin) / voxel_size).astype(np.int64)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    key = np.floor((pts - origin) / voxel_size).astype(np.int64)  # >= 0
+    dims = key.max(0) + 1
+    if np.prod(dims.astype(np.float64)) < 2.0**62:  # one int64 per voxel, x-major order
+        key = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
+        _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    else:
+        _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
-    sums = np.zeros((len(counts), 3))
-    np.add.at(sums, inverse, pts)
-    return (sums / counts[:, None]).astype(dtype)
+    sums = [np.bincount(inverse, pts[:, i], len(counts)) for i in range(3)]
+    return (np.stack(sums, 1) / counts[:, None]).astype(dtype)
