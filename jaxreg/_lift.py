@@ -10,7 +10,6 @@ itself, one stored program over a padded pixel list.
 
 from __future__ import annotations
 
-import jax.numpy as jnp
 import numpy as np
 
 from jaxreg._icp_setup import _bucket
@@ -60,13 +59,9 @@ def _isolated(points: np.ndarray, voxel: float, need: int = 2) -> np.ndarray:
 
 @persistent_jit
 def _lift_pixels(frame: RGBDFrame, rows, cols):
-    """Base-frame points ``(P, 3)`` of the given pixels (padded index arrays)."""
-    pixels = jnp.stack([cols, rows], -1).astype(frame.depth.dtype)
-    z = frame.depth[rows, cols]
-    camera = jnp.where(jnp.isfinite(z), z, 0.0)[:, None] * frame.intrinsics.rays(pixels)
-    pose = frame.base_T_camera
-    base = camera @ pose.rotation().as_matrix().T + pose.translation()
-    return jnp.where(jnp.isfinite(z)[:, None], base, jnp.nan)
+    """Base-frame points ``(P, 3)`` of the given pixels (padded index arrays): one stored
+    program per padded length."""
+    return frame.points_at(rows, cols)
 
 
 def lift_region(

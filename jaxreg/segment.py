@@ -392,13 +392,9 @@ def _footprint(labels: Array, holes: Array) -> Array:
 def grid_points(frame: RGBDFrame, stride: int) -> Float[Array, "h w 3"]:
     """``(h, w, 3)`` base-frame points of every ``stride``-th pixel of every ``stride``-th row
     (``frame.points()[::stride, ::stride]`` without lifting the other pixels); NaN holes."""
-    pixels = frame.intrinsics.pixel_grid()[::stride, ::stride]
-    depth = frame.depth[::stride, ::stride]
-    valid = jnp.isfinite(depth)
-    camera = jnp.where(valid, depth, 0.0)[..., None] * frame.intrinsics.rays(pixels)
-    pose = frame.base_T_camera
-    base = camera @ pose.rotation().as_matrix().T + pose.translation()
-    return jnp.where(valid[..., None], base, jnp.nan)
+    h, w = frame.depth.shape
+    rows, cols = jnp.meshgrid(jnp.arange(0, h, stride), jnp.arange(0, w, stride), indexing="ij")
+    return frame.points_at(rows, cols)
 
 
 @persistent_jit

@@ -131,6 +131,12 @@ def test_frame_lifts_pixels_to_camera_and_base():
     mask[2:4] = True
     masked = np.asarray(frame.points(mask))
     assert np.isfinite(masked).all(-1).sum() == 16 and np.isnan(masked[~mask]).all()
+    # chosen pixels alone, a hole among them: the same points, NaN at the hole
+    rows, cols = np.array([[0, 1], [4, 4]]), np.array([[7, 2], [0, 5]])
+    picked = np.asarray(frame.points_at(rows, cols))
+    assert picked.shape == (2, 2, 3)
+    assert np.isnan(picked[0, 1]).all() and np.isnan(picked[1, 1]).all()
+    np.testing.assert_array_equal(picked, base[rows, cols])
 
 
 def test_frame_points_are_differentiable_in_intrinsics_and_hand_eye():
