@@ -1,6 +1,7 @@
 """The register stage's pieces for :mod:`jaxreg.pipeline`: the model prepared once (voxelled,
 normals, neighbour grid), multi-start registration of every candidate cluster in one compiled
-call, and the depth image's evidence about a model pose (:func:`visibility`).
+call, the depth image's evidence about a model pose (:func:`visibility`), and the final
+answer with its covariance (``_finish``).
 
 Conventions of :mod:`jaxreg.pipeline`: the segment (source, base frame) is registered into the
 model (target, object frame), so ICP's poses are ``object_T_base``; tangents are jaxlie's.
@@ -24,7 +25,9 @@ from jaxreg._icp_core import run
 from jaxreg._icp_setup import Settings, prepare
 from jaxreg._program_cache import persistent_jit
 from jaxreg.camera import RGBDFrame
-from jaxreg.icp import multistart_icp, pca_inits, rotation_inits
+from jaxreg.icp import icp_covariance, multistart_icp, pca_inits, rotation_inits
+from jaxreg.lie import adjoint_transport, geodesic_angle
+from jaxreg.metrics import canonicalise
 from jaxreg.neighbors import NeighborGrid, build_grid, query_nearest, voxel_downsample
 from jaxreg.normals import estimate_normals
 from jaxreg.segment import TablePlane
@@ -440,6 +443,37 @@ def _register_starts(source, points, normals, grid, inits, distances, trim, iter
         max_correspondence_distance=distances, max_iterations=iterations, trim_fraction=trim,
         neighbors=grid, tolerance=1e-5,
     )  # fmt: skip
+
+
+@persistent_jit
+def _finish(
+    source, points, normals, grid, object_T_base, best, equal, symmetry, distance, trim, noise
+):
+    """The answer from the refined starts ``object_T_base (S, 7)``, as one stored program:
+    ``base_T_object`` of start ``best`` (wxyz_xyz; with a ``symmetry``, the equivalent nearest
+    the base axes), the largest offset (metres) and angle (degrees) to the starts flagged
+    ``equal`` ``(S,)`` (compared on the same symmetry branch), and the ``(6, 6)`` covariance
+    of the right perturbation of ``base_T_object`` from ``icp_covariance`` of the final
+    point-to-plane registration."""
+    found = SE3(object_T_base[best])
+    pose = found.inverse()
+    others = SE3(object_T_base).inverse()
+    if symmetry is not None:
+        others = canonicalise(others, pose, symmetry)
+    offset = jnp.linalg.norm(others.translation() - pose.translation(), axis=-1)
+    angle = jnp.degrees(geodesic_angle(others.rotation(), pose.rotation()))
+    spread = jnp.stack([jnp.max(jnp.where(equal, offset, 0)), jnp.max(jnp.where(equal, angle, 0))])
+    if symmetry is not None:  # report one branch: the equivalent nearest the base axes
+        pose = canonicalise(pose, SE3.from_translation(pose.translation()), symmetry)
+    cov = icp_covariance(
+        source, points, found, method="point_to_plane", target_normals=normals,
+        max_correspondence_distance=distance, trim_fraction=trim, neighbors=grid,
+        source_noise=noise,
+    )  # fmt: skip
+    # right perturbation of base_T_object = object_T_base^-1: Ad_{object_T_base} Sigma Ad^T;
+    # the symmetry branch re-anchors the object frame (pose = found @ S): Ad_{S^-1}
+    cov = adjoint_transport((found @ pose).inverse(), adjoint_transport(found, cov))
+    return pose.wxyz_xyz, spread, cov
 
 
 def _distinct(poses: np.ndarray, count: int, min_distance: float) -> list[int]:

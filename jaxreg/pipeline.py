@@ -68,19 +68,18 @@ from typing import Any
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jaxlie import SE3
 from jaxtyping import Array, Float
 
 from jaxreg._icp_setup import _bucket
 from jaxreg._lift import lift_region
-from jaxreg._program_cache import persistent_jit
 from jaxreg._register_stage import (
     _coarse_problem,
     _confirmed_share,
     _diameter,
     _distinct,
+    _finish,
     _judge,
     _near_model,
     _prepare_model,
@@ -91,9 +90,7 @@ from jaxreg._register_stage import (
     visibility as visibility,
 )
 from jaxreg.camera import RGBDFrame
-from jaxreg.icp import icp_covariance
-from jaxreg.lie import adjoint_transport, geodesic_angle
-from jaxreg.metrics import Symmetry, canonicalise
+from jaxreg.metrics import Symmetry
 from jaxreg.segment import SegmentStatus, choose_cluster, cluster_mask, segment_frame
 from jaxreg.uncertainty import DepthNoise
 
@@ -592,37 +589,6 @@ def _register(
     return PoseEstimate(
         SE3(wxyz_xyz), rmse, fraction, np.asarray(covariance), None, reason, stages, mask, points
     )
-
-
-@persistent_jit
-def _finish(
-    source, points, normals, grid, object_T_base, best, equal, symmetry, distance, trim, noise
-):
-    """The answer from the refined starts ``object_T_base (S, 7)``, as one stored program:
-    ``base_T_object`` of start ``best`` (wxyz_xyz; with a ``symmetry``, the equivalent nearest
-    the base axes), the largest offset (metres) and angle (degrees) to the starts flagged
-    ``equal`` ``(S,)`` (compared on the same symmetry branch), and the ``(6, 6)`` covariance
-    of the right perturbation of ``base_T_object`` from ``icp_covariance`` of the final
-    point-to-plane registration."""
-    found = SE3(object_T_base[best])
-    pose = found.inverse()
-    others = SE3(object_T_base).inverse()
-    if symmetry is not None:
-        others = canonicalise(others, pose, symmetry)
-    offset = jnp.linalg.norm(others.translation() - pose.translation(), axis=-1)
-    angle = jnp.degrees(geodesic_angle(others.rotation(), pose.rotation()))
-    spread = jnp.stack([jnp.max(jnp.where(equal, offset, 0)), jnp.max(jnp.where(equal, angle, 0))])
-    if symmetry is not None:  # report one branch: the equivalent nearest the base axes
-        pose = canonicalise(pose, SE3.from_translation(pose.translation()), symmetry)
-    cov = icp_covariance(
-        source, points, found, method="point_to_plane", target_normals=normals,
-        max_correspondence_distance=distance, trim_fraction=trim, neighbors=grid,
-        source_noise=noise,
-    )  # fmt: skip
-    # right perturbation of base_T_object = object_T_base^-1: Ad_{object_T_base} Sigma Ad^T;
-    # the symmetry branch re-anchors the object frame (pose = found @ S): Ad_{S^-1}
-    cov = adjoint_transport((found @ pose).inverse(), adjoint_transport(found, cov))
-    return pose.wxyz_xyz, spread, cov
 
 
 def _noise(depth_noise: DepthNoise | None, frame: RGBDFrame) -> DepthNoise:
