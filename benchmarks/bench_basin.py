@@ -105,7 +105,7 @@ def main():
             )
 
         contenders[f"Open3D registration_icp loop x{total}"] = o3d_loop
-        poses = jr.lie.se3_from_matrix(jnp.asarray(o3d_loop(), jnp.float32))
+        poses = jr.geometry.lie.se3_from_matrix(jnp.asarray(o3d_loop(), jnp.float32))
         t_err, r_err = jr.pose_error(poses, truth)
         ok = (np.rad2deg(np.asarray(r_err)) <= 5.0) & (np.asarray(t_err) <= 0.01)
         o3d_rate = ok.reshape(len(angles), ARGS.samples).mean(-1)

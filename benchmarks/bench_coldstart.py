@@ -12,7 +12,7 @@ configuration itself), and the medians printed. Open3D's import and first
 ``registration_icp`` are timed the same way as the peer.
 
 Second ``jaxreg demo`` process: the command keeps JAX's compilation cache and, beside it, the
-pipeline's compiled programs (:mod:`jaxreg._program_cache`: XLA executables, loaded with no
+pipeline's compiled programs (:mod:`jaxreg.core._program_cache`: XLA executables, loaded with no
 tracing or lowering). After one run fills both, fresh processes run ``jaxreg demo`` with the
 XLA cache alone and with the program store too; each reports the seconds JAX spent tracing,
 lowering and compiling or loading executables (its own ``jax.monitoring`` events, plus the
@@ -95,7 +95,7 @@ def listen(event, duration, **_):
         seconds["programs compiled or loaded (count)"] += 1
 monitoring.register_event_duration_secs_listener(listen)
 from jax._src import compiler
-from jaxreg import _program_cache
+from jaxreg.core import _program_cache
 def cpu_seconds(fn):  # the process's CPU seconds (all threads) inside fn
     def timed(*args, **kwargs):
         start = time.process_time()

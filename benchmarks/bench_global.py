@@ -26,11 +26,11 @@ import jax.numpy as jnp
 import numpy as np
 from _timing import DATA, interleaved_medians, print_table
 
-from jaxreg.features import fpfh
+from jaxreg.geometry.metrics import pose_error
 from jaxreg.io import load_points
-from jaxreg.metrics import pose_error
-from jaxreg.neighbors import voxel_downsample
-from jaxreg.ransac import ransac_registration
+from jaxreg.registration.ransac import ransac_registration
+from jaxreg.search.features import fpfh
+from jaxreg.search.neighbors import voxel_downsample
 
 HANDED = (1.0, -2.0, 0.5), (0.3, -0.2, 0.5)  # roll-pitch-yaw (rad), offset (m) of the model
 

@@ -27,7 +27,7 @@ import numpy as np
 from _timing import DATA, interleaved_medians, print_table
 
 import jaxreg as jr
-from jaxreg.neighbors import build_grid
+from jaxreg.search.neighbors import build_grid
 
 IDENTITY = np.eye(4)
 

@@ -27,14 +27,14 @@ import numpy as np
 from _timing import DATA, interleaved_medians
 
 from jaxreg.io import load_points
-from jaxreg.neighbors import (
+from jaxreg.search.neighbors import (
     build_grid,
     knn,
     query_knn,
     query_nearest,
     voxel_downsample,
 )
-from jaxreg.normals import estimate_normals
+from jaxreg.search.normals import estimate_normals
 
 ROWS: list[tuple[str, str, float, str]] = []
 

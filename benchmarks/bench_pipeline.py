@@ -33,7 +33,7 @@ import numpy as np
 import trimesh
 from _timing import print_table
 
-from jaxreg.metrics import add_s
+from jaxreg.geometry.metrics import add_s
 from jaxreg.pipeline import STAGES, estimate_pose
 from jaxreg.synth import OBJECTS, StereoSensor, tabletop_scene
 

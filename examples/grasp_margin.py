@@ -20,11 +20,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxlie import SE3, SO3
 
-from jaxreg.icp import icp, icp_covariance
+from jaxreg.geometry.lie import adjoint_transport
 from jaxreg.io import load_points
-from jaxreg.lie import adjoint_transport
-from jaxreg.neighbors import build_grid, voxel_downsample
-from jaxreg.normals import estimate_normals
+from jaxreg.registration.icp import icp, icp_covariance
+from jaxreg.search.neighbors import build_grid, voxel_downsample
+from jaxreg.search.normals import estimate_normals
 from jaxreg.uncertainty import (
     DepthNoise,
     error_budget,

@@ -16,8 +16,8 @@ Run: python examples/hand_eye_bias.py   (a few minutes on a 2-core CPU: the pipe
 
 import numpy as np
 
-from jaxreg._repeatability import TIERS
 from jaxreg.studies import repeatability
+from jaxreg.studies._repeatability import TIERS
 
 planted = np.r_[[0.004, -0.002, 0.002], np.radians(1.0) * np.array([0.6, -0.8, 0.0])]
 # The jaws close along the base y axis, where this error moves the box most.

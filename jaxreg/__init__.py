@@ -6,36 +6,65 @@ conventions (poses map source/model into target/scene coordinates, tangents are 
 """
 
 from jaxreg import (
-    alignment as alignment,
     camera as camera,
-    features as features,
+    core as core,
+    geometry as geometry,
     io as io,
-    kernels as kernels,
-    lie as lie,
-    metrics as metrics,
-    neighbors as neighbors,
-    normals as normals,
-    pnp as pnp,
-    ransac as ransac,
-    robust as robust,
-    tags as tags,
+    pipeline as pipeline,
+    registration as registration,
+    search as search,
     uncertainty as uncertainty,
 )
-from jaxreg.alignment import (
+from jaxreg.camera.model import (
+    Intrinsics as Intrinsics,
+    RGBDFrame as RGBDFrame,
+    project as project,
+    reprojection_error as reprojection_error,
+)
+from jaxreg.camera.pnp import (
+    PlanarPnPResult as PlanarPnPResult,
+    PnPResult as PnPResult,
+    PnPStatus as PnPStatus,
+    solve_pnp as solve_pnp,
+    solve_pnp_planar as solve_pnp_planar,
+)
+from jaxreg.camera.tags import detect_tags as detect_tags, tag_object_points as tag_object_points
+from jaxreg.geometry.alignment import (
     Alignment as Alignment,
     AlignmentStatus as AlignmentStatus,
     align as align,
     kabsch as kabsch,
     umeyama as umeyama,
 )
-from jaxreg.camera import (
-    Intrinsics as Intrinsics,
-    RGBDFrame as RGBDFrame,
-    project as project,
-    reprojection_error as reprojection_error,
+from jaxreg.geometry.kernels import (
+    L2 as L2,
+    Cauchy as Cauchy,
+    GemanMcClure as GemanMcClure,
+    Huber as Huber,
+    Tukey as Tukey,
+    Welsch as Welsch,
 )
-from jaxreg.features import fpfh as fpfh, match_features as match_features
-from jaxreg.icp import (
+from jaxreg.geometry.lie import (
+    SE3 as SE3,
+    SO3 as SO3,
+    adjoint_transport as adjoint_transport,
+    geodesic_angle as geodesic_angle,
+    random_rotations as random_rotations,
+    rotation_grid as rotation_grid,
+    rotation_grid_around as rotation_grid_around,
+    se3_exp as se3_exp,
+)
+from jaxreg.geometry.means import chordal_mean as chordal_mean, karcher_mean as karcher_mean
+from jaxreg.geometry.metrics import (
+    Symmetry as Symmetry,
+    add as add,
+    add_s as add_s,
+    canonicalise as canonicalise,
+    pose_error as pose_error,
+    rotation_error as rotation_error,
+)
+from jaxreg.pipeline.estimate import PoseEstimate as PoseEstimate, estimate_pose as estimate_pose
+from jaxreg.registration.icp import (
     ICPStatus as ICPStatus,
     RegistrationResult as RegistrationResult,
     best_index as best_index,
@@ -48,60 +77,24 @@ from jaxreg.icp import (
     rotation_inits as rotation_inits,
     select_best as select_best,
 )
-from jaxreg.kernels import (
-    L2 as L2,
-    Cauchy as Cauchy,
-    GemanMcClure as GemanMcClure,
-    Huber as Huber,
-    Tukey as Tukey,
-    Welsch as Welsch,
+from jaxreg.registration.ransac import (
+    RansacStatus as RansacStatus,
+    ransac_iterations as ransac_iterations,
+    ransac_registration as ransac_registration,
 )
-from jaxreg.lie import (
-    SE3 as SE3,
-    SO3 as SO3,
-    adjoint_transport as adjoint_transport,
-    chordal_mean as chordal_mean,
-    geodesic_angle as geodesic_angle,
-    karcher_mean as karcher_mean,
-    random_rotations as random_rotations,
-    rotation_grid as rotation_grid,
-    rotation_grid_around as rotation_grid_around,
-    se3_exp as se3_exp,
+from jaxreg.registration.robust import (
+    RobustAlignment as RobustAlignment,
+    RobustStatus as RobustStatus,
+    robust_kabsch as robust_kabsch,
 )
-from jaxreg.metrics import (
-    Symmetry as Symmetry,
-    add as add,
-    add_s as add_s,
-    canonicalise as canonicalise,
-    pose_error as pose_error,
-    rotation_error as rotation_error,
-)
-from jaxreg.neighbors import (
+from jaxreg.search.features import fpfh as fpfh, match_features as match_features
+from jaxreg.search.neighbors import (
     NeighborGrid as NeighborGrid,
     build_grid as build_grid,
     validate_grid as validate_grid,
     voxel_downsample as voxel_downsample,
 )
-from jaxreg.normals import estimate_normals as estimate_normals
-from jaxreg.pipeline import PoseEstimate as PoseEstimate, estimate_pose as estimate_pose
-from jaxreg.pnp import (
-    PlanarPnPResult as PlanarPnPResult,
-    PnPResult as PnPResult,
-    PnPStatus as PnPStatus,
-    solve_pnp as solve_pnp,
-    solve_pnp_planar as solve_pnp_planar,
-)
-from jaxreg.ransac import (
-    RansacStatus as RansacStatus,
-    ransac_iterations as ransac_iterations,
-    ransac_registration as ransac_registration,
-)
-from jaxreg.robust import (
-    RobustAlignment as RobustAlignment,
-    RobustStatus as RobustStatus,
-    robust_kabsch as robust_kabsch,
-)
-from jaxreg.tags import detect_tags as detect_tags, tag_object_points as tag_object_points
+from jaxreg.search.normals import estimate_normals as estimate_normals
 from jaxreg.uncertainty import (
     DepthNoise as DepthNoise,
     IsotropicNoise as IsotropicNoise,
@@ -115,9 +108,9 @@ from jaxreg.uncertainty import (
 
 
 def __getattr__(name: str):
-    # jaxreg.synth and jaxreg.studies need the ray caster (trimesh + Embree): imported on first
-    # use, not with jaxreg.
-    if name in ("synth", "studies"):
+    # jaxreg.synth and jaxreg.studies need the ray caster (trimesh + Embree), and jaxreg.cli
+    # needs both: imported on first use, not with jaxreg.
+    if name in ("synth", "studies", "cli"):
         import importlib
 
         return importlib.import_module(f"jaxreg.{name}")

@@ -1,7 +1,7 @@
-"""``python -m jaxreg``: the command line (see :mod:`jaxreg.cli`)."""
+"""``python -m jaxreg``: the command line (see :mod:`jaxreg.cli.commands`)."""
 
 import sys
 
-from jaxreg.cli import main
+from jaxreg.cli.commands import main
 
 sys.exit(main())

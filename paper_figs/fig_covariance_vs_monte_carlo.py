@@ -29,10 +29,10 @@ import numpy as np
 from _common import DATA, save
 from jaxlie import SE3, SO3
 
-from jaxreg.icp import icp, icp_covariance
 from jaxreg.io import load_points
-from jaxreg.neighbors import build_grid, voxel_downsample
-from jaxreg.normals import estimate_normals
+from jaxreg.registration.icp import icp, icp_covariance
+from jaxreg.search.neighbors import build_grid, voxel_downsample
+from jaxreg.search.normals import estimate_normals
 from jaxreg.uncertainty import DepthNoise, pose_statistics
 
 AXES = ["vx", "vy", "vz", "wx", "wy", "wz"]

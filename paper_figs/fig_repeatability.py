@@ -18,8 +18,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 from _common import save
 
-from jaxreg._repeatability import TIERS
 from jaxreg.studies import repeatability
+from jaxreg.studies._repeatability import TIERS
 from jaxreg.uncertainty import grasp_success_probability
 
 PLANTED = np.r_[[0.004, -0.002, 0.002], np.radians(1.0) * np.array([0.6, -0.8, 0.0])]

@@ -17,7 +17,7 @@ import numpy as np
 from _common import save
 
 import jaxreg as jr
-from jaxreg._meshes import object_mesh
+from jaxreg.synth._meshes import object_mesh
 
 
 def main():

@@ -21,13 +21,13 @@ REPO = Path(__file__).resolve().parents[1]
 _NUMBA_WARMUP = (
     """
 import numpy as np
-from jaxreg.normals import estimate_normals
+from jaxreg.search.normals import estimate_normals
 estimate_normals(np.random.default_rng(0).uniform(-0.02, 0.02, (500, 3)), k=8)
 """,
     """
 import jax
 import numpy as np
-from jaxreg.neighbors import build_grid
+from jaxreg.search.neighbors import build_grid
 points = np.random.default_rng(0).uniform(-0.02, 0.02, (4000, 3))
 build_grid(points.astype(np.float32), 0.01, k=None, max_depth=2)
 with jax.enable_x64(True):

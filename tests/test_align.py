@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from jaxreg.alignment import Alignment, AlignmentStatus, align, kabsch, umeyama
+from jaxreg.geometry.alignment import Alignment, AlignmentStatus, align, kabsch, umeyama
 
 try:
     from scipy.spatial.transform import Rotation

@@ -3,8 +3,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxreg.features import compute_fpfh, fpfh, match_features
 from jaxreg.io import load_points
+from jaxreg.search.features import compute_fpfh, fpfh, match_features
 
 
 @pytest.fixture(scope="module")
@@ -107,7 +107,7 @@ def test_hybrid_host_search_is_cKDTree_radius_capped_knn():
     dropped, on a flat cloud where most neighbourhoods are cut by the radius."""
     from scipy.spatial import cKDTree
 
-    from jaxreg._knn import self_knn
+    from jaxreg.search._knn import self_knn
 
     x = np.random.default_rng(0).uniform(size=(4000, 3)) * [1.0, 1.0, 0.05]
     idx, sq = self_knn(x, 30, 0.04)

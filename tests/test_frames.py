@@ -15,8 +15,8 @@ import pytest
 from PIL import Image
 
 import jaxreg as jr
+from jaxreg.geometry.lie import se3_to_matrix
 from jaxreg.io import read_frame, read_pcd, write_frame, write_pcd
-from jaxreg.lie import se3_to_matrix
 
 CAPTURES = {
     # file: (fx, fy, cx, cy) where the data README states them, else None

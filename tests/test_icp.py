@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 from jaxlie import SE3, SO3
 
-from jaxreg.icp import (
+from jaxreg.geometry.kernels import Tukey
+from jaxreg.io import load_points
+from jaxreg.registration.icp import (
     ICPStatus,
     best_index,
     icp,
@@ -18,10 +20,8 @@ from jaxreg.icp import (
     rotation_inits,
     select_best,
 )
-from jaxreg.io import load_points
-from jaxreg.kernels import Tukey
-from jaxreg.neighbors import build_grid, voxel_downsample
-from jaxreg.normals import estimate_normals
+from jaxreg.search.neighbors import build_grid, voxel_downsample
+from jaxreg.search.normals import estimate_normals
 
 try:
     import open3d as o3d
@@ -277,7 +277,7 @@ def test_start_batch_is_sharded_over_devices():
     code = (
         "import numpy as np, jax, jax.numpy as jnp\n"
         "from jaxlie import SE3, SO3\n"
-        "from jaxreg.icp import multistart_icp\n"
+        "from jaxreg.registration.icp import multistart_icp\n"
         "assert len(jax.devices()) == 2\n"
         "rng = np.random.default_rng(0)\n"
         "m = rng.uniform(-0.03, 0.03, (300, 3)).astype(np.float32)\n"
@@ -427,7 +427,7 @@ def test_implicit_gradient_matches_finite_differences(method, x64):
 
 
 def test_results_are_unpadded_and_similar_clouds_share_one_compilation():
-    from jaxreg._icp_setup import Settings, prepare
+    from jaxreg.registration._icp_setup import Settings, prepare
 
     model, scene, _ = lesson_cube(5.0)
     result = icp(model[:787], scene, max_correspondence_distance=0.02)
@@ -450,9 +450,9 @@ def test_point_to_point_step_is_align_of_the_pairs():
     Jacobi sweeps; on pairs as the loop forms them (weights, zero-weight rows, rows matched
     to nothing or to target padding) it gives align()'s pose and degeneracy flag, and in the
     degenerate and weightless cases (no unique minimiser) a pose of align()'s cost."""
-    from jaxreg._icp_core import Pairs, _increment, fill_gather
-    from jaxreg._icp_setup import Settings, prepare
-    from jaxreg.alignment import align
+    from jaxreg.geometry.alignment import align
+    from jaxreg.registration._icp_core import Pairs, _increment, fill_gather
+    from jaxreg.registration._icp_setup import Settings, prepare
 
     rng = np.random.default_rng(3)
     source = rng.normal(size=(37, 3)).astype(np.float32) * [0.05, 0.03, 0.02]
@@ -502,9 +502,9 @@ def test_point_to_point_step_is_align_of_the_pairs():
 def test_the_loop_calls_no_lapack_kernel(method):
     """jaxlib's batched LAPACK eigh splits a large batch over XLA's intra-op pool and waits
     on a thread of it, which deadlocked a 1,280-start sweep on 2 forced host devices: the
-    compiled multi-start loop must contain no LAPACK custom call (jaxreg._eig4 instead)."""
-    from jaxreg._icp_core import run
-    from jaxreg._icp_setup import Settings, as_pose, prepare
+    compiled multi-start loop must contain no LAPACK custom call (jaxreg.geometry._eig4 instead)."""
+    from jaxreg.registration._icp_core import run
+    from jaxreg.registration._icp_setup import Settings, as_pose, prepare
 
     rng = np.random.default_rng(0)
     cloud = rng.uniform(-0.03, 0.03, (64, 3)).astype(np.float32)

@@ -9,8 +9,8 @@ import pytest
 import trimesh
 from hypothesis import given, settings, strategies as st
 
-from jaxreg._lzf import compress as lzf_compress, decompress as lzf_decompress
 from jaxreg.io import load_points, read_pcd, write_pcd, write_ply
+from jaxreg.io._lzf import compress as lzf_compress, decompress as lzf_decompress
 
 
 def _open3d():

@@ -3,7 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxreg.kernels import L2, Cauchy, GemanMcClure, Huber, Tukey, Welsch, trim_mask
+from jaxreg.geometry.kernels import L2, Cauchy, GemanMcClure, Huber, Tukey, Welsch, trim_mask
 
 SCALED = [Huber, Tukey, Cauchy, GemanMcClure, Welsch]
 KERNELS = [lambda: L2()] + [lambda cls=cls: cls(0.01) for cls in SCALED]

@@ -1,4 +1,4 @@
-"""Tests for jaxreg.lie: group axioms, exp/log, Jacobians, means, sampling, grids, adjoint,
+"""Tests for jaxreg.geometry.lie: group axioms, exp/log, Jacobians, means, sampling, grids, adjoint,
 conversions and Open3D's twist order."""
 
 import jax
@@ -7,15 +7,13 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from jaxreg.lie import (
+from jaxreg.geometry.lie import (
     SE3,
     SO3,
     adjoint_transport,
-    chordal_mean,
     covariance_from_open3d,
     covariance_to_open3d,
     geodesic_angle,
-    karcher_mean,
     random_rotations,
     rotation_angle,
     rotation_grid,
@@ -27,6 +25,7 @@ from jaxreg.lie import (
     tangent_from_open3d,
     tangent_to_open3d,
 )
+from jaxreg.geometry.means import chordal_mean, karcher_mean
 
 EXP = {SO3: SO3.exp, SE3: se3_exp}
 SHAPES = [(), (1,), (3, 2)]

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from jaxlie import SE3, SO3
 
-from jaxreg.lie import geodesic_angle
-from jaxreg.metrics import Symmetry, add, add_s, canonicalise, pose_error, rotation_error
+from jaxreg.geometry.lie import geodesic_angle
+from jaxreg.geometry.metrics import Symmetry, add, add_s, canonicalise, pose_error, rotation_error
 
 HALF_X = np.diag([1.0, -1.0, -1.0])
 HALF_Y = np.diag([-1.0, 1.0, -1.0])

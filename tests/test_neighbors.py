@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from jaxreg.io import load_points
-from jaxreg.neighbors import (
+from jaxreg.search.neighbors import (
     build_grid,
     knn,
     query_knn,

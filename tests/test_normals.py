@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from jaxreg.io import load_points
-from jaxreg.neighbors import build_grid, query_knn, voxel_downsample
-from jaxreg.normals import NormalStatus, estimate_normals, estimate_normals_with_curvature
+from jaxreg.search.neighbors import build_grid, query_knn, voxel_downsample
+from jaxreg.search.normals import NormalStatus, estimate_normals, estimate_normals_with_curvature
 
 # One compiled function per shape (eager dispatch would compile every primitive instead).
 estimate = jax.jit(estimate_normals_with_curvature, static_argnums=1)
@@ -189,8 +189,8 @@ def test_closed_form_eigensolver_matches_eigh_and_differentiates(x64):
     where the two larger eigenvalues repeat (a round patch of a plane)."""
     from jax.test_util import check_grads
 
-    from jaxreg._eig3 import eigh3
-    from jaxreg.normals import _smallest_eigenpair
+    from jaxreg.geometry._eig3 import eigh3
+    from jaxreg.search.normals import _smallest_eigenpair
 
     rng = np.random.default_rng(6)
     rot = np.linalg.qr(rng.normal(size=(4, 3, 3)))[0]

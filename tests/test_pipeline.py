@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from jaxreg.camera import RGBDFrame
-from jaxreg.metrics import add_s
+from jaxreg.geometry.metrics import add_s
 from jaxreg.pipeline import estimate_pose
 
 
@@ -137,7 +137,7 @@ def test_a_larger_box_of_a_similar_shape_is_not_taken_for_the_target(scene):
     """Seed 128: beside the 80 x 50 x 120 mm target stands an 89 x 61 x 114 mm box, which the
     box model fits as well by inlier fraction, residual and image support (it was claimed
     before the extent test); only its points reaching beyond the model tell them apart."""
-    from jaxreg._register_stage import _prepare_model, overhang
+    from jaxreg.pipeline._register_stage import _prepare_model, overhang
     from jaxreg.synth import tabletop_scene
 
     _, model, symmetry = scene
@@ -199,8 +199,8 @@ def test_resting_starts_stand_the_model_on_the_table_on_each_principal_half_axis
     import jax.numpy as jnp
     from jaxlie import SE3
 
-    from jaxreg._register_stage import _resting_starts
-    from jaxreg.segment import TablePlane
+    from jaxreg.pipeline._register_stage import _resting_starts
+    from jaxreg.pipeline.segment import TablePlane
 
     rng = np.random.default_rng(0)
     model = (rng.uniform(-1, 1, (500, 3)) * [0.04, 0.025, 0.06]).astype(np.float32)

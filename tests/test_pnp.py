@@ -12,7 +12,7 @@ import pytest
 from jaxlie import SE3, SO3
 
 from jaxreg.camera import pose_jacobian
-from jaxreg.pnp import (
+from jaxreg.camera.pnp import (
     PlanarPnPResult,
     PnPResult,
     PnPStatus,
@@ -21,7 +21,7 @@ from jaxreg.pnp import (
     solve_pnp,
     solve_pnp_planar,
 )
-from jaxreg.tags import tag_object_points
+from jaxreg.camera.tags import tag_object_points
 
 try:
     import cv2
@@ -468,7 +468,7 @@ def test_static_problems_raise_on_the_host(solver):
 
 
 def test_unrolled_cholesky_solve_and_inverse_match_numpy(x64):
-    from jaxreg._pnp_linalg import spd_inverse, spd_solve
+    from jaxreg.camera._pnp_linalg import spd_inverse, spd_solve
 
     rng = np.random.default_rng(3)
     M = rng.normal(size=(5, 8, 6))
@@ -486,7 +486,7 @@ def test_unrolled_cholesky_solve_and_inverse_match_numpy(x64):
 def test_refinement_normal_equations_match_autodiff(x64):
     """The closed-form chart Jacobian of the refinement, away from the chart's centre and with
     distortion, gives the J^T J and J^T r of forward-mode autodiff of its residuals."""
-    from jaxreg._pnp_refine import _evaluate, _Problem, normal_equations
+    from jaxreg.camera._pnp_refine import _evaluate, _Problem, normal_equations
 
     rng = np.random.default_rng(4)
     R, t = _tag_view(rng, 25.0)
@@ -510,7 +510,7 @@ def test_refinement_normal_equations_match_autodiff(x64):
 def test_closed_form_covariance_equals_the_eigendecomposition(planar):
     """Where the closed form decides (every direction determined, or none), it gives what the
     eigendecomposition gives; it leaves the near-singular lanes to it."""
-    from jaxreg._pnp_covariance import _covariance_closed_form, covariance
+    from jaxreg.camera._pnp_covariance import _covariance_closed_form, covariance
 
     c = planar["result"].candidates
     X, K_ = jnp.asarray(TAG_POINTS, jnp.float32), jnp.asarray(K, jnp.float32)

@@ -1,4 +1,4 @@
-"""Programs stored on disk between processes (jaxreg._program_cache)."""
+"""Programs stored on disk between processes (jaxreg.core._program_cache)."""
 
 import dataclasses
 import json
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import jaxreg as jr
-from jaxreg import _program_cache
+from jaxreg.core import _program_cache
 
 pytest.importorskip("flatbuffers", reason="jax.export serialization needs flatbuffers")
 
@@ -37,7 +37,7 @@ FRESH_PROCESS = textwrap.dedent(
     import json
     import sys
     import numpy as np
-    from jaxreg import _program_cache
+    from jaxreg.core import _program_cache
     import fitmod
 
     _program_cache.set_folder(sys.argv[1])

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from jaxlie import SE3, SO3
 
-from jaxreg.metrics import pose_error
-from jaxreg.ransac import RansacStatus, ransac_iterations, ransac_registration
+from jaxreg.geometry.metrics import pose_error
+from jaxreg.registration.ransac import RansacStatus, ransac_iterations, ransac_registration
 
 HERE = Path(__file__).resolve().parent
 
@@ -131,11 +131,11 @@ def test_bad_input_gives_a_status_never_a_random_pose():
 def test_fpfh_ransac_icp_recovers_the_carton_in_the_kinect_scene_like_open3d(pcl_dir):
     """milk.pcd handed over in an arbitrary pose; the scene is the whole Kinect capture."""
     o3d = pytest.importorskip("open3d", reason="open3d (peers extra, needs libusb) not importable")
-    from jaxreg.features import fpfh
-    from jaxreg.icp import icp
     from jaxreg.io import load_points
-    from jaxreg.neighbors import voxel_downsample
-    from jaxreg.normals import estimate_normals
+    from jaxreg.registration.icp import icp
+    from jaxreg.search.features import fpfh
+    from jaxreg.search.neighbors import voxel_downsample
+    from jaxreg.search.normals import estimate_normals
 
     voxel, fine = 0.005, 0.003
     handed = SE3.from_rotation_and_translation(

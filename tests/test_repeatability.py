@@ -14,10 +14,10 @@ import pytest
 from jaxlie import SE3
 
 import jaxreg as jr
-from jaxreg._hand_eye import estimate_hand_eye_correction, stack_frames
-from jaxreg._repeatability import repeatability
-from jaxreg.icp import ICPStatus
-from jaxreg.lie import se3_exp
+from jaxreg.geometry.lie import se3_exp
+from jaxreg.registration.icp import ICPStatus
+from jaxreg.studies._hand_eye import estimate_hand_eye_correction, stack_frames
+from jaxreg.studies._repeatability import repeatability
 from jaxreg.synth import tabletop_scene
 
 # The planted hand-eye error: 4.9 mm and 1.0 degree (right perturbation of base_T_camera).

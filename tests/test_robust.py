@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from jaxlie import SE3, SO3
 
-from jaxreg.alignment import kabsch
-from jaxreg.metrics import pose_error
-from jaxreg.robust import RobustStatus, robust_kabsch
+from jaxreg.geometry.alignment import kabsch
+from jaxreg.geometry.metrics import pose_error
+from jaxreg.registration.robust import RobustStatus, robust_kabsch
 
 TRUTH = SE3.from_rotation_and_translation(
     SO3.from_rpy_radians(2.0, -0.7, 1.2), jnp.array([0.4, -0.3, 0.9])

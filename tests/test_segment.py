@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from jaxreg.camera import Intrinsics, RGBDFrame
-from jaxreg.segment import (
+from jaxreg.pipeline.segment import (
     SegmentStatus,
     choose_cluster,
     cluster_mask,
@@ -105,7 +105,7 @@ def test_compact_and_whole_grid_propagation_find_the_same_clusters(scene):
     """The masked points alone (capacity above their count) and the whole grid (capacity
     below it) give identical clusters: on the objects (a few hundred points) and on the
     objects with the table (tens of thousands, where ties between equal sizes occur)."""
-    from jaxreg.segment import grid_points
+    from jaxreg.pipeline.segment import grid_points
 
     seg = segment_frame(scene.frame)
     points = grid_points(scene.frame, seg.stride)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from jaxlie import SE3, SO3
 
-from jaxreg.metrics import Symmetry, rotation_error
+from jaxreg.geometry.metrics import Symmetry, rotation_error
 from jaxreg.studies import basin_radius, basin_starts, basin_sweep
 
 HERE = Path(__file__).resolve().parent
@@ -198,7 +198,7 @@ def test_same_answer_on_one_device_two_devices_and_two_processes(sweep):
 def run_cli(argv):
     import argparse
 
-    from jaxreg._basin_cli import add_basin_parser, run_basin
+    from jaxreg.cli._basin import add_basin_parser, run_basin
 
     parser = argparse.ArgumentParser(prog="jaxreg")
     add_basin_parser(parser.add_subparsers(dest="command", required=True))

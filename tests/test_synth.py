@@ -14,7 +14,7 @@ import trimesh
 
 import jaxreg as jr
 from jaxreg import synth
-from jaxreg.lie import se3_to_matrix
+from jaxreg.geometry.lie import se3_to_matrix
 
 SENSOR = synth.StereoSensor.d435()
 FX = float(SENSOR.intrinsics().fx)  # the D435's focal length at 848x480, ~447 px

@@ -7,7 +7,7 @@ import pytest
 from jaxlie import SO3
 
 from jaxreg.camera import project
-from jaxreg.tags import detect_tags, tag_object_points
+from jaxreg.camera.tags import detect_tags, tag_object_points
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
 TAG = 0.045

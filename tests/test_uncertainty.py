@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from jaxlie import SE3, SO3
 
-from jaxreg.icp import ICPStatus, icp, icp_covariance, init_spread
+from jaxreg.geometry.kernels import Cauchy
+from jaxreg.geometry.metrics import Symmetry
 from jaxreg.io import load_points
-from jaxreg.kernels import Cauchy
-from jaxreg.metrics import Symmetry
-from jaxreg.neighbors import build_grid, voxel_downsample
-from jaxreg.normals import estimate_normals
+from jaxreg.registration.icp import ICPStatus, icp, icp_covariance, init_spread
+from jaxreg.search.neighbors import build_grid, voxel_downsample
+from jaxreg.search.normals import estimate_normals
 from jaxreg.uncertainty import (
     DepthNoise,
     IsotropicNoise,
@@ -498,7 +498,7 @@ def test_symmetric_object_hopping_between_branches():
 
 def test_symmetry_description_is_the_metrics_one():
     """A container with its axis through the object origin: pose_statistics takes the
-    jaxreg.metrics.Symmetry that ADD-S and the synthetic scenes use, and a continuous axis
+    jaxreg.Symmetry that ADD-S and the synthetic scenes use, and a continuous axis
     (a cylinder) is discretised into symmetry_steps turns, canonical to within half a step."""
     poses = known_poses(200, seed=3)
     rng = np.random.default_rng(6)

@@ -1,0 +1,111 @@
+"""First-order covariance of a PnP pose from its pixel Jacobian, batched for `jaxreg.camera.pnp`.
+
+`sigma_px^2 (J^T W J)^-1` with `J` the `(2N, 6)` pixel Jacobian of the right perturbation
+`T_true = T_est @ SE3.exp(delta)` (jaxlie tangent order `(vx, vy, vz, wx, wy, wz)`, so the
+covariance is in the object frame) at the returned pose, for independent isotropic pixel noise
+of `sigma_px` per coordinate. Directions the data do not determine (an eigenvalue of the
+column-normalised information below `100 eps` of the largest) get `inf` variance in every
+row and column of the tangent coordinates they involve. A closed form (Cholesky) decides the
+well-determined and the empty problems; an eigendecomposition runs only when a lane of the
+batch is near-singular.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxlie import SE3
+
+from jaxreg.camera._pnp_linalg import matmul, spd_inverse
+from jaxreg.camera._pnp_refine import weighted_jacobian
+
+__all__ = ["covariance", "covariances"]
+
+
+def _normalised_information(pose: SE3, X, K, dist, w):
+    """`J^T W J` at `pose` (zero where not finite), its column norms `col` (1 where zero) and
+    `C = J^T W J / outer(col, col)`, whose diagonal is 1 (0 where the column is zero)."""
+    J = weighted_jacobian(pose, X, K, dist, jnp.sqrt(w))
+    info = matmul(J.T, J)
+    info = jnp.where(jnp.all(jnp.isfinite(info)), info, 0.0)
+    col = jnp.sqrt(jnp.diagonal(info))
+    col = jnp.where(col > 0, col, 1.0)
+    return info, col, info / jnp.outer(col, col)
+
+
+def _with_undetermined(cov, free, pose: SE3, tol):
+    """`inf` in the rows and columns of the `free` tangent coordinates, the per-axis sigmas
+    described in `jaxreg.camera.pnp.PnPResult`, and whether any coordinate is free."""
+    free_pair = free[:, None] | free[None, :]
+    R = pose.rotation().as_matrix()
+    t_var = jnp.einsum("ij,jk,ik->i", R, jnp.where(free_pair, 0.0, cov)[:3, :3], R)
+    t_free = jnp.any(free[None, :3] & (jnp.abs(R) > jnp.sqrt(tol)), axis=1)
+    t_sigma = jnp.where(t_free, jnp.inf, jnp.sqrt(jnp.maximum(t_var, 0.0)))
+    cov = jnp.where(free_pair, jnp.inf, cov)
+    r_sigma = jnp.rad2deg(jnp.sqrt(jnp.maximum(jnp.diagonal(cov[3:, 3:]), 0.0)))
+    return cov, t_sigma, r_sigma, jnp.any(free)
+
+
+def covariance(pose: SE3, X, K, dist, w, sigma_px):
+    """`sigma_px^2 (J^T W J)^-1` at `pose` with `inf` on undetermined directions (see the
+    module docstring), the per-axis sigmas described in `jaxreg.camera.pnp.PnPResult`, and whether
+    any direction is undetermined. One eigendecomposition per problem: the reference for
+    `_covariance_closed_form`, used where that one cannot decide."""
+    tol = 100 * jnp.finfo(X.dtype).eps
+    _, col, C = _normalised_information(pose, X, K, dist, w)
+    evals, evecs = jnp.linalg.eigh(C)
+    determined = evals > tol * evals[-1]
+    inv = jnp.where(determined, 1.0 / jnp.where(determined, evals, 1.0), 0.0)
+    cov = sigma_px**2 * ((evecs * inv) @ evecs.T) / jnp.outer(col, col)
+    # Tangent coordinates with a share in an undetermined direction (evecs[i, k]: coordinate i).
+    free = jnp.any(~determined & (jnp.abs(evecs) > jnp.sqrt(tol)), axis=1)
+    return _with_undetermined(cov, free, pose, tol)
+
+
+def _covariance_closed_form(pose: SE3, X, K, dist, w, sigma_px):
+    """`covariance`'s outputs without an eigendecomposition, and whether they are its.
+
+    Two cases are decided here. Every direction is determined when `1 / trace(C^-1)`, a lower
+    bound on C's smallest eigenvalue, exceeds twice `tol` times the largest absolute row sum of
+    C, an upper bound on its largest eigenvalue (the factor 2 covers the rounding of `C^-1`,
+    whose relative error there is ~`eps / tol`): then the covariance is the plain inverse, by
+    Cholesky. No direction is determined when the information is zero (no weight, or a
+    non-finite Jacobian). Between them lie near-singular problems, left to `covariance`: the
+    returned flag is False there."""
+    tol = 100 * jnp.finfo(X.dtype).eps
+    info, col, C = _normalised_information(pose, X, K, dist, w)
+    C_inv, positive = spd_inverse(C)
+    trace = jnp.trace(C_inv)
+    largest = jnp.max(jnp.sum(jnp.abs(C), axis=1))
+    determined = positive & jnp.isfinite(trace) & (trace * 2 * tol * largest < 1.0)
+    zero = jnp.all(info == 0)
+    cov = jnp.where(zero, 0.0, sigma_px**2 * C_inv / jnp.outer(col, col))
+    return _with_undetermined(cov, jnp.full(6, zero), pose, tol), determined | zero
+
+
+def covariances(pose: SE3, X, K, dist, w, sigma_px, axes):
+    """`covariance` of a flat batch of problems `(B,)` (X `(B, N, 3)`, w `(B, N)`, K and dist
+    batched or shared as `axes` says) at poses of batch `(B,)` or `(B, C)` (C candidates each).
+
+    Closed form where it decides (`_covariance_closed_form`), the eigendecomposition elsewhere;
+    that runs only when some lane needs it, and then for the whole batch."""
+
+    def batched(fn):
+        f = lambda T, X, K, dist, w: fn(T, X, K, dist, w, sigma_px)  # noqa: E731
+        if pose.wxyz_xyz.ndim == 3:
+            f = jax.vmap(f, in_axes=(0, None, None, None, None))
+        return jax.vmap(f, in_axes=(0, 0, axes[0], axes[1], 0))
+
+    fast, decided = batched(_covariance_closed_form)(pose, X, K, dist, w)
+
+    def fallback():
+        exact = batched(covariance)(pose, X, K, dist, w)
+        return jax.tree.map(
+            lambda a, b: jnp.where(
+                decided.reshape(decided.shape + (1,) * (a.ndim - decided.ndim)), a, b
+            ),
+            fast,
+            exact,
+        )
+
+    return jax.lax.cond(jnp.all(decided), lambda: fast, fallback)

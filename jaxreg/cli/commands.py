@@ -1,0 +1,459 @@
+"""Command line: ``jaxreg demo | pose`` (``python -m jaxreg`` is the same).
+
+* ``jaxreg demo [--out DIR] [--json] [--seed N] [--object NAME]`` renders a synthetic tabletop
+  frame (:func:`jaxreg.synth.tabletop_scene`), estimates the object's pose
+  (:func:`jaxreg.estimate_pose`), and reports each stage, the error against the known pose,
+  the pose's error bars and the predicted success of a parallel-jaw grasp.
+* ``jaxreg pose --scene FILE --model FILE [--intrinsics FILE] [--json] [--out DIR]`` does the
+  same on your data: an organized PCD, or a 16-bit depth PNG with its intrinsics JSON
+  (:func:`jaxreg.io.read_frame`), and a model as points (PCD, PLY) or a mesh (OBJ, STL, PLY),
+  in metres.
+
+With ``--json`` stdout is one JSON object (the fields of the design's command line section);
+``--out DIR`` also writes ``report.json`` and the pictures ``depth.png``,
+``segmentation.png`` (the lifted segment over the image) and ``model_overlay.png`` (the model
+drawn at the estimated pose) to DIR. Errors are one line on stderr and exit status 1.
+
+Compilation cache: the commands (never ``import jaxreg``) enable JAX's persistent compilation
+cache, and keep the pipeline's compiled programs beside it (:mod:`jaxreg.core._program_cache`), so a
+second run neither traces, lowers nor compiles them again. It lives in ``$JAXREG_CACHE_DIR`` if
+set, else ``$XDG_CACHE_HOME/jaxreg/jax`` (``~/.cache/jaxreg/jax``), programs in its ``programs``
+folder; set ``JAXREG_CACHE_DIR=""`` to turn both off. Deleting the folder is always safe.
+
+Subcommands are added by functions taking the subparsers object (``_add_demo``,
+``_add_pose``, and ``jaxreg basin``'s ``add_basin_parser`` from :mod:`jaxreg.cli._basin`); each
+sets ``run`` to a function of the parsed arguments returning the exit
+status.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from jaxreg.cli._basin import add_basin_parser, run_basin
+from jaxreg.core._program_cache import persistent_jit
+
+GRIPPER_OPENING = 0.085  # metres: a Robotiq 2F-85-class parallel-jaw gripper
+MODEL_SAMPLES = 20_000  # points sampled on a mesh model
+
+
+def enable_compilation_cache() -> str | None:
+    """Turns on JAX's persistent compilation cache and jaxreg's program store for this process
+    (see the module docstring for where); returns the folder, or None when disabled."""
+    import jax
+
+    from jaxreg.core import _program_cache
+
+    folder = os.environ.get("JAXREG_CACHE_DIR")
+    if folder is None:
+        base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+        folder = str(Path(base) / "jaxreg" / "jax")
+    if not folder:
+        return None
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    _program_cache.set_folder(Path(folder) / "programs")
+    return folder
+
+
+# --------------------------------------------------------------------------------------------
+# The report.
+
+
+def _clean(value):
+    """JSON-safe: NaN and inf become null, numpy scalars and arrays plain Python."""
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_clean(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _clean(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def _grasp_axis(model_points: np.ndarray, covariance: np.ndarray):
+    """A parallel-jaw grasp across the model's narrowest principal axis: the axis ``(3,)``
+    (object frame), the model's width along it and the lateral sigma along it (host numpy).
+
+    The jaws close along the axis of least extent; the lateral error along it is Gaussian
+    with the sigma the pose covariance gives it (its translation block, object frame), no
+    bias: the depth noise alone. :func:`_report_numbers` turns them into the margin
+    (:func:`jaxreg.grasp_margin`) and the predicted success; ``axis`` is reported so that a
+    known error can be added as a bias (:func:`measured_grasp`).
+    """
+    centred = model_points - model_points.mean(0)
+    _, vectors = np.linalg.eigh(np.cov(centred.T))
+    axis = vectors[:, 0]
+    along = centred @ axis
+    sigma = float(np.sqrt(max(axis @ covariance[:3, :3] @ axis, 0.0)))
+    return axis, float(along.max() - along.min()), sigma
+
+
+def _grasp(opening, width, margin, sigma, probability, axis) -> dict:
+    return {
+        "gripper_opening_mm": round(opening * 1e3, 1),
+        "object_width_mm": round(width * 1e3, 1),
+        "margin_per_side_mm": round(margin * 1e3, 2),
+        "lateral_sigma_mm": round(sigma * 1e3, 3),
+        "probability": probability if math.isfinite(sigma) else None,
+        "axis": axis.tolist(),
+    }
+
+
+@persistent_jit
+def _report_numbers(pose, opening, width, sigma):
+    """The pose's ``(4, 4)`` matrix, the grasp margin per side of a gripper ``opening`` around
+    ``width``, and the grasp's predicted success with lateral ``sigma`` and no bias (all
+    metres), as one compiled program (each eager operation would be a program of its own to
+    load)."""
+    from jaxreg.uncertainty import grasp_margin, grasp_success_probability
+
+    margin = grasp_margin(opening, width)
+    return pose.as_matrix(), margin, grasp_success_probability(sigma, 0.0, margin)
+
+
+@persistent_jit
+def _measured_probability(sigma, bias, margin):
+    """:func:`jaxreg.grasp_success_probability`, as a stored program."""
+    from jaxreg.uncertainty import grasp_success_probability
+
+    return grasp_success_probability(sigma, bias, margin)
+
+
+def measured_grasp(grasp: dict, offset: np.ndarray) -> dict:
+    """The report's grasp (:func:`build_report`) with this frame's measured error (``offset``, the
+    true object origin in the estimated object frame, ``(3,)`` metres; its component along the
+    jaw axis) as the bias: what the noise-only prediction leaves out (segmentation, model fit,
+    calibration)."""
+    bias = abs(float(np.asarray(grasp["axis"]) @ np.asarray(offset, np.float64)))
+    sigma, margin = grasp["lateral_sigma_mm"] * 1e-3, grasp["margin_per_side_mm"] * 1e-3
+    probability = _measured_probability(*np.float32([sigma, bias, margin]))
+    return {
+        "measured_lateral_error_mm": round(bias * 1e3, 3),
+        "probability_with_measured_error": float(probability),
+    }
+
+
+def build_report(estimate, model_points: np.ndarray, opening: float) -> dict:
+    """The JSON report of a :class:`jaxreg.pipeline.PoseEstimate`."""
+    found = estimate.pose is not None
+    report = {
+        "pose": None,
+        "failed_stage": estimate.failed_stage,
+        "reason": estimate.reason,
+        "stages": estimate.stages,
+        "inlier_rmse_mm": round(estimate.inlier_rmse * 1e3, 3),
+        "inlier_fraction": round(estimate.inlier_fraction, 4),
+        "predicted_grasp_success": None,
+    }
+    if found:
+        axis, width, lateral = _grasp_axis(model_points, estimate.covariance)
+        matrix, margin, probability = _report_numbers(
+            estimate.pose, *np.float32([opening, width, lateral])
+        )
+        report["pose"] = np.asarray(matrix).tolist()
+        sigma = np.sqrt(np.clip(np.diag(estimate.covariance), 0.0, None))
+        report["error_bars"] = {
+            "translation_sigma_mm": (sigma[:3] * 1e3).round(4).tolist(),
+            "rotation_sigma_deg": np.degrees(sigma[3:]).round(4).tolist(),
+            "frame": "object axes (right perturbation of base_T_object), 1 sigma, depth noise only",
+        }
+        grasp = _grasp(opening, width, float(margin), lateral, float(probability), axis)
+        report["grasp"] = grasp
+        report["predicted_grasp_success"] = grasp["probability"]
+    return _clean(report)
+
+
+def print_report(report: dict, title: str, out=sys.stdout) -> None:
+    """A readable stage-by-stage report."""
+
+    def line(text=""):
+        print(text, file=out)
+
+    line(title)
+    seg = report["stages"].get("segment")
+    if seg:
+        line(
+            f"  segment  {seg['ms']:8.1f} ms  table plane: {seg['plane_inliers']} grid points "
+            f"({seg['plane_inlier_fraction']:.0%}); {len(seg['cluster_sizes'])} clusters above it "
+            f"(sizes {seg['cluster_sizes']})"
+        )
+        for c in seg.get("candidates", []):
+            line(
+                f"           candidate {c['clusters']}: score {c['score']:.2f} (model explains "
+                f"{c['explained']:.0%}, image contradicts {c['contradicted']:.0%})"
+            )
+    lift = report["stages"].get("lift")
+    if lift:
+        text = f"  lift     {lift['ms']:8.1f} ms  {lift['valid_depth_fraction']:.0%} valid depth"
+        if "points" in lift:
+            text += (
+                f", {lift['flying_pixels_removed']} flying pixels and "
+                f"{lift['isolated_points_removed']} isolated points removed -> "
+                f"{lift['points']} points"
+            )
+        line(text)
+    reg = report["stages"].get("register")
+    if reg:
+        line(
+            f"  register {reg['ms']:8.1f} ms  {reg['starts']} starts, best {reg['refined_starts']} "
+            f"refined: {reg['inlier_fraction']:.0%} inliers, residual {reg['inlier_rmse_mm']:.2f} "
+            f"mm; {reg['equally_good_starts']} equally good starts agree within "
+            f"{reg['start_agreement_mm']:.1f} mm / {reg['start_agreement_deg']:.1f} deg; image "
+            f"confirms {reg['model_confirmed']:.0%} of the visible model"
+        )
+    if report["failed_stage"]:
+        line(f"  FAILED at {report['failed_stage']}: {report['reason']} (no pose claimed)")
+        return
+    line(f"  {report['reason']}")
+    line("  pose (base_T_object):")
+    for row in report["pose"]:
+        line("    " + " ".join(f"{v:+.4f}" for v in row))
+    if report.get("add_s_mm") is not None:
+        line(
+            f"  error vs truth: translation {report['translation_error_mm']:.2f} mm, rotation "
+            f"{report['rotation_error_deg']:.2f} deg, ADD-S {report['add_s_mm']:.2f} mm"
+        )
+    bars = report["error_bars"]
+    line(
+        "  error bars (1 sigma, object axes, depth noise): translation "
+        + ", ".join(f"{v:.2f}" for v in bars["translation_sigma_mm"])
+        + " mm; rotation "
+        + ", ".join(f"{v:.2f}" for v in bars["rotation_sigma_deg"])
+        + " deg"
+    )
+    g = report["grasp"]
+    if g["probability"] is not None:
+        line(
+            f"  grasp: a {g['gripper_opening_mm']:.0f} mm parallel gripper across the "
+            f"{g['object_width_mm']:.0f} mm width leaves {g['margin_per_side_mm']:.1f} mm per "
+            f"side; lateral sigma {g['lateral_sigma_mm']:.2f} mm (depth noise alone) -> "
+            f"predicted success {g['probability']:.1%}"
+        )
+    if g.get("probability_with_measured_error") is not None:
+        line(
+            f"  with this frame's measured error along the jaws as a bias "
+            f"({g['measured_lateral_error_mm']:.2f} mm: segmentation, model fit and calibration, "
+            f"which the error bars do not cover) -> {g['probability_with_measured_error']:.1%}"
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# Pictures.
+
+
+def _colormap(values: np.ndarray) -> np.ndarray:
+    """``(..., 3)`` uint8 colours of values in [0, 1] (dark blue -> teal -> yellow)."""
+    anchors = np.array([[48, 18, 59], [33, 145, 140], [94, 201, 98], [253, 231, 37]], float)
+    x = np.clip(np.nan_to_num(values), 0, 1) * (len(anchors) - 1)
+    i = np.minimum(x.astype(int), len(anchors) - 2)
+    t = (x - i)[..., None]
+    return ((1 - t) * anchors[i] + t * anchors[i + 1]).astype(np.uint8)
+
+
+def write_pictures(folder: Path, frame, estimate, model_points: np.ndarray) -> list[str]:
+    """depth.png, segmentation.png and model_overlay.png in ``folder``; returns the names."""
+    from PIL import Image
+
+    depth = np.asarray(frame.depth)
+    valid = np.isfinite(depth)
+    lo, hi = np.percentile(depth[valid], (1, 99)) if valid.any() else (0.0, 1.0)
+    picture = _colormap(1 - (depth - lo) / max(hi - lo, 1e-6))
+    picture[~valid] = 0
+    Image.fromarray(picture).save(folder / "depth.png")
+    if frame.rgb is not None:
+        base = np.asarray(frame.rgb).astype(float)
+    else:
+        base = np.repeat((0.3 + 0.5 * picture.mean(-1, keepdims=True) / 255) * 255, 3, -1)
+    overlay = base.copy()
+    overlay[estimate.mask] = 0.45 * overlay[estimate.mask] + 0.55 * np.array([40, 220, 60])
+    Image.fromarray(overlay.astype(np.uint8)).save(folder / "segmentation.png")
+    drawn = base.copy()
+    if estimate.pose is not None:
+        import jax.numpy as jnp
+
+        camera_T_object = frame.base_T_camera.inverse() @ estimate.pose
+        cam = np.asarray(camera_T_object @ jnp.asarray(model_points[::4]))
+        pix = np.asarray(frame.intrinsics.project(jnp.asarray(cam)))
+        u, v = np.round(pix[:, 0]).astype(int), np.round(pix[:, 1]).astype(int)
+        h, w = depth.shape
+        keep = (cam[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        drawn[v[keep], u[keep]] = (255, 40, 40)
+    Image.fromarray(drawn.astype(np.uint8)).save(folder / "model_overlay.png")
+    return ["depth.png", "segmentation.png", "model_overlay.png"]
+
+
+# --------------------------------------------------------------------------------------------
+# Commands.
+
+
+def _progress(quiet: bool):
+    """Stage-start callback printing to stderr, with the time since the previous stage."""
+    state = {"stage": None, "start": time.perf_counter()}
+
+    def report(stage: str | None) -> None:
+        now = time.perf_counter()
+        if not quiet and state["stage"] is not None:
+            print(f"{now - state['start']:.1f} s", file=sys.stderr, flush=True)
+        if not quiet and stage is not None:
+            print(f"  {stage} ... ", end="", file=sys.stderr, flush=True)
+        state.update(stage=stage, start=now)
+
+    return report
+
+
+def _finish(args, report: dict, title: str, frame, estimate, model_points) -> int:
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        report["pictures"] = write_pictures(args.out, frame, estimate, model_points)
+        (args.out / "report.json").write_text(json.dumps(report, indent=2))
+    if args.json:
+        print(json.dumps(report))
+    else:
+        print_report(report, title)
+        if args.out is not None:
+            print(f"  wrote report.json and {', '.join(report['pictures'])} to {args.out}")
+    return 0
+
+
+@persistent_jit
+def _truth_errors(pose, truth, model_points, symmetry):
+    """Translation (m), rotation (rad) and ADD-S (m) error of ``pose`` against ``truth``, and
+    the true object origin in the estimated object frame ``(3,)`` (m), in one compiled program
+    (each eager operation would be a program of its own to load)."""
+    from jaxreg.geometry.metrics import add_s, pose_error
+
+    translation, rotation = pose_error(pose, truth, symmetry=symmetry)
+    offset = (pose.inverse() @ truth).translation()
+    return translation, rotation, add_s(model_points, pose, truth), offset
+
+
+def run_demo(args) -> int:
+    import trimesh
+
+    from jaxreg.pipeline.estimate import estimate_pose
+    from jaxreg.synth.scenes import OBJECTS, StereoSensor, tabletop_scene
+
+    if args.object not in OBJECTS:
+        raise ValueError(f"unknown object {args.object!r}: choose one of {', '.join(OBJECTS)}")
+    progress = _progress(args.json)
+    if not args.json:
+        print(
+            f"jaxreg demo: seed {args.seed}, a {args.object} on a table with 2 distractors, "
+            "848x480 depth with a RealSense D435's noise (the first run compiles: ~1 min; "
+            "later runs use the compilation cache)",
+            file=sys.stderr,
+        )
+    progress("render")
+    scene = tabletop_scene(args.seed, object=args.object)
+    samples, _ = trimesh.sample.sample_surface(scene.model, MODEL_SAMPLES, seed=0)
+    model = samples.astype(np.float32)
+    symmetry = scene.symmetry
+    noise = StereoSensor.d435().depth_noise(scene.frame.intrinsics)
+    estimate = estimate_pose(
+        scene.frame, model, symmetry=symmetry, depth_noise=noise, progress=progress
+    )
+    progress(None)
+    report = build_report(estimate, model, args.gripper_opening)
+    report.update(translation_error_mm=None, rotation_error_deg=None, add_s_mm=None)
+    if estimate.pose is not None:
+        t_err, r_err, add_s_m, offset = _truth_errors(
+            estimate.pose, scene.truth, scene.model_points, symmetry
+        )
+        report["translation_error_mm"] = round(float(t_err) * 1e3, 3)
+        report["rotation_error_deg"] = round(float(np.degrees(r_err)), 3)
+        report["add_s_mm"] = round(float(add_s_m) * 1e3, 3)
+        if report["grasp"]["probability"] is not None:
+            report["grasp"].update(measured_grasp(report["grasp"], offset))
+    report["scene"] = {"seed": args.seed, "object": args.object, "distractors": 2}
+    title = f"jaxreg demo: a {args.object} (seed {args.seed})"
+    return _finish(args, report, title, scene.frame, estimate, model)
+
+
+def run_pose(args) -> int:
+    from jaxreg.io import load_points, read_frame
+    from jaxreg.pipeline.estimate import estimate_pose
+
+    frame = read_frame(args.scene, args.intrinsics)
+    model = np.asarray(load_points(args.model, n_points=None), np.float32)
+    if len(model) < 10:
+        raise ValueError(f"{args.model}: the model has {len(model)} points; give a surface")
+    progress = _progress(args.json)
+    estimate = estimate_pose(frame, model, progress=progress)
+    progress(None)
+    report = build_report(estimate, model, args.gripper_opening)
+    report["scene"] = str(args.scene)
+    report["model"] = str(args.model)
+    return _finish(
+        args, report, f"jaxreg pose: {args.model} in {args.scene}", frame, estimate, model
+    )
+
+
+def _common(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", type=Path, help="write report.json and pictures to DIR")
+    parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    parser.add_argument(
+        "--gripper-opening", type=float, default=GRIPPER_OPENING, metavar="M",
+        help=f"parallel gripper opening in metres (default {GRIPPER_OPENING})",
+    )  # fmt: skip
+
+
+def _add_demo(sub) -> None:
+    demo = sub.add_parser("demo", help="estimate a pose in a synthetic scene whose truth is known")
+    demo.add_argument("--seed", type=int, default=0, help="the scene (default 0)")
+    demo.add_argument("--object", default="mug", help="box, mug, cylinder or container")
+    _common(demo)
+    demo.set_defaults(run=run_demo)
+
+
+def _add_pose(sub) -> None:
+    pose = sub.add_parser("pose", help="estimate a model's pose in your depth frame")
+    pose.add_argument("--scene", type=Path, required=True, help="organized PCD or depth PNG")
+    pose.add_argument("--model", type=Path, required=True, help="model points or mesh (metres)")
+    pose.add_argument("--intrinsics", type=Path, help="intrinsics JSON of a depth PNG")
+    _common(pose)
+    pose.set_defaults(run=run_pose)
+
+
+def build_parser() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]:
+    """The parser and its subparsers (a further command adds itself to the latter)."""
+    parser = argparse.ArgumentParser(
+        prog="jaxreg",
+        description="jaxreg command line",
+        epilog="The compilation cache lives in $JAXREG_CACHE_DIR (default ~/.cache/jaxreg/jax; "
+        "empty to disable).",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    _add_demo(sub)
+    _add_pose(sub)
+    add_basin_parser(sub).set_defaults(run=run_basin)
+    return parser, sub
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser, _ = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        enable_compilation_cache()
+        return args.run(args)
+    except KeyboardInterrupt:
+        print(f"jaxreg {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as err:  # one clear line, never a traceback
+        message = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        print(f"jaxreg {args.command}: {message}", file=sys.stderr)
+        return 1

@@ -1,0 +1,300 @@
+"""Compiled programs kept on disk, so that a second process neither traces, lowers nor compiles
+them.
+
+JAX's persistent compilation cache saves XLA's compile step, but every new process still
+traces each jitted function in Python and lowers it to StableHLO before it can look the
+executable up. :func:`persistent_jit` is ``equinox.filter_jit`` (arrays traced, everything else
+static) plus a folder of compiled programs: the first call with a new signature traces,
+compiles and writes the XLA executable (:mod:`jax.experimental.serialize_executable`); a later
+process loads it and calls it, with no tracing or lowering at all. Loading is still XLA's
+work, proportional to the program's optimized HLO (tens of microseconds per
+instruction on a CPU); it is reported as the ``jax.monitoring`` duration event
+``/jaxreg/program_cache/executable_load_duration``, since JAX's own compile events do not
+see it.
+
+An executable that XLA itself loaded from its persistent cache cannot be serialized again (its
+kernels' code is not kept: it loads, then fails when run), nor can one whose custom calls need a
+host library that only lowering sets up (other than LAPACK's, prepared here): such a program is
+stored as a :mod:`jax.export` program instead (traced once; lowered and looked up in XLA's cache
+in each process). The folder is off until :func:`set_folder` is called: the command line does
+it, a library import never does. A program's file name is a digest of everything that can change
+it: the function's qualified name, the source of every jaxreg module, the jax and jaxlib
+versions, the backend and its platform version, the host CPU (model and feature flags: an
+executable is machine code), ``jax_enable_x64``, the input tree with its static leaves (their
+repr; for an object holding arrays, such as a prepared model closed into the program as
+constants, also a digest of the arrays' bytes, since a repr shortens them), and each array's
+shape and dtype. Deleting the folder is always safe.
+
+Falls back to the plain compiled call, with nothing written, when the call is traced (inside
+``jit``, ``vmap`` or ``grad``: stored programs are not differentiated here), when the output
+holds something that cannot be pickled, or when storing fails.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copyreg
+import dataclasses
+import functools
+import hashlib
+import io
+import os
+import pickle
+import re
+import tempfile
+import threading
+import time
+import weakref
+from collections.abc import Callable
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import numpy as np
+from jax.experimental import serialize_executable
+
+__all__ = ["persistent_jit", "set_folder"]
+
+_FOLDER: Path | None = None
+_LOADED: dict[str, tuple[Callable, object] | None] = {}
+_DIGESTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # static leaf -> key text
+_HITS = threading.local()  # .count: XLA persistent-cache hits seen by this thread
+
+
+def set_folder(folder: str | os.PathLike | None) -> None:
+    """Where compiled programs are kept (created if missing); None turns the store off."""
+    global _FOLDER
+    _FOLDER = None if folder is None else Path(folder)
+    _LOADED.clear()
+    if _FOLDER is not None:
+        _FOLDER.mkdir(parents=True, exist_ok=True)
+
+
+@functools.cache
+def _source_digest() -> str:
+    digest = hashlib.sha256()
+    package = Path(__file__).parents[1]  # every source file of jaxreg, in every subpackage
+    for path in sorted(package.rglob("*.py")):
+        digest.update(path.relative_to(package).as_posix().encode())
+        digest.update(path.read_bytes())
+    digest.update(f"{jax.__version__} {jax.lib.__version__}".encode())
+    return digest.hexdigest()
+
+
+@functools.cache
+def _machine() -> str:
+    """The backend's platform version and the host CPU's model and feature flags (Linux's
+    ``/proc/cpuinfo``; empty elsewhere): a stored executable is machine code."""
+    cpu = ""
+    with contextlib.suppress(OSError):
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+        cpu = " ".join(
+            next((line for line in lines if line.startswith(field)), "")
+            for field in ("model name", "flags")
+        )
+    return f"{jax.devices()[0].client.platform_version} {cpu}"
+
+
+def _missing():
+    """Equinox marks unset module fields with a private singleton; pickled output trees must
+    come back holding that same object."""
+    from equinox._module._flatten import MISSING
+
+    return MISSING
+
+
+def _dumps(value) -> bytes:
+    table = copyreg.dispatch_table.copy()
+    try:
+        from equinox._module._flatten import _Missing
+
+        table[_Missing] = lambda _: (_missing, ())
+    except ImportError:
+        pass
+    buffer = io.BytesIO()
+    pickler = pickle.Pickler(buffer, protocol=pickle.HIGHEST_PROTOCOL)
+    pickler.dispatch_table = table
+    pickler.dump(value)
+    return buffer.getvalue()
+
+
+def _held_arrays(value, depth: int = 0) -> list:
+    """The numpy and JAX arrays inside a static leaf: itself, its pytree leaves, and those of
+    a dataclass's fields or a container's items (a few levels down)."""
+    if isinstance(value, np.ndarray | jax.Array):
+        return [value]
+    if depth > 4 or isinstance(value, str | bytes | int | float | complex | type(None)):
+        return []
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        items = [getattr(value, field.name, None) for field in dataclasses.fields(value)]
+    elif isinstance(value, dict):
+        items = list(value.values())
+    elif isinstance(value, list | tuple):
+        items = list(value)
+    else:
+        return []
+    return [
+        a for item in items for leaf in jax.tree.leaves(item) for a in _held_arrays(leaf, depth + 1)
+    ]
+
+
+def _static_text(leaf) -> str:
+    """A static leaf as key text: its repr, and for an object holding arrays (numpy shortens
+    their repr with '...', an equinox module shows only shapes) a digest of their bytes too,
+    computed once per object while it lives."""
+    try:
+        return _DIGESTS[leaf]
+    except (KeyError, TypeError):  # TypeError: not hashable or not weakly referenceable
+        pass
+    text = repr(leaf)
+    held = _held_arrays(leaf)
+    if held:
+        digest = hashlib.sha256(text.encode())
+        for array in held:
+            host = np.ascontiguousarray(array)
+            digest.update(f"{host.shape} {host.dtype}".encode())
+            digest.update(host.tobytes())
+        text = f"{type(leaf).__qualname__} holding arrays {digest.hexdigest()}"
+        with contextlib.suppress(TypeError):
+            _DIGESTS[leaf] = text
+    return text
+
+
+def _key(fn: Callable, arrays: list, static, in_tree) -> str:
+    avals = [(a.shape, str(a.dtype), bool(getattr(a, "weak_type", False))) for a in arrays]
+    text = repr(
+        (
+            f"{fn.__module__}.{fn.__qualname__}",
+            _source_digest(),
+            jax.default_backend(),
+            _machine(),
+            bool(jax.config.jax_enable_x64),
+            str(in_tree),
+            str(jax.tree.structure(static)),
+            [_static_text(leaf) for leaf in jax.tree.leaves(static)],
+            avals,
+        )
+    )
+    return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+def _write(path: Path, payload: tuple) -> None:
+    with tempfile.NamedTemporaryFile(dir=path.parent, delete=False) as handle:
+        handle.write(_dumps(payload))
+    os.replace(handle.name, path)
+
+
+def _custom_calls(compiled) -> list[str]:
+    """The custom-call targets of a compiled program, checked to be ones :func:`_load` can
+    prepare: LAPACK's, whose functions jaxlib fetches from scipy only when a program using
+    them is lowered (a stored executable skips lowering; unprepared, it crashes)."""
+    targets = sorted(set(re.findall(r'custom_call_target="([^"]+)"', compiled.as_text())))
+    if any(not t.startswith("lapack_") for t in targets):
+        raise ValueError(f"custom calls {targets}: store the exported program instead")
+    return targets
+
+
+@functools.cache
+def _count_cache_hits() -> None:
+    """Counts XLA's persistent-cache hits per thread from here on (a ``jax.monitoring``
+    listener, registered once, when the first program is stored)."""
+
+    def listen(event: str, **_) -> None:
+        if event == "/jax/compilation_cache/cache_hits":
+            _HITS.count = getattr(_HITS, "count", 0) + 1
+
+    jax.monitoring.register_event_listener(listen)
+
+
+def _load(blob: bytes, in_tree, out_tree, custom_calls: list[str]) -> Callable:
+    """A serialized executable back as a callable, its load time reported as
+    ``/jaxreg/program_cache/executable_load_duration``."""
+    start = time.perf_counter()
+    if custom_calls:
+        from jax._src.lax.linalg import initialize_lapack
+
+        initialize_lapack()
+    compiled = serialize_executable.deserialize_and_load(
+        blob, in_tree, out_tree, execution_devices=jax.devices()[:1]
+    )
+    jax.monitoring.record_event_duration_secs(
+        "/jaxreg/program_cache/executable_load_duration", time.perf_counter() - start
+    )
+    return compiled
+
+
+def _store(fn: Callable, arrays: list, static, in_tree, path: Path):
+    """Traces and compiles ``fn`` once and writes its executable, or where that does not
+    load back, its :mod:`jax.export` program, with the output tree to ``path``; returns
+    (callable of the flat arrays, output tree)."""
+    box = []
+
+    def flat(*values):
+        out = fn(*eqx.combine(jax.tree.unflatten(in_tree, values), static))
+        out_leaves, out_tree = jax.tree.flatten(out)
+        box.append(out_tree)
+        return out_leaves
+
+    specs = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type) for a in arrays]
+    _count_cache_hits()
+    hits = getattr(_HITS, "count", 0)
+    compiled = jax.jit(flat).lower(*specs).compile()
+    try:
+        if getattr(_HITS, "count", 0) != hits:  # its kernels' code is gone: it would not run
+            raise ValueError("an executable XLA loaded from its cache cannot be saved again")
+        calls = _custom_calls(compiled)
+        blob, flat_in, flat_out = serialize_executable.serialize(compiled)
+        _write(path, ("executable", blob, flat_in, flat_out, calls, box[0]))
+    except Exception:
+        exported = jax.export.export(jax.jit(flat))(*specs)
+        _write(path, ("export", bytes(exported.serialize()), box[-1]))
+    return compiled, box[0]
+
+
+def _read(path: Path):
+    """The stored program at ``path`` as (callable of the flat arrays, output tree)."""
+    kind, *stored = pickle.loads(path.read_bytes())
+    if kind == "executable":
+        blob, flat_in, flat_out, calls, out_tree = stored
+        return _load(blob, flat_in, flat_out, calls), out_tree
+    blob, out_tree = stored
+    return jax.jit(jax.export.deserialize(bytearray(blob)).call), out_tree
+
+
+def _program(fn: Callable, arrays: list, static, in_tree, key: str):
+    if key in _LOADED:
+        return _LOADED[key]
+    path = _FOLDER / f"{fn.__name__}-{key}.jaxprog"
+    program = None
+    with contextlib.suppress(Exception):  # unreadable (another jaxlib build?): written anew
+        program = _read(path) if path.is_file() else None
+    if program is None:
+        with contextlib.suppress(Exception):  # a program that cannot be stored is compiled
+            program = _store(fn, arrays, static, in_tree, path)  # the ordinary way
+    _LOADED[key] = program
+    return program
+
+
+def persistent_jit(fn: Callable) -> Callable:
+    """``equinox.filter_jit(fn)``, with the traced program stored on disk between processes
+    once :func:`set_folder` has named a folder. ``fn`` must depend only on its arguments (no
+    closed-over arrays or mutable globals)."""
+    jitted = eqx.filter_jit(fn)
+
+    @functools.wraps(fn)
+    def call(*args):
+        if _FOLDER is None:
+            return jitted(*args)
+        dynamic, static = eqx.partition(args, eqx.is_array)
+        arrays, in_tree = jax.tree.flatten(dynamic)
+        if any(isinstance(a, jax.core.Tracer) for a in arrays):
+            return jitted(*args)
+        arrays = [a if isinstance(a, jax.Array) else jax.device_put(a) for a in arrays]
+        key = _key(fn, arrays, static, in_tree)
+        program = _program(fn, arrays, static, in_tree, key)
+        if program is None:
+            return jitted(*args)
+        run, out_tree = program
+        return jax.tree.unflatten(out_tree, run(*arrays))
+
+    return call

@@ -1,0 +1,15 @@
+"""Files in and out: PCD (every variant PCL writes, LZF-compressed included), meshes and point
+files through trimesh, and RGB-D frames (organized PCD, or a depth PNG with intrinsics JSON).
+
+Readers return metres and raise ``ValueError`` naming the file and what is wrong with it. May
+import :mod:`jaxreg.core`, :mod:`jaxreg.geometry` and :mod:`jaxreg.camera`.
+"""
+
+from jaxreg.io.clouds import (
+    PointCloud as PointCloud,
+    load_points as load_points,
+    read_pcd as read_pcd,
+    write_pcd as write_pcd,
+    write_ply as write_ply,
+)
+from jaxreg.io.frames import read_frame as read_frame, write_frame as write_frame

@@ -1,0 +1,12 @@
+"""Pixels to pose: segment (table plane, Euclidean clusters, prompts) -> lift (depth pixels to
+base-frame points, filters, downsampling) -> register (multi-start coarse search, refinement,
+the evidence that can refuse, covariance), behind ``estimate_pose``.
+
+May import every package above it: core, geometry, uncertainty, search, registration, camera.
+"""
+
+from jaxreg.pipeline.estimate import (
+    STAGES as STAGES,
+    PoseEstimate as PoseEstimate,
+    estimate_pose as estimate_pose,
+)

@@ -1,0 +1,112 @@
+"""The lift stage's host-side work for :mod:`jaxreg.pipeline`: a segment's pixels with depth
+lifted into the base frame, and the filters that drop what a depth camera gets wrong at an
+object's edges (flying pixels between two surfaces, points below the table band, isolated
+points).
+
+Frames are :mod:`jaxreg.camera.model`'s: pixels ``(row, col)`` index the depth image, points are in
+the frame's base frame (``base_T_camera`` applied). Everything is numpy except the lifting
+itself, one stored program over a padded pixel list.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from jaxreg.camera.model import RGBDFrame
+from jaxreg.core._program_cache import persistent_jit
+from jaxreg.registration._icp_setup import _bucket
+from jaxreg.search.neighbors import voxel_downsample
+
+__all__ = ["lift_region"]
+
+
+def _flying(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray, tolerance: np.ndarray, need):
+    """Bool per pixel: fewer than ``need`` of its 8 neighbours have depth within
+    ``tolerance`` of its own."""
+    h, w = depth.shape
+    z = depth[rows, cols]
+    consistent = np.zeros(len(rows), np.int32)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy == 0 and dx == 0:
+                continue
+            r, c = np.clip(rows + dy, 0, h - 1), np.clip(cols + dx, 0, w - 1)
+            inside = (rows + dy >= 0) & (rows + dy < h) & (cols + dx >= 0) & (cols + dx < w)
+            consistent += inside & (np.abs(depth[r, c] - z) <= tolerance)
+    return consistent < need
+
+
+def _isolated(points: np.ndarray, voxel: float, need: int = 2) -> np.ndarray:
+    """Bool per point: fewer than ``need`` other points' voxels among the 26 around its own."""
+    keys = np.floor(points / voxel).astype(np.int64)
+    keys -= keys.min(0) - 1
+    dims = keys.max(0) + 2
+    code = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+    occupied = np.unique(code)
+    count = np.zeros(len(points), np.int32)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                if dx == dy == dz == 0:
+                    continue
+                other = ((keys[:, 0] + dx) * dims[1] + keys[:, 1] + dy) * dims[2] + keys[:, 2] + dz
+                idx = np.searchsorted(occupied, other)
+                count += (idx < len(occupied)) & (
+                    occupied[np.minimum(idx, len(occupied) - 1)] == other
+                )
+    return count < need
+
+
+@persistent_jit
+def _lift_pixels(frame: RGBDFrame, rows, cols):
+    """Base-frame points ``(P, 3)`` of the given pixels (padded index arrays): one stored
+    program per padded length."""
+    return frame.points_at(rows, cols)
+
+
+def lift_region(
+    frame: RGBDFrame,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    sigma: np.ndarray,
+    plane_normal: np.ndarray,
+    plane_offset: float,
+    *,
+    min_height: float,
+    voxel_size: float,
+    min_consistent_neighbors: int,
+) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+    """Lift the pixels ``(rows, cols)`` (each with depth; ``sigma`` its depth noise, metres)
+    into the base frame and filter them: flying pixels (fewer than
+    ``min_consistent_neighbors`` of 8 neighbours within ``max(4 mm, 4 sigma)``), points not
+    between ``min_height`` and 0.5 m above the plane ``n . x + d = 0``, a ``voxel_size``
+    downsample, and isolated voxels.
+
+    Returns ``(mask, points, counts)``: ``(H, W)`` bool of the pixels kept, ``(K, 3)``
+    float32 base-frame points, and the counts of pixels kept and removed by each filter.
+    """
+    depth = np.asarray(frame.depth)
+    shape = depth.shape
+    flying = _flying(depth, rows, cols, np.maximum(0.004, 4 * sigma), min_consistent_neighbors)
+    rows, cols = rows[~flying], cols[~flying]
+    padded = _bucket(max(len(rows), 1))
+    r_pad = np.zeros(padded, np.int32)
+    c_pad = np.zeros(padded, np.int32)
+    r_pad[: len(rows)], c_pad[: len(cols)] = rows, cols
+    lifted = np.asarray(_lift_pixels(frame, r_pad, c_pad))[: len(rows)]
+    height = lifted @ plane_normal + plane_offset
+    band = (height > min_height) & (height < 0.5)
+    rows, cols, lifted = rows[band], cols[band], lifted[band]
+    mask = np.zeros(shape, bool)
+    mask[rows, cols] = True
+    points = voxel_downsample(lifted, voxel_size) if len(lifted) else np.zeros((0, 3))
+    isolated = _isolated(points, voxel_size) if len(points) else np.zeros(0, bool)
+    points = points[~isolated].astype(np.float32)
+    counts = {
+        "pixels": int(len(rows)),
+        "flying_pixels_removed": int(flying.sum()),
+        "below_band_removed": int((~band).sum()),
+        "isolated_points_removed": int(isolated.sum()),
+        "points": int(len(points)),
+    }
+    return mask, points, counts

@@ -1,0 +1,493 @@
+"""The register stage's pieces for :mod:`jaxreg.pipeline`: the model prepared once (voxelled,
+normals, neighbour grid), multi-start registration of every candidate cluster in one compiled
+call, the depth image's evidence about a model pose (:func:`visibility`), and the final
+answer with its covariance (``_finish``).
+
+Conventions of :mod:`jaxreg.pipeline.estimate`: the segment (source, base frame) is registered into
+the model (target, object frame), so ICP's poses are ``object_T_base``; tangents are jaxlie's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxlie import SE3, SO3
+from jaxtyping import Array, Float
+from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial.transform import Rotation
+
+from jaxreg.camera.model import RGBDFrame
+from jaxreg.core._program_cache import persistent_jit
+from jaxreg.geometry.lie import adjoint_transport, geodesic_angle
+from jaxreg.geometry.metrics import canonicalise
+from jaxreg.pipeline.segment import TablePlane
+from jaxreg.registration._icp_core import run
+from jaxreg.registration._icp_setup import Settings, prepare
+from jaxreg.registration.icp import icp_covariance, multistart_icp, pca_inits, rotation_inits
+from jaxreg.search.neighbors import NeighborGrid, build_grid, query_nearest, voxel_downsample
+from jaxreg.search.normals import estimate_normals
+
+__all__ = ["visibility"]
+
+# --------------------------------------------------------------------------------------------
+# The model, prepared once per distinct model array.
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Model:
+    points: np.ndarray  # (M, 3) object frame, voxelled
+    normals: np.ndarray  # (M, 3)
+    grid: NeighborGrid  # exact to the coarse registration's largest distance
+    fine_grid: NeighborGrid  # exact to the refinement's: shorter candidate lists, faster
+    radius: float  # largest distance from the centroid
+    diameter: float  # largest distance between two points
+    centroid: np.ndarray
+    axes: np.ndarray  # (3, 3) principal axes as columns, largest extent first
+    bounds: np.ndarray  # (2, 3) least and greatest coordinate along each axis (given points)
+    screen: np.ndarray  # (M1, 3) voxelled at 3 voxels: the coarse starts' first judgement
+    # _coarse_problem's, per schedule (not in the repr that keys stored programs)
+    coarse: dict = dataclasses.field(default_factory=dict, repr=False)
+
+
+_MODELS: dict[tuple, _Model] = {}
+
+
+def _voxel_normals(points: np.ndarray, normals: np.ndarray, voxel: float):
+    """Voxel centroids of ``points`` and the normalised mean normal of each voxel (zero
+    where the normals cancel, as on the two faces of a thin wall)."""
+    key = np.floor((points - points.min(0)) / voxel).astype(np.int64)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    sums = np.zeros((len(counts), 6))
+    np.add.at(sums, inverse, np.concatenate([points, normals], axis=1))
+    mean_normal = sums[:, 3:] / counts[:, None]
+    length = np.linalg.norm(mean_normal, axis=1, keepdims=True)
+    unit = np.where(length > 0.5, mean_normal / np.maximum(length, 1e-12), 0.0)
+    return sums[:, :3] / counts[:, None], unit
+
+
+def _diameter(points: np.ndarray) -> float:
+    """Largest distance between two of ``points`` ``(N, 3)`` (over their convex hull)."""
+    points = np.asarray(points, np.float64)
+    if len(points) > 8:
+        try:
+            points = points[ConvexHull(points).vertices]
+        except QhullError:  # flat or degenerate: every point is a candidate
+            pass
+    gaps = points[:, None, :] - points[None, :, :]
+    return float(np.sqrt(np.einsum("ijk,ijk->ij", gaps, gaps).max())) if len(points) else 0.0
+
+
+def _prepare_model(
+    model_points, model_normals, voxel_size: float, grid_distance: float, fine_distance: float
+):
+    """The model voxelled, with normals and neighbour grids (cached per model array and
+    settings): ``grid`` exact to ``grid_distance``, ``fine_grid`` to ``fine_distance``."""
+    arrays = [model_points] + ([] if model_normals is None else [model_normals])
+    digest = hashlib.sha1(b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)).hexdigest()
+    key = (digest, model_points.shape, voxel_size, grid_distance, fine_distance)
+    if key in _MODELS:
+        return _MODELS[key]
+    if model_normals is None:
+        points = voxel_downsample(model_points, voxel_size)
+    else:
+        points, normals = _voxel_normals(model_points, model_normals, voxel_size)
+    if len(points) < 10:
+        raise ValueError(
+            f"the model has {len(points)} points at a {voxel_size * 1e3:g} mm voxel: give at "
+            "least a few hundred points on its surface (metres)"
+        )
+    points = points.astype(np.float32)
+    centroid = points.mean(0)
+    if model_normals is None:
+        normals = np.asarray(estimate_normals(points, k=20, viewpoint=centroid))
+    usable = np.linalg.norm(normals, axis=1) > 0.5
+    grid = build_grid(points, grid_distance, mask=usable)
+    # leaves of at most 16 candidates: queries ~2x faster than the default 48, built once;
+    # the default where the model's shape needs longer lists (exact either way)
+    fine_grid = build_grid(points, fine_distance, capacity=16, mask=usable)
+    if bool(fine_grid.overflow):
+        fine_grid = build_grid(points, fine_distance, mask=usable)
+    _, vectors = np.linalg.eigh(np.cov((points - centroid).T))
+    axes = vectors[:, ::-1]
+    given = (model_points - centroid) @ axes  # voxel centroids lie up to half a voxel inside
+    model = _Model(
+        points=points,
+        normals=normals.astype(np.float32),
+        grid=grid,
+        fine_grid=fine_grid,
+        radius=float(np.linalg.norm(points - centroid, axis=1).max()),
+        diameter=_diameter(points),
+        centroid=centroid,
+        axes=axes,
+        bounds=np.stack([given.min(0), given.max(0)]),
+        screen=voxel_downsample(points, 3 * voxel_size).astype(np.float32),
+    )
+    if len(_MODELS) > 8:
+        _MODELS.clear()
+    _MODELS[key] = model
+    return model
+
+
+# --------------------------------------------------------------------------------------------
+# Visibility of the model in the depth image at a pose.
+
+
+@eqx.filter_jit
+def visibility(
+    frame: RGBDFrame,
+    base_T_object: SE3,
+    model_points: Float[Array, "M 3"],
+    tolerance: Float[Array, ""],
+    plane: TablePlane | None = None,
+    cell: int = 4,
+) -> Float[Array, " 5"]:
+    """How the depth image judges the model at a pose: counts ``(confirmed, contradicted,
+    occluded, unknown, self_hidden)`` of the model points (jittable).
+
+    With a table ``plane``, every model point more than ``tolerance`` below it is
+    contradicted, facing the camera or not: an object cannot stand in the table.
+
+    The model points are moved into the camera and z-buffered among themselves on a grid of
+    ``cell`` x ``cell`` pixels: a point more than ``tolerance`` behind the nearest model
+    point of its cell is hidden by the model itself (its far side). Each point the camera
+    could see is compared with the depth measured at its pixel: within ``tolerance``
+    (metres) it is confirmed; measured farther, the camera sees through where the surface
+    should be (contradicted, evidence against the pose or the object's presence); measured
+    nearer, something else hides it (occluded); a hole or a pixel outside the image is
+    unknown.
+    """
+    camera_T_object = frame.base_T_camera.inverse() @ base_T_object
+    cam = camera_T_object @ jnp.asarray(model_points, frame.depth.dtype)
+    pix = frame.intrinsics.project(cam)
+    col = jnp.round(pix[:, 0]).astype(jnp.int32)
+    row = jnp.round(pix[:, 1]).astype(jnp.int32)
+    h, w = frame.depth.shape
+    inside = (cam[:, 2] > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    row, col = jnp.clip(row, 0, h - 1), jnp.clip(col, 0, w - 1)
+    hc, wc = -(-h // cell), -(-w // cell)
+    code = (row // cell) * wc + col // cell
+    zbuf = jnp.full(hc * wc, jnp.inf, cam.dtype).at[code].min(jnp.where(inside, cam[:, 2], jnp.inf))
+    facing = inside & (cam[:, 2] <= zbuf[code] + tolerance)
+    measured = frame.depth[row, col]
+    known = facing & jnp.isfinite(measured)
+    diff = measured - cam[:, 2]
+    confirmed = known & (jnp.abs(diff) <= tolerance)
+    contradicted = known & (diff > tolerance)
+    if plane is not None:
+        below = plane.height(base_T_object @ jnp.asarray(model_points, cam.dtype)) < -tolerance
+        contradicted = contradicted | below  # seen or hidden, it cannot be there
+        known = known | below
+        confirmed = confirmed & ~below
+    occluded = known & (diff < -tolerance) & ~contradicted
+    unknown = ~known & (facing | ~inside)
+    return jnp.stack(
+        [
+            confirmed.sum(),
+            contradicted.sum(),
+            occluded.sum(),
+            unknown.sum(),
+            (inside & ~facing).sum(),
+        ]
+    )
+
+
+def overhang(model: _Model, object_T_base: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """How far a segment spans beyond the model, along each of the model's principal axes
+    (metres, ``(3,)``): the span of ``points`` ``(N, 3)`` (base frame) moved by
+    ``object_T_base`` ``(7,)`` (wxyz_xyz), between their 2% and 98% quantiles, less the model's
+    full span. An object's own points stay within its extent up to the depth noise, whatever
+    part of it is visible (a partial view spans less: negative), so a positive overhang of
+    several millimetres says the segment is a larger object of a similar shape, or the object
+    merged with a neighbour."""
+    rotation = Rotation.from_quat(np.asarray(object_T_base[:4], np.float64), scalar_first=True)
+    moved = rotation.apply(np.asarray(points, np.float64)) + object_T_base[4:]
+    along = (moved - model.centroid) @ model.axes
+    low, high = np.quantile(along, [0.02, 0.98], axis=0)
+    return (high - low) - (model.bounds[1] - model.bounds[0])
+
+
+def _confirmed_share(counts: Array) -> Array:
+    """Confirmed over judged (confirmed, contradicted, occluded) model points, ``(...)``, of
+    numpy or JAX counts ``(..., 5)`` (array methods only: host counts stay on the host)."""
+    return counts[..., 0] / counts[..., :3].sum(-1).clip(min=1)
+
+
+def _support(counts: np.ndarray) -> tuple[float, float]:
+    """(confirmed share, contradicted share) of the model points facing the camera that the
+    image can judge (confirmed, contradicted or occluded)."""
+    confirmed, contradicted, occluded = (float(c) for c in counts[:3])
+    judged = max(confirmed + contradicted + occluded, 1.0)
+    return confirmed / judged, contradicted / judged
+
+
+# --------------------------------------------------------------------------------------------
+# Register.
+
+
+class _Coarse(eqx.Module):
+    """Coarse registration of every candidate, its refined starts ranked best first (by the
+    fraction of the cloud the model explains times the confirmed share of the model's
+    visible surface): ``poses`` ``(C, K, 7)`` object_T_base wxyz_xyz, ``explained``
+    ``(C, K)``, ``visibility`` ``(C, K, 5)``."""
+
+    poses: Array
+    explained: Array
+    visibility: Array
+
+
+def _coarse_problem(model: _Model, size: int, distances: np.ndarray, splits: tuple[int, ...]):
+    """ICP's problem for ``size``-point sources against the model (the source rows are
+    replaced per candidate) and the options of its rounds: the correspondence ``distances``
+    cut at ``splits`` (e.g. ``(2, 6)``: the first two for every start, the next four for the
+    starts kept after them, the rest for the starts kept after those). Built once per model
+    and schedule."""
+    key = (size, distances.tobytes(), splits)
+    if key not in model.coarse:
+        rounds = []
+        for part in np.split(distances, splits):
+            settings = Settings(
+                "point_to_plane", model.normals, part, len(part), 1e-5, None, None, None,
+                model.grid,
+            )  # fmt: skip
+            problem, opts, _ = prepare(np.zeros((size, 3), np.float32), model.points, settings)
+            rounds.append(opts)
+        model.coarse[key] = (problem, *rounds)
+    return model.coarse[key]
+
+
+def _front_aligned(inits: SE3, cloud, ok, model_points, eye) -> SE3:
+    """Starts (object_T_base) slid along the line of sight so that the model's nearest
+    point to the camera lies as near as the cloud's (its 5th percentile): a partial view's
+    centroid sits on the visible surface, in front of the object's centre."""
+    centroid = jnp.sum(jnp.where(ok[:, None], cloud, 0.0), 0) / jnp.maximum(ok.sum(), 1)
+    view = (centroid - eye) / jnp.linalg.norm(centroid - eye)
+    depth = jnp.where(ok, jnp.where(ok[:, None], cloud, 0.0) @ view, jnp.nan)
+    front = jnp.nanpercentile(depth, 5.0)
+    placed = inits.inverse()  # base_T_object
+    model_front = (
+        jnp.min(
+            jnp.einsum("sij,mj->smi", placed.rotation().as_matrix(), model_points) @ view, axis=1
+        )
+        + placed.translation() @ view
+    )
+    moved = SE3.from_rotation_and_translation(
+        placed.rotation(), placed.translation() + (front - model_front)[:, None] * view
+    )
+    return moved.inverse()
+
+
+def _resting_starts(cloud, ok, model_points, model_axes, plane, eye, yaws: int) -> SE3:
+    """Starts (object_T_base) of the model resting on the table: each of the model's six
+    principal half-axes ``model_axes`` ``(3, 3)`` (columns, object frame) pointing down the
+    plane's normal, turned to ``yaws`` headings about it, the lowest model point on the
+    plane, and the model slid horizontally toward the camera until its front meets the
+    cloud's (5th percentile along the horizontal line of sight; a partial view's centroid
+    lies on its visible side). Batch ``(6 * yaws,)``."""
+    n = plane.normal
+    dtype = cloud.dtype
+    downs = jnp.concatenate([model_axes.T, -model_axes.T])  # (6, 3) object frame
+    helper = jnp.where(jnp.abs(downs[:, :1]) < 0.9, jnp.eye(3, dtype=dtype)[0], jnp.eye(3)[1])
+    b = jnp.cross(downs, helper)
+    b = b / jnp.linalg.norm(b, axis=-1, keepdims=True)
+    object_frames = jnp.stack([downs, b, jnp.cross(downs, b)], -1)  # (6, 3, 3) columns
+    u = jnp.cross(-n, jnp.where(jnp.abs(n[0]) < 0.9, jnp.eye(3, dtype=dtype)[0], jnp.eye(3)[1]))
+    u = u / jnp.linalg.norm(u)
+    base_frame = jnp.stack([-n, u, jnp.cross(-n, u)], -1)  # (3, 3) columns
+    base_R = jnp.einsum("ij,fkj->fik", base_frame, object_frames)  # (6, 3, 3): down -> -n
+    angles = jnp.arange(yaws, dtype=dtype) * (2 * jnp.pi / yaws)
+    turns = SO3.exp(angles[:, None] * n[None, :]).as_matrix()  # (Y, 3, 3)
+    rotations = jnp.einsum("yij,fjk->fyik", turns, base_R).reshape(-1, 3, 3)
+    moved = jnp.einsum("sij,mj->smi", rotations, model_points)  # (S, M, 3) about the origin
+    centroid = jnp.sum(jnp.where(ok[:, None], cloud, 0.0), 0) / jnp.maximum(ok.sum(), 1)
+    along = (centroid - eye) - ((centroid - eye) @ n) * n
+    along = along / jnp.maximum(jnp.linalg.norm(along), 1e-9)
+    front = jnp.nanpercentile(jnp.where(ok, cloud @ along, jnp.nan), 5.0)
+    model_mid = jnp.mean(moved, axis=1)  # (S, 3)
+    # horizontal: the model's centre over the cloud's centroid, then slid along `along`
+    horizontal = centroid - (centroid @ n) * n - (model_mid - (model_mid @ n)[:, None] * n)
+    horizontal = horizontal - (horizontal @ along)[:, None] * along
+    model_front = jnp.min(moved @ along, axis=1)
+    horizontal = horizontal + (front - model_front)[:, None] * along
+    lift = -plane.offset - jnp.min(moved @ n, axis=1)  # lowest point on the plane
+    translations = horizontal + lift[:, None] * n
+    placed = SE3.from_rotation_and_translation(SO3.from_matrix(rotations), translations)
+    return placed.inverse()
+
+
+def _spread_best(poses: Array, score: Array, count: int, min_distance: float) -> Array:
+    """Indices ``(count,)`` of the best-scoring rows of ``poses`` ``(S, 7)`` (wxyz_xyz) that
+    differ from every earlier pick by ``min_distance`` metres or 0.2 rad; when fewer rows
+    are that distinct, the best remaining ones fill the rest (jittable)."""
+    quats, trans = poses[:, :4], poses[:, 4:]
+    gap = jnp.linalg.norm(trans[:, None] - trans[None], axis=-1)
+    cos = jnp.abs(quats @ quats.T)
+    near = (gap <= min_distance) & (cos >= jnp.cos(0.1))  # half-angle of 0.2 rad
+    rank = jnp.where(jnp.isfinite(score), score, -1.0)
+
+    def pick(carry, _):
+        distinct, free = carry
+        i = jnp.argmax(jnp.where(distinct, rank + 3.0, jnp.where(free, rank, -jnp.inf)))
+        return (distinct & ~near[i], free.at[i].set(False)), i
+
+    ones = jnp.ones(len(score), bool)
+    _, chosen = jax.lax.scan(pick, (ones, ones), None, length=count)
+    return chosen
+
+
+@persistent_jit
+def _score_candidates(
+    frame, plane, problem, rounds, clouds, used, model_points, screen_points, model_axes,
+    tolerance, num_starts, yaws, survivors, keep,
+):  # fmt: skip
+    """Multi-start ICP of every candidate cloud ``(C, N, 3)`` (NaN padding) into the model,
+    its ranked starts, and the evidence for each; slots where ``used`` ``(C,)`` is False are
+    skipped (zeros), so one compiled shape serves any number of candidates up to C. Starts:
+    ``num_starts`` rotations of a grid over SO(3) and the 4 PCA frames, slid along the line
+    of sight to the cloud's front, and ``6 * yaws`` resting on the table
+    (:func:`_resting_starts`). ICP runs in three ``rounds`` (options of
+    :func:`_coarse_problem`), each on fewer starts: every start takes the first; the
+    ``survivors`` whose model then explains most of the cloud (1 cm; not thinned to
+    distinct poses: a start that will win may still sit near a better-fitting one) take the
+    second and are scored as below with the sparse ``screen_points``
+    ``(M1, 3)`` (the model voxelled at 3 voxels; :func:`visibility` on 16-pixel cells: the
+    z-buffer's scatter dominates the scoring on a CPU); the ``keep`` best distinct ones
+    take the third and are scored with ``model_points`` (4-pixel cells; the sparse
+    judgement is too coarse to rank near-equal candidates)."""
+    screen_opts, first_opts, rest_opts = rounds
+
+    def one(cloud):
+        ok = jnp.all(jnp.isfinite(cloud), -1)
+        eye = frame.base_T_camera.translation()
+        grid = rotation_inits(cloud, model_points, num_starts)
+        inits = SE3(jnp.concatenate([grid.wxyz_xyz, pca_inits(cloud, model_points).wxyz_xyz]))
+        inits = _front_aligned(inits, cloud, ok, model_points, eye)
+        resting = _resting_starts(cloud, ok, model_points, model_axes, plane, eye, yaws)
+        inits = SE3(jnp.concatenate([inits.wxyz_xyz, resting.wxyz_xyz]))
+        source = (
+            jnp.zeros_like(problem.source)
+            .at[: cloud.shape[0]]
+            .set(jnp.where(ok[:, None], cloud, 0.0))
+        )
+        weights = jnp.zeros_like(problem.source_weights).at[: cloud.shape[0]].set(ok)
+        p = eqx.tree_at(lambda q: (q.source, q.source_weights), problem, (source, weights))
+        cloud0 = jnp.where(ok[:, None], cloud, 0.0)
+
+        def explains(pose, distance):
+            _, _, near = query_nearest(problem.grid, pose @ cloud0, distance)
+            return jnp.sum(near & ok) / jnp.maximum(ok.sum(), 1)
+
+        def evidence(pose, points, cell):
+            seen = visibility(frame, pose.inverse(), points, tolerance, plane, cell)
+            return explains(pose, 0.006), seen
+
+        icp = jax.vmap(run, in_axes=(None, None, 0))
+        screened = icp(p, screen_opts, inits).pose
+        near = jax.vmap(explains, in_axes=(0, None))(screened, 0.01)
+        alive = jnp.argsort(-near)[:survivors]
+        first = icp(p, first_opts, SE3(screened.wxyz_xyz[alive]))
+        explained, seen = jax.vmap(evidence, in_axes=(0, None, None))(first.pose, screen_points, 16)
+        kept = _spread_best(first.pose.wxyz_xyz, explained * _confirmed_share(seen), keep, 0.01)
+        results = icp(p, rest_opts, SE3(first.pose.wxyz_xyz[kept]))
+        explained, seen = jax.vmap(evidence, in_axes=(0, None, None))(results.pose, model_points, 4)
+        score = explained * _confirmed_share(seen)
+        order = jnp.argsort(-score)
+        return results.pose.wxyz_xyz[order], explained[order], seen[order]
+
+    dtype = clouds.dtype
+
+    def skip(cloud):
+        return (
+            jnp.zeros((keep, 7), dtype), jnp.zeros(keep, dtype), jnp.zeros((keep, 5), jnp.int32),
+        )  # fmt: skip
+
+    def slot(args):
+        cloud, live = args
+        return jax.lax.cond(live, one, skip, cloud)
+
+    poses, explained, seen = jax.lax.map(slot, (clouds, used))
+    return _Coarse(poses, explained, seen)
+
+
+@persistent_jit
+def _near_model(grid, object_T_base, points, distance):
+    """``(...)`` bool: which of ``points`` ``(..., 3)`` (base frame; NaN rows never) lie
+    within ``distance`` of the model at a pose."""
+    flat = points.reshape(-1, 3)
+    ok = jnp.all(jnp.isfinite(flat), -1)
+    moved = SE3(object_T_base) @ jnp.where(ok[:, None], flat, 0.0)
+    _, _, near = query_nearest(grid, moved, distance)
+    return (near & ok).reshape(points.shape[:-1])
+
+
+@persistent_jit
+def _judge(frame, plane, object_T_base, model_points, tolerance):
+    """:func:`visibility` counts ``(S, 5)`` of a batch of object_T_base ``(S, 7)``."""
+    return jax.vmap(lambda q: visibility(frame, SE3(q).inverse(), model_points, tolerance, plane))(
+        object_T_base
+    )
+
+
+@persistent_jit
+def _register_starts(source, points, normals, grid, inits, distances, trim, iterations):
+    """Point-to-plane multi-start ICP of ``source`` into the model (its points, normals and
+    grid as arguments, not constants of the stored program: a model's arrays closed into it
+    made a ~30 MB executable to load in every process)."""
+    return multistart_icp(
+        source, points, inits, method="point_to_plane", target_normals=normals,
+        max_correspondence_distance=distances, max_iterations=iterations, trim_fraction=trim,
+        neighbors=grid, tolerance=1e-5,
+    )  # fmt: skip
+
+
+@persistent_jit
+def _finish(
+    source, points, normals, grid, object_T_base, best, equal, symmetry, distance, trim, noise
+):
+    """The answer from the refined starts ``object_T_base (S, 7)``, as one stored program:
+    ``base_T_object`` of start ``best`` (wxyz_xyz; with a ``symmetry``, the equivalent nearest
+    the base axes), the largest offset (metres) and angle (degrees) to the starts flagged
+    ``equal`` ``(S,)`` (compared on the same symmetry branch), and the ``(6, 6)`` covariance
+    of the right perturbation of ``base_T_object`` from ``icp_covariance`` of the final
+    point-to-plane registration."""
+    found = SE3(object_T_base[best])
+    pose = found.inverse()
+    others = SE3(object_T_base).inverse()
+    if symmetry is not None:
+        others = canonicalise(others, pose, symmetry)
+    offset = jnp.linalg.norm(others.translation() - pose.translation(), axis=-1)
+    angle = jnp.degrees(geodesic_angle(others.rotation(), pose.rotation()))
+    spread = jnp.stack([jnp.max(jnp.where(equal, offset, 0)), jnp.max(jnp.where(equal, angle, 0))])
+    if symmetry is not None:  # report one branch: the equivalent nearest the base axes
+        pose = canonicalise(pose, SE3.from_translation(pose.translation()), symmetry)
+    cov = icp_covariance(
+        source, points, found, method="point_to_plane", target_normals=normals,
+        max_correspondence_distance=distance, trim_fraction=trim, neighbors=grid,
+        source_noise=noise,
+    )  # fmt: skip
+    # right perturbation of base_T_object = object_T_base^-1: Ad_{object_T_base} Sigma Ad^T;
+    # the symmetry branch re-anchors the object frame (pose = found @ S): Ad_{S^-1}
+    cov = adjoint_transport((found @ pose).inverse(), adjoint_transport(found, cov))
+    return pose.wxyz_xyz, spread, cov
+
+
+def _distinct(poses: np.ndarray, count: int, min_distance: float) -> list[int]:
+    """The first ``count`` rows of ``poses`` (``(S, 7)`` wxyz_xyz, best first) that differ
+    from every earlier pick by ``min_distance`` metres or 0.2 rad."""
+    quats, trans = poses[:, :4], poses[:, 4:]
+    chosen: list[int] = []
+    for i in range(len(poses)):
+        if all(
+            np.linalg.norm(trans[i] - trans[j]) > min_distance
+            or 2 * np.arccos(min(1.0, abs(float(quats[i] @ quats[j])))) > 0.2
+            for j in chosen
+        ):
+            chosen.append(i)
+        if len(chosen) == count:
+            break
+    return chosen

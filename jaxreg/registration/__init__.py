@@ -1,0 +1,7 @@
+"""Registration solvers: ICP (point-to-point, point-to-plane, trimming, robust IRLS kernels,
+multi-start), the ICP pose covariance, RANSAC global registration on feature matches, and
+robust (GNC) alignment of given correspondences.
+
+Every solver returns a result with a per-lane ``status``. May import :mod:`jaxreg.core`,
+:mod:`jaxreg.geometry`, :mod:`jaxreg.uncertainty` and :mod:`jaxreg.search`.
+"""

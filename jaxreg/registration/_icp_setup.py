@@ -1,0 +1,236 @@
+"""Host-side set-up of an ICP problem, shared by every entry point that runs ICP
+(:func:`jaxreg.icp`, :func:`jaxreg.multistart_icp`, :func:`jaxreg.icp_covariance`,
+:func:`jaxreg.init_spread`): ICP's keyword arguments and their defaults (:class:`Settings`,
+written once), argument checks that raise ``ValueError``, masking and padding of the clouds,
+the neighbour grid (built, or a given one validated), and the batched run over starts.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxlie import SE3
+from jaxtyping import ArrayLike, Float
+
+from jaxreg.geometry.kernels import L2, AbstractRobustKernel
+from jaxreg.geometry.lie import se3_from_matrix
+from jaxreg.registration._icp_core import Options, Problem, RegistrationResult, run_many
+from jaxreg.search.neighbors import NeighborGrid, build_grid, validate_grid
+
+Method = Literal["point_to_point", "point_to_plane"]
+
+# A target normal is usable when finite and of unit length within this (|n| - 1).
+NORMAL_TOLERANCE = 1e-3
+
+
+class Settings(eqx.Module):
+    """ICP's keyword arguments (those of :func:`jaxreg.icp`, in its order) with their
+    defaults. Entry points take them explicitly, default them to ``DEFAULT.<name>`` and pass
+    them on in one ``Settings``; :func:`prepare` checks and converts them."""
+
+    method: Method = "point_to_point"
+    target_normals: Float[ArrayLike, "M 3"] | None = None
+    max_correspondence_distance: Float[ArrayLike, ""] | Float[ArrayLike, " I"] = 0.02
+    max_iterations: int = 40
+    tolerance: float = 1e-6
+    kernel: AbstractRobustKernel | None = None
+    trim_fraction: float | None = None
+    source_weights: Float[ArrayLike, " N"] | None = None
+    neighbors: NeighborGrid | None = None
+
+
+DEFAULT = Settings()
+
+
+def as_pose(init, dtype) -> SE3:
+    """``init`` (``None`` for the identity, an ``SE3``, or ``(..., 4, 4)``) as an ``SE3``."""
+    if init is None:
+        return SE3(jnp.array([1, 0, 0, 0, 0, 0, 0], dtype))
+    if isinstance(init, SE3):
+        return SE3(jnp.asarray(init.wxyz_xyz, dtype))
+    m = jnp.asarray(init, dtype)
+    if m.shape[-2:] != (4, 4):
+        raise ValueError(f"init must be a jaxlie.SE3 or a (..., 4, 4) matrix, got shape {m.shape}")
+    return se3_from_matrix(m)
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def prepare(
+    source: Float[ArrayLike, "N 3"],
+    target: Float[ArrayLike, "M 3"],
+    settings: Settings,
+    *,
+    grid_capacity: int | None = None,
+) -> tuple[Problem, Options, tuple[int, int]]:
+    """Checks ``settings`` against the clouds and builds the solver's inputs.
+
+    Returns the problem (clouds masked and padded to bucketed sizes), the options, and the
+    caller's ``(N, M)`` for :func:`unpad`. Without ``settings.neighbors`` a grid is built on
+    a concrete target (``grid_capacity`` asks for shorter candidate lists: cheaper queries,
+    slower build, falling back to the default when a leaf cannot fit them); a given grid is
+    checked by :func:`jaxreg.search.neighbors.validate_grid` against the caller's target and the
+    largest correspondence distance.
+
+    Raises:
+        ValueError: an unknown method; clouds not ``(N, 3)`` or empty; fewer than 3 source
+            points; point-to-plane without ``(M, 3)`` normals; mis-shaped weights or
+            distance schedule; a grid built on another target, for a smaller distance, or
+            overflowed.
+    """
+    s = settings
+    if s.method not in ("point_to_point", "point_to_plane"):
+        raise ValueError(f"method must be 'point_to_point' or 'point_to_plane', got {s.method!r}")
+    user_target = target
+    source = jnp.asarray(source)
+    dtype = jnp.result_type(source.dtype, float)
+    source = source.astype(dtype)
+    target = jnp.asarray(target, dtype)
+    for name, cloud in (("source", source), ("target", target)):
+        if cloud.ndim != 2 or cloud.shape[-1] != 3:
+            raise ValueError(f"{name} must have shape (N, 3), got {cloud.shape}")
+        if cloud.shape[0] == 0:
+            raise ValueError(f"{name} is empty: ICP needs points in both clouds")
+    n = source.shape[0]
+    if n < 3:
+        raise ValueError(f"ICP needs at least 3 source points, got {n}")
+    target_normals = None
+    if s.method == "point_to_plane":
+        if s.target_normals is None:
+            raise ValueError(
+                "point_to_plane needs target_normals (M, 3): see jaxreg.estimate_normals"
+            )
+        target_normals = jnp.asarray(s.target_normals, dtype)
+        if target_normals.shape != target.shape:
+            raise ValueError(
+                f"target_normals must match target {target.shape}, got {target_normals.shape}"
+            )
+    weights = jnp.ones(n, dtype) if s.source_weights is None else s.source_weights
+    weights = jnp.asarray(weights, dtype)
+    if weights.shape != (n,):
+        raise ValueError(f"source_weights must have shape ({n},), got {weights.shape}")
+    distances = jnp.asarray(s.max_correspondence_distance, dtype)
+    if distances.ndim == 0:
+        distances = jnp.full((s.max_iterations,), distances, dtype)
+    elif distances.shape != (s.max_iterations,):
+        raise ValueError(
+            "max_correspondence_distance is a scalar or a schedule with one distance per "
+            f"iteration: shape ({s.max_iterations},), got {distances.shape}"
+        )
+    m = target.shape[0]
+    source, weights, target, target_ok, target_normals = _clean(
+        source, weights, target, target_normals, _bucket(n) - n, _bucket(m) - m
+    )
+    grid = s.neighbors
+    if grid is not None:
+        validate_grid(grid, user_target, distances)
+    elif _is_concrete(target) and _is_concrete(distances):
+        points, ok = np.asarray(target), np.asarray(target_ok)
+        if ok.any():  # else nothing to index: every query is invalid
+            radius = float(np.max(np.asarray(distances)))
+            grid = build_grid(points, radius, mask=ok, capacity=grid_capacity)
+            if grid_capacity is not None and bool(grid.overflow):
+                grid = build_grid(points, radius, mask=ok)
+    problem = Problem(source, weights, target, target_ok, target_normals, grid)
+    opts = Options(
+        method=s.method,
+        max_iterations=int(s.max_iterations),
+        distances=distances,
+        tolerance=jnp.asarray(s.tolerance, dtype),
+        kernel=L2() if s.kernel is None else s.kernel,
+        trim_fraction=None if s.trim_fraction is None else jnp.asarray(s.trim_fraction, dtype),
+    )
+    return problem, opts, (n, m)
+
+
+@eqx.filter_jit
+def _clean(source, source_weights, target, target_normals, n_pad: int, m_pad: int):
+    """Masks unusable rows and pads both clouds to bucketed sizes, in one compiled call.
+
+    NaN rows (depth holes) take no part and the arithmetic never sees them: a source row
+    gets weight 0 and coordinates 0; a target row that is not finite, or whose normal is
+    not a finite unit vector (``estimate_normals`` returns zeros where a normal is
+    undefined), is moved far away and marked invalid, so it is never a match. Padding rows
+    are zero-weight source rows and far, invalid target rows, so clouds of similar size
+    share one compiled loop. Returns the source, its weights, the target, its validity mask
+    and its normals (``None`` stays ``None``).
+    """
+    dtype = source.dtype
+    source_ok = jnp.all(jnp.isfinite(source), -1)
+    source_weights = jnp.where(source_ok, source_weights, 0.0)
+    source = jnp.where(source_ok[:, None], source, 0.0)
+    target_ok = jnp.all(jnp.isfinite(target), -1)
+    if target_normals is not None:
+        finite = jnp.all(jnp.isfinite(target_normals), -1)
+        safe = jnp.where(finite[:, None], target_normals, 0.0)
+        length = jnp.sqrt(jnp.sum(safe * safe, -1))
+        target_ok &= finite & (jnp.abs(length - 1) <= NORMAL_TOLERANCE)
+        target_normals = jnp.where(target_ok[:, None], target_normals, 0.0)
+        target_normals = jnp.pad(target_normals, ((0, m_pad), (0, 0)))
+    far = jnp.asarray(jnp.finfo(dtype).max / 4, dtype)  # never within any distance
+    target = jnp.where(target_ok[:, None], target, far)
+    return (
+        jnp.pad(source, ((0, n_pad), (0, 0))),
+        jnp.pad(source_weights, (0, n_pad)),
+        jnp.pad(target, ((0, m_pad), (0, 0)), constant_values=far),
+        jnp.pad(target_ok, (0, m_pad)),
+        target_normals,
+    )
+
+
+def _bucket(rows: int) -> int:
+    """``rows`` rounded up to a multiple of a quarter of its leading power of two (at most
+    25% padding, and at least 32 rows)."""
+    if rows <= 32:
+        return 32
+    step = 1 << (rows.bit_length() - 3)
+    return -(-rows // step) * step
+
+
+def unpad(result: RegistrationResult, n: int, m: int) -> RegistrationResult:
+    """Drops the padding rows of :func:`prepare` from a (possibly batched) result; the
+    no-match sentinel becomes ``m``, the caller's target size."""
+    index = result.correspondences[..., :n]
+    return eqx.tree_at(
+        lambda r: (r.correspondences, r.weights),
+        result,
+        (jnp.where(index >= m, m, index), result.weights[..., :n]),
+    )
+
+
+def run_starts(
+    problem: Problem, opts: Options, sizes: tuple[int, int], inits
+) -> RegistrationResult:
+    """ICP from every start of ``inits`` (an ``SE3`` batch ``(S,)`` or ``(S, 4, 4)``) in one
+    compiled call, sharded over ``jax.devices()`` when there are several; every leaf of the
+    (unpadded) result has the leading axis ``S``."""
+    starts = as_pose(inits, problem.source.dtype)
+    if len(starts.get_batch_axes()) != 1:
+        raise ValueError(
+            f"inits must have exactly one batch axis (S,), got {starts.get_batch_axes()}"
+        )
+    count = starts.wxyz_xyz.shape[0]
+    results = run_many(problem, opts, _shard_starts(starts))
+    if results.pose.wxyz_xyz.shape[0] != count:
+        results = results[:count]
+    return unpad(results, *sizes)
+
+
+def _shard_starts(starts: SE3) -> SE3:
+    """Splits the start axis over ``jax.devices()`` when there is more than one device,
+    padding it (with copies of the last start) to a multiple of the device count."""
+    devices = jax.devices()
+    if len(devices) < 2:
+        return starts
+    params = starts.wxyz_xyz
+    pad = -params.shape[0] % len(devices)
+    params = jnp.concatenate([params, jnp.repeat(params[-1:], pad, axis=0)])
+    mesh = jax.sharding.Mesh(np.array(devices), ("starts",))
+    spec = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("starts"))
+    return SE3(jax.device_put(params, spec))

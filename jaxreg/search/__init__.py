@@ -1,0 +1,7 @@
+"""Nearest-neighbour search with static shapes: the host-built grid/octree and its exact
+queries (1-NN, kNN, radius), voxel downsampling, normal estimation and FPFH features with
+their matching.
+
+Capacities are chosen on the host and overflow is reported, never silently dropped. May import
+:mod:`jaxreg.core` and :mod:`jaxreg.geometry`.
+"""

@@ -1,0 +1,21 @@
+"""Studies: sweeps of many registrations that each answer one question: the basin of
+attraction of ICP, the repeatability tiers with their error budget, the hand-eye correction
+that makes viewpoints agree.
+
+May import every package but :mod:`jaxreg.cli`.
+"""
+
+from jaxreg.studies._hand_eye import (
+    HandEyeCorrection as HandEyeCorrection,
+    estimate_hand_eye_correction as estimate_hand_eye_correction,
+)
+from jaxreg.studies._repeatability import (
+    Repeatability as Repeatability,
+    repeatability as repeatability,
+)
+from jaxreg.studies.basin import (
+    BasinSweep as BasinSweep,
+    basin_radius as basin_radius,
+    basin_starts as basin_starts,
+    basin_sweep as basin_sweep,
+)

@@ -1,0 +1,16 @@
+"""Synthetic tabletop RGB-D scenes: meshes of the test objects, an exact ray-cast rendering, a
+stereo depth sensor model, and scenes with their ground truth (pose, mask, symmetry).
+
+Needs the ray caster (trimesh + Embree), so ``import jaxreg`` loads it on first use. May import
+core, geometry, uncertainty and camera.
+"""
+
+from jaxreg.synth._depth_noise import StereoSensor as StereoSensor
+from jaxreg.synth._meshes import OBJECTS as OBJECTS, object_mesh as object_mesh
+from jaxreg.synth.scenes import (
+    Rendering as Rendering,
+    TabletopScene as TabletopScene,
+    look_at as look_at,
+    render as render,
+    tabletop_scene as tabletop_scene,
+)

@@ -1,0 +1,22 @@
+"""Pose uncertainty: measurement noise models (isotropic, per-point, depth-camera), statistics
+of repeated pose estimates, the error budget and the grasp success probability.
+
+Covariances are of the right perturbation ``T_true = T_est @ exp(delta)``, tangent order
+``(v, w)``. May import :mod:`jaxreg.core` and :mod:`jaxreg.geometry`.
+"""
+
+from jaxreg.uncertainty._pose_statistics import (
+    GroupStatistics as GroupStatistics,
+    PoseStatistics as PoseStatistics,
+    pose_statistics as pose_statistics,
+)
+from jaxreg.uncertainty.noise import (
+    AbstractPointNoise as AbstractPointNoise,
+    DepthNoise as DepthNoise,
+    ErrorBudget as ErrorBudget,
+    IsotropicNoise as IsotropicNoise,
+    PointCovariance as PointCovariance,
+    error_budget as error_budget,
+    grasp_margin as grasp_margin,
+    grasp_success_probability as grasp_success_probability,
+)

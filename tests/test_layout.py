@@ -1,0 +1,134 @@
+"""The package layout: each package imports only the packages below it, no module imports
+itself back through others, the root shows the architecture, and the public API that
+``../shared/DESIGN.md`` documents resolves from ``jaxreg``."""
+
+import ast
+import importlib
+import re
+from pathlib import Path
+
+import pytest
+
+import jaxreg
+
+ROOT = Path(jaxreg.__file__).parent
+
+# Each package and the packages it may import (its docstring says the same).
+ALLOWED = {
+    "core": set(),
+    "geometry": {"core"},
+    "uncertainty": {"core", "geometry"},
+    "search": {"core", "geometry"},
+    "registration": {"core", "geometry", "uncertainty", "search"},
+    "camera": {"core", "geometry"},
+    "io": {"core", "geometry", "camera"},
+    "pipeline": {"core", "geometry", "uncertainty", "search", "registration", "camera"},
+    "synth": {"core", "geometry", "uncertainty", "camera"},
+    "studies": {
+        "core", "geometry", "uncertainty", "search", "registration", "camera", "io", "pipeline",
+        "synth",
+    },  # fmt: skip
+    "cli": set(),  # filled below: every other package
+}
+ALLOWED["cli"] = set(ALLOWED) - {"cli"}
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports(path: Path, top_level_only: bool) -> set[str]:
+    """jaxreg modules that ``path`` imports (``from a import b`` counts ``a.b`` when that is a
+    module); with ``top_level_only``, the imports run when the module loads."""
+    tree = ast.parse(path.read_text())
+    nodes = tree.body if top_level_only else list(ast.walk(tree))
+    found = set()
+    for node in nodes:
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("jaxreg"):
+            found.add(node.module)
+            for alias in node.names:
+                candidate = f"{node.module}.{alias.name}"
+                if _path_of(candidate) is not None:
+                    found.add(candidate)
+        elif isinstance(node, ast.Import):
+            found.update(a.name for a in node.names if a.name.startswith("jaxreg"))
+    return found
+
+
+def _path_of(module: str) -> Path | None:
+    base = ROOT.parent.joinpath(*module.split("."))
+    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+SOURCES = sorted(ROOT.rglob("*.py"))
+
+
+def test_root_shows_the_architecture():
+    entries = sorted(p.name for p in ROOT.iterdir() if p.name != "__pycache__")
+    packages = [name for name in entries if (ROOT / name).is_dir()]
+    assert set(packages) == set(ALLOWED), packages
+    assert set(entries) - set(packages) == {"__init__.py", "__main__.py"}, entries
+    for name in packages:
+        doc = ast.get_docstring(ast.parse((ROOT / name / "__init__.py").read_text()))
+        assert doc and len(doc) > 80, f"jaxreg.{name} needs a docstring that says its job"
+
+
+@pytest.mark.parametrize("path", SOURCES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_packages_import_only_those_below_them(path):
+    parts = path.relative_to(ROOT).parts
+    if len(parts) == 1:  # jaxreg/__init__.py and __main__.py see everything
+        return
+    package = parts[0]
+    for module in _imports(path, top_level_only=False):
+        other = module.split(".")[1] if module.count(".") else None
+        if other is None or other == package or other not in ALLOWED:
+            continue
+        assert other in ALLOWED[package], f"{path.relative_to(ROOT)} imports {module}"
+
+
+def test_no_import_cycles():
+    graph = {_module_name(p): _imports(p, top_level_only=True) for p in SOURCES}
+    graph = {m: {t for t in targets if t in graph and t != m} for m, targets in graph.items()}
+    # a package's __init__ importing its own modules is the package loading, not a cycle
+    for module, targets in graph.items():
+        graph[module] = {t for t in targets if not module.startswith(t + ".")}
+    state: dict[str, int] = {}
+
+    def visit(node, trail):
+        state[node] = 1
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                cycle = trail[trail.index(nxt) :] + [nxt] if nxt in trail else [node, nxt]
+                pytest.fail("import cycle: " + " -> ".join(cycle))
+            if nxt not in state:
+                visit(nxt, trail + [nxt])
+        state[node] = 2
+
+    for module in sorted(graph):
+        if module not in state:
+            visit(module, [module])
+
+
+def _design_names() -> list[str]:
+    for folder in (Path(__file__).resolve().parents[1] / ".." / "shared",):
+        design = folder / "DESIGN.md"
+        if design.is_file():
+            api = design.read_text().split("## Public API", 1)[1].split("Command line:", 1)[0]
+            return sorted(set(re.findall(r"\bjr\.([A-Za-z_][\w.]*\w)", api)))
+    pytest.skip("../shared/DESIGN.md is absent: the documented names cannot be listed")
+
+
+def test_design_names_resolve():
+    names = _design_names()
+    assert len(names) > 25, names
+    for dotted in names:
+        value = jaxreg
+        for part in dotted.split("."):
+            value = getattr(value, part)
+        assert value is not None, dotted
+    for module in ("jaxreg.io", "jaxreg.synth", "jaxreg.studies", "jaxreg.cli"):
+        importlib.import_module(module)
