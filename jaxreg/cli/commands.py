@@ -43,6 +43,7 @@ from jaxreg.core._program_cache import persistent_jit
 
 GRIPPER_OPENING = 0.085  # metres: a Robotiq 2F-85-class parallel-jaw gripper
 MODEL_SAMPLES = 20_000  # points sampled on a mesh model
+_TANGENT_AXES = ("vx", "vy", "vz", "wx", "wy", "wz")
 
 
 def enable_compilation_cache() -> str | None:
@@ -85,22 +86,22 @@ def _clean(value):
     return value
 
 
-def _grasp_axis(model_points: np.ndarray, covariance: np.ndarray):
+def _grasp_axis(model_points: np.ndarray, budget):
     """A parallel-jaw grasp across the model's narrowest principal axis: the axis ``(3,)``
     (object frame), the model's width along it and the lateral sigma along it (host numpy).
 
     The jaws close along the axis of least extent; the lateral error along it is Gaussian
-    with the sigma the pose covariance gives it (its translation block, object frame), no
-    bias: the depth noise alone. :func:`_report_numbers` turns them into the margin
+    with the sigma that the whole error budget gives it (the total covariance's translation
+    block, object frame). :func:`_report_numbers` turns them into the margin
     (:func:`jaxreg.grasp_margin`) and the predicted success; ``axis`` is reported so that a
     known error can be added as a bias (:func:`measured_grasp`).
     """
+    from jaxreg.uncertainty.budget import grasp_axis
+
     centred = model_points - model_points.mean(0)
-    _, vectors = np.linalg.eigh(np.cov(centred.T))
-    axis = vectors[:, 0]
+    axis = grasp_axis(model_points)
     along = centred @ axis
-    sigma = float(np.sqrt(max(axis @ covariance[:3, :3] @ axis, 0.0)))
-    return axis, float(along.max() - along.min()), sigma
+    return axis, float(along.max() - along.min()), budget.lateral_sigma(axis)
 
 
 def _grasp(opening, width, margin, sigma, probability, axis) -> dict:
@@ -137,8 +138,7 @@ def _measured_probability(sigma, bias, margin):
 def measured_grasp(grasp: dict, offset: np.ndarray) -> dict:
     """The report's grasp (:func:`build_report`) with this frame's measured error (``offset``, the
     true object origin in the estimated object frame, ``(3,)`` metres; its component along the
-    jaw axis) as the bias: what the noise-only prediction leaves out (segmentation, model fit,
-    calibration)."""
+    jaw axis) as the bias: the chance this frame would have if its error were known."""
     bias = abs(float(np.asarray(grasp["axis"]) @ np.asarray(offset, np.float64)))
     sigma, margin = grasp["lateral_sigma_mm"] * 1e-3, grasp["margin_per_side_mm"] * 1e-3
     probability = _measured_probability(*np.float32([sigma, bias, margin]))
@@ -161,16 +161,29 @@ def build_report(estimate, model_points: np.ndarray, opening: float) -> dict:
         "predicted_grasp_success": None,
     }
     if found:
-        axis, width, lateral = _grasp_axis(model_points, estimate.covariance)
+        axis, width, lateral = _grasp_axis(model_points, estimate.budget)
         matrix, margin, probability = _report_numbers(
             estimate.pose, *np.float32([opening, width, lateral])
         )
         report["pose"] = np.asarray(matrix).tolist()
-        sigma = np.sqrt(np.clip(np.diag(estimate.covariance), 0.0, None))
+        sources = {
+            name: {
+                "translation_sigma_mm": (translation * 1e3).round(4).tolist(),
+                "rotation_sigma_deg": np.degrees(rotation).round(4).tolist(),
+            }
+            for name, (translation, rotation) in estimate.budget.sigmas().items()
+        }
         report["error_bars"] = {
-            "translation_sigma_mm": (sigma[:3] * 1e3).round(4).tolist(),
-            "rotation_sigma_deg": np.degrees(sigma[3:]).round(4).tolist(),
-            "frame": "object axes (right perturbation of base_T_object), 1 sigma, depth noise only",
+            **sources["total"],
+            "frame": "object axes (right perturbation of base_T_object), 1 sigma, every source",
+        }
+        report["error_budget"] = {
+            "sources": sources,
+            "free_axes": [
+                name for name, free in zip(_TANGENT_AXES, estimate.budget.free, strict=True)
+                if free
+            ],
+            "free_reason": estimate.budget.free_reason,
         }
         grasp = _grasp(opening, width, float(margin), lateral, float(probability), axis)
         report["grasp"] = grasp
@@ -228,27 +241,32 @@ def print_report(report: dict, title: str, out=sys.stdout) -> None:
             f"  error vs truth: translation {report['translation_error_mm']:.2f} mm, rotation "
             f"{report['rotation_error_deg']:.2f} deg, ADD-S {report['add_s_mm']:.2f} mm"
         )
-    bars = report["error_bars"]
-    line(
-        "  error bars (1 sigma, object axes, depth noise): translation "
-        + ", ".join(f"{v:.2f}" for v in bars["translation_sigma_mm"])
-        + " mm; rotation "
-        + ", ".join(f"{v:.2f}" for v in bars["rotation_sigma_deg"])
-        + " deg"
-    )
+    budget = report["error_budget"]
+    line("  error budget (1 sigma along the object's x y z): translation mm | rotation deg")
+
+    def cells(values):
+        return " ".join("  free" if v is None else f"{v:6.2f}" for v in values)
+
+    for name, row in budget["sources"].items():
+        line(
+            f"    {name:13s}{cells(row['translation_sigma_mm'])} | "
+            f"{cells(row['rotation_sigma_deg'])}"
+        )
+    if budget["free_axes"]:
+        line(f"    free ({', '.join(budget['free_axes'])}): {budget['free_reason']}")
     g = report["grasp"]
     if g["probability"] is not None:
         line(
             f"  grasp: a {g['gripper_opening_mm']:.0f} mm parallel gripper across the "
             f"{g['object_width_mm']:.0f} mm width leaves {g['margin_per_side_mm']:.1f} mm per "
-            f"side; lateral sigma {g['lateral_sigma_mm']:.2f} mm (depth noise alone) -> "
+            f"side; lateral sigma {g['lateral_sigma_mm']:.2f} mm (the whole budget) -> "
             f"predicted success {g['probability']:.1%}"
         )
     if g.get("probability_with_measured_error") is not None:
         line(
             f"  with this frame's measured error along the jaws as a bias "
-            f"({g['measured_lateral_error_mm']:.2f} mm: segmentation, model fit and calibration, "
-            f"which the error bars do not cover) -> {g['probability_with_measured_error']:.1%}"
+            f"({g['measured_lateral_error_mm']:.2f} mm) -> "
+            f"{g['probability_with_measured_error']:.1%}"
         )
 
 

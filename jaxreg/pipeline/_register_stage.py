@@ -23,12 +23,12 @@ from scipy.spatial.transform import Rotation
 
 from jaxreg.camera.model import RGBDFrame
 from jaxreg.core._program_cache import persistent_jit
-from jaxreg.geometry.lie import adjoint_transport, geodesic_angle
+from jaxreg.geometry.lie import geodesic_angle
 from jaxreg.geometry.metrics import canonicalise
 from jaxreg.pipeline.segment import TablePlane
 from jaxreg.registration._icp_core import run
 from jaxreg.registration._icp_setup import Settings, prepare
-from jaxreg.registration.icp import icp_covariance, multistart_icp, pca_inits, rotation_inits
+from jaxreg.registration.icp import icp, multistart_icp, pca_inits, rotation_inits
 from jaxreg.search.neighbors import NeighborGrid, build_grid, query_nearest, voxel_downsample
 from jaxreg.search.normals import estimate_normals
 
@@ -446,15 +446,12 @@ def _register_starts(source, points, normals, grid, inits, distances, trim, iter
 
 
 @persistent_jit
-def _finish(
-    source, points, normals, grid, object_T_base, best, equal, symmetry, distance, trim, noise
-):
+def _finish(object_T_base, best, equal, symmetry):
     """The answer from the refined starts ``object_T_base (S, 7)``, as one stored program:
     ``base_T_object`` of start ``best`` (wxyz_xyz; with a ``symmetry``, the equivalent nearest
     the base axes), the largest offset (metres) and angle (degrees) to the starts flagged
-    ``equal`` ``(S,)`` (compared on the same symmetry branch), and the ``(6, 6)`` covariance
-    of the right perturbation of ``base_T_object`` from ``icp_covariance`` of the final
-    point-to-plane registration."""
+    ``equal`` ``(S,)`` and their tangents ``(S, 6)``, all compared on the answer's symmetry
+    branch (right perturbations of the reported ``base_T_object``, object axes)."""
     found = SE3(object_T_base[best])
     pose = found.inverse()
     others = SE3(object_T_base).inverse()
@@ -465,15 +462,58 @@ def _finish(
     spread = jnp.stack([jnp.max(jnp.where(equal, offset, 0)), jnp.max(jnp.where(equal, angle, 0))])
     if symmetry is not None:  # report one branch: the equivalent nearest the base axes
         pose = canonicalise(pose, SE3.from_translation(pose.translation()), symmetry)
-    cov = icp_covariance(
-        source, points, found, method="point_to_plane", target_normals=normals,
-        max_correspondence_distance=distance, trim_fraction=trim, neighbors=grid,
-        source_noise=noise,
+        others = canonicalise(others, pose, symmetry)
+    tangents = (pose.inverse() @ others).log()
+    return pose.wxyz_xyz, spread, tangents
+
+
+# --------------------------------------------------------------------------------------------
+# Resting on the table: the plane pins the height and tilt of an object standing on it.
+
+CONTACT_POINTS = 128  # virtual contact points appended to the refined cloud (static)
+
+
+def resting_contact(model: _Model, object_T_base: np.ndarray, plane, tolerance: float, voxel):
+    """Virtual contact points of a model resting on the table, or ``None``.
+
+    At the refined ``object_T_base`` (wxyz_xyz), the model's lowest point must lie within
+    ``tolerance`` (metres) of the plane, and the model's points within one ``voxel`` of
+    that height must form a face (spanning a third of the model's width, not a corner or an
+    edge). The face's points, moved onto the plane along its normal, are where the table says
+    the model's bottom is: ``(CONTACT_POINTS, 3)`` base-frame points (subsampled, or NaN
+    padded), and the height (metres) the model's lowest point had above the plane.
+    """
+    base_T_object = SE3(np.asarray(object_T_base, np.float64)).inverse()
+    placed = np.asarray(base_T_object @ model.points.astype(np.float64))
+    normal, offset = np.asarray(plane.normal, np.float64), float(plane.offset)
+    height = placed @ normal + offset
+    lowest = float(height.min())
+    if not np.isfinite(lowest) or abs(lowest) > tolerance:
+        return None
+    face = placed[height <= lowest + voxel]
+    flat = face - np.outer(face @ normal, normal)
+    spread = np.ptp(flat @ np.linalg.svd(flat - flat.mean(0))[2][:2].T, axis=0)
+    width = np.ptp(placed - np.outer(placed @ normal, normal), axis=0).max()
+    if len(face) < 3 or spread.min() < width / 3:
+        return None
+    contact = face - np.outer(face @ normal + offset, normal)  # onto the plane
+    out = np.full((CONTACT_POINTS, 3), np.nan, np.float32)
+    step = max(1, int(np.ceil(len(contact) / CONTACT_POINTS)))
+    picked = contact[::step][:CONTACT_POINTS]
+    out[: len(picked)] = picked
+    return out, lowest
+
+
+@persistent_jit
+def _settle(source, contact, points, normals, grid, init, distances, trim, iterations):
+    """Point-to-plane ICP of ``source`` ``(N, 3)`` with the ``contact`` points ``(C, 3)``
+    appended, from ``init`` (7,): the object settled on the table."""
+    joined = jnp.concatenate([source, contact])
+    return icp(
+        joined, points, SE3(init), method="point_to_plane", target_normals=normals,
+        max_correspondence_distance=distances, max_iterations=iterations, trim_fraction=trim,
+        neighbors=grid, tolerance=1e-5,
     )  # fmt: skip
-    # right perturbation of base_T_object = object_T_base^-1: Ad_{object_T_base} Sigma Ad^T;
-    # the symmetry branch re-anchors the object frame (pose = found @ S): Ad_{S^-1}
-    cov = adjoint_transport((found @ pose).inverse(), adjoint_transport(found, cov))
-    return pose.wxyz_xyz, spread, cov
 
 
 def _distinct(poses: np.ndarray, count: int, min_distance: float) -> list[int]:

@@ -74,6 +74,7 @@ from jaxtyping import Array, Float
 
 from jaxreg.camera.model import RGBDFrame
 from jaxreg.geometry.metrics import Symmetry
+from jaxreg.pipeline._budget import Calibration, pose_budget
 from jaxreg.pipeline._lift import lift_region
 from jaxreg.pipeline._register_stage import (
     _coarse_problem,
@@ -86,13 +87,16 @@ from jaxreg.pipeline._register_stage import (
     _prepare_model,
     _register_starts,
     _score_candidates,
+    _settle,
     _support,
     overhang,
+    resting_contact,
     visibility as visibility,
 )
 from jaxreg.pipeline.segment import SegmentStatus, choose_cluster, cluster_mask, segment_frame
 from jaxreg.registration._icp_setup import _bucket
 from jaxreg.uncertainty import DepthNoise
+from jaxreg.uncertainty.budget import PoseBudget
 
 __all__ = ["PoseEstimate", "estimate_pose", "visibility"]
 
@@ -113,13 +117,16 @@ class PoseEstimate:
             distance of the model.
         covariance: ``(6, 6)`` covariance of the right perturbation of ``pose``
             (``T_true = pose @ exp(delta)``, tangent ``(vx, vy, vz, wx, wy, wz)`` in the
-            object frame; metres and radians) from the depth noise through the final
-            registration; NaN without a pose.
+            object frame; metres and radians): the total of ``budget``, ``inf`` on the
+            diagonal of free axes (``0`` off it), never NaN with a pose; NaN without one.
         failed_stage: ``None``, ``"segment"``, ``"lift"`` or ``"register"``.
         reason: why that stage failed, or a one-line summary of a success.
         stages: ``{stage: {"ms": float, ...diagnostics}}`` for the stages that ran.
         mask: ``(H, W)`` bool pixels of the lifted segment (all False if lift did not run).
         points: ``(K, 3)`` base-frame points that were registered (empty if none).
+        budget: the :class:`~jaxreg.uncertainty.budget.PoseBudget` (one covariance per
+            source of error: depth, fit, segmentation, calibration, ambiguity; the free
+            axes), or ``None`` without a pose.
     """
 
     pose: SE3 | None
@@ -131,6 +138,7 @@ class PoseEstimate:
     stages: dict[str, dict[str, Any]]
     mask: np.ndarray
     points: np.ndarray
+    budget: PoseBudget | None = None
 
     @property
     def success(self) -> bool:
@@ -172,6 +180,7 @@ class _Settings:
     max_inlier_rmse: float
     max_contradicted: float
     max_overhang: float
+    rest_tolerance: float
     coarse_distances: np.ndarray = dataclasses.field(
         default_factory=lambda: np.geomspace(0.04, 0.01, 20).astype(np.float32)
     )
@@ -211,6 +220,9 @@ def estimate_pose(
     model_normals: Float[Any, "M 3"] | None = None,
     symmetry: Symmetry | None = None,
     depth_noise: DepthNoise | None = None,
+    hand_eye_covariance: Float[Any, "6 6"] | None = None,
+    intrinsics_sigma: Float[Any, " 4"] | None = None,
+    depth_scale_sigma: float = 0.0,
     key: Array | None = None,
     pixel: tuple[float, float] | None = None,
     box: tuple[float, float, float, float] | None = None,
@@ -237,6 +249,7 @@ def estimate_pose(
     max_inlier_rmse: float = 0.004,
     max_contradicted: float = 0.25,
     max_overhang: float = 0.003,
+    rest_tolerance: float = 0.015,
     progress: Callable[[str], object] | None = None,
 ) -> PoseEstimate:
     """Estimate ``base_T_object`` of a model in one depth frame (see the module docstring).
@@ -252,6 +265,11 @@ def estimate_pose(
         depth_noise: the camera's noise as a :class:`~jaxreg.uncertainty.DepthNoise` in the
             camera frame (its ``base_T_camera`` is replaced by the frame's); default a
             structured-light / stereo camera with ``sigma_z = 2.5e-3 z^2`` (metres).
+        hand_eye_covariance: ``(6, 6)`` covariance of the right perturbation of the frame's
+            ``base_T_camera`` (camera axes, ``(v, w)``, metres and radians): the hand-eye
+            calibration's uncertainty, propagated into the budget's calibration term.
+        intrinsics_sigma: ``(4,)`` standard deviations of ``(fx, fy, cx, cy)`` (pixels).
+        depth_scale_sigma: relative standard deviation of the depth scale (0.01 = 1%).
         key: PRNG key of the plane hypotheses (default ``PRNGKey(0)``).
         pixel, box: optional prompt ``(u, v)`` or ``(u0, v0, u1, v1)`` (pixels) naming the
             object's cluster instead of scoring every candidate.
@@ -287,6 +305,10 @@ def estimate_pose(
             the model's principal axes at the fitted pose (between its 2% and 98%
             quantiles; depth noise): a larger object of a similar shape fits the model well
             by every other measure, but reaches beyond it.
+        rest_tolerance: an answer whose model has a flat face within this distance (metres)
+            of the table, facing it, rests there: it is moved onto the table and settled by
+            ICP with contact points on the face (a partial view pins an object's height
+            poorly; the table pins it). 0 turns this off.
         progress: called with each stage's name as it starts (a command line's progress).
 
     Returns:
@@ -315,6 +337,7 @@ def estimate_pose(
         raise ValueError("model_points holds no finite point")
     if pixel is not None and box is not None:
         raise ValueError("give at most one prompt: pixel=(u, v) or box=(u0, v0, u1, v1)")
+    calibration = Calibration(hand_eye_covariance, intrinsics_sigma, depth_scale_sigma)
     key = jax.random.PRNGKey(0) if key is None else key
     progress = progress or (lambda stage: None)
     settings = _Settings(
@@ -322,7 +345,7 @@ def estimate_pose(
         cluster_distance, cluster_margin, max_candidates, num_starts, resting_yaws,
         coarse_points, coarse_screen, coarse_survivors, coarse_first, coarse_keep, max_points,
         min_segment_points, min_valid_fraction, min_consistent_neighbors, min_inlier_fraction,
-        max_inlier_rmse, max_contradicted, max_overhang,
+        max_inlier_rmse, max_contradicted, max_overhang, rest_tolerance,
     )  # fmt: skip
     model = _prepare_model(
         model_points, model_normals, voxel_size, float(settings.coarse_distances[0]),
@@ -341,7 +364,7 @@ def estimate_pose(
         progress("register")
         return _register(
             frame, seg, model, settings, coarse_poses, coarse_fraction, mask, points, noise,
-            symmetry, rng, stages,
+            symmetry, calibration, rng, stages,
         )  # fmt: skip
     except _Failed as failure:
         return PoseEstimate(
@@ -349,6 +372,7 @@ def estimate_pose(
             failure.reason, stages,
             np.zeros(frame.depth.shape, bool) if failure.mask is None else failure.mask,
             np.zeros((0, 3), np.float32) if failure.points is None else failure.points,
+            None,
         )  # fmt: skip
 
 
@@ -510,7 +534,7 @@ def _lift(frame, seg, joined, noise: DepthNoise, settings: _Settings, stages):
 
 def _register(
     frame, seg, model, settings: _Settings, coarse_poses, coarse_fraction, mask, points, noise,
-    symmetry, rng, stages,
+    symmetry, calibration, rng, stages,
 ):  # fmt: skip
     """The best distinct coarse poses refined on the lifted points and judged; the estimate,
     or ``_Failed`` when the evidence says the model is not there."""
@@ -534,10 +558,8 @@ def _register(
     confirmed, contradicted = _support(seen[ranked[0]])
     reach = overhang(model, np.asarray(results.pose.wxyz_xyz[ranked[0]]), points)
     equal = (scores >= scores[ranked[0]] - 0.02) & (rmses <= rmse * 1.1 + 1e-4)
-    wxyz_xyz, spread, covariance = _finish(
-        source, model.points, model.normals, model.fine_grid, results.pose.wxyz_xyz,
-        np.int32(ranked[0]), equal, symmetry, fine_distances[-1], trim, noise,
-    )  # fmt: skip
+    answers, contact, lowest = _rest(source, model, results, ranked[0], seg.plane, trim, s)
+    wxyz_xyz, spread, tangents = _finish(answers, np.int32(ranked[0]), equal, symmetry)
     spread_mm, spread_deg = (float(x) for x in np.asarray(spread))
     stages["register"] = {
         "ms": _ms(start),
@@ -555,6 +577,8 @@ def _register(
         "model_confirmed": round(confirmed, 3),
         "model_contradicted": round(contradicted, 3),
         "overhang_mm": [round(float(r) * 1e3, 1) for r in reach],
+        "resting_on_table": contact is not None,
+        "contact_shift_mm": None if lowest is None else round(-lowest * 1e3, 2),
     }
     problems = []
     if fraction < s.min_inlier_fraction:
@@ -586,9 +610,46 @@ def _register(
         f"found: {fraction:.0%} of {len(points)} segment points within "
         f"{fine_distances[-1] * 1e3:.0f} mm of the model, residual {rmse * 1e3:.2f} mm"
     )
+    budget = pose_budget(
+        points=points, source_size=s.max_points, model=model,
+        object_T_base=answers[ranked[0]], pose=np.asarray(wxyz_xyz), contact=contact,
+        frame=frame, mask=mask, plane=seg.plane, min_height=s.lift_min_height,
+        distances=fine_distances, trim=trim, noise=noise, calibration=calibration,
+        tangents=np.asarray(tangents), equal=equal, symmetry=symmetry,
+        rng=np.random.default_rng(1),
+    )  # fmt: skip
+    stages["register"]["ms"] = _ms(start)
     return PoseEstimate(
-        SE3(wxyz_xyz), rmse, fraction, np.asarray(covariance), None, reason, stages, mask, points
+        SE3(wxyz_xyz), rmse, fraction, budget.total, None, reason, stages, mask, points, budget
     )
+
+
+def _rest(source, model, results, best: int, plane, trim, settings: _Settings):
+    """The refined answers ``(S, 7)`` (object_T_base) with each one that rests on the table
+    moved onto it, the best one settled there by ICP with the contact points; the contact
+    points ``(C, 3)`` of the best (``None`` when it does not rest) and its lowest point's
+    height above the table before (metres; ``None`` likewise)."""
+    answers = np.array(results.pose.wxyz_xyz, np.float32)
+    contact, lowest = None, None
+    for i, answer in enumerate(answers):
+        resting = resting_contact(
+            model, answer, plane, settings.rest_tolerance, settings.voxel_size
+        )
+        if resting is None:
+            continue
+        normal = np.asarray(plane.normal, np.float64)
+        shifted = SE3(np.asarray(answer, np.float64)) @ SE3.from_translation(resting[1] * normal)
+        answers[i] = np.asarray(shifted.wxyz_xyz, np.float32)
+        if i != best:
+            continue
+        settled = _settle(
+            source, resting[0], model.points, model.normals, model.fine_grid, answers[i],
+            settings.fine_distances[-15:], trim, 15,
+        )  # fmt: skip
+        if bool(np.isfinite(np.asarray(settled.inlier_rmse))):
+            answers[i] = np.asarray(settled.pose.wxyz_xyz, np.float32)
+            contact, lowest = resting
+    return answers, contact, lowest
 
 
 def _noise(depth_noise: DepthNoise | None, frame: RGBDFrame) -> DepthNoise:

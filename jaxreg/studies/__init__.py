@@ -1,6 +1,7 @@
 """Studies: sweeps of many registrations that each answer one question: the basin of
 attraction of ICP, the repeatability tiers with their error budget, the hand-eye correction
-that makes viewpoints agree.
+that makes viewpoints agree, and the calibration of the reported error bars against the real
+error.
 
 May import every package but :mod:`jaxreg.cli`.
 """
@@ -18,4 +19,9 @@ from jaxreg.studies.basin import (
     basin_radius as basin_radius,
     basin_starts as basin_starts,
     basin_sweep as basin_sweep,
+)
+from jaxreg.studies.calibration import (
+    CalibrationStudy as CalibrationStudy,
+    FrameOutcome as FrameOutcome,
+    calibration_study as calibration_study,
 )

@@ -172,6 +172,8 @@ def tabletop_scene(
     base_T_object: SE3 | np.ndarray | None = None,
     base_T_camera: SE3 | np.ndarray | None = None,
     noise_seed: int | None = None,
+    mesh: trimesh.Trimesh | None = None,
+    symmetry: Symmetry | None = None,
 ) -> TabletopScene:
     """A random tabletop scene, reproducible from `seed`.
 
@@ -197,11 +199,13 @@ def tabletop_scene(
             (a study's viewpoints); distractors stay off its line of sight.
         noise_seed: seed of the sensor-noise draw (default `seed`): the same scene
             re-measured, as a frozen scene is by repeated captures.
+        mesh: a user's own target (metres, its frame's z up; it rests on its lowest
+            point) instead of `object`'s, with its `symmetry` (default none).
 
     Returns:
         A `TabletopScene`.
     """
-    if object not in OBJECTS:
+    if mesh is None and object not in OBJECTS:
         raise ValueError(f"unknown object {object!r}: choose one of {', '.join(OBJECTS)}")
     if not 0 <= distractors <= 8:
         raise ValueError(f"distractors must be 0..8 (room on the table), got {distractors}")
@@ -209,8 +213,12 @@ def tabletop_scene(
     intrinsics = sensor.intrinsics() if intrinsics is None else intrinsics
     rng = np.random.default_rng([seed, 0])  # geometry; noise draws from [seed, 1]
 
-    model, symmetry = object_mesh(object)
-    half_height = model.bounds[1, 2]
+    if mesh is None:
+        model, symmetry = object_mesh(object)
+    else:
+        model = mesh
+        symmetry = Symmetry(np.eye(3)[None]) if symmetry is None else symmetry
+    half_height = -model.bounds[0, 2]  # the origin's height when it rests on its lowest point
     target_xy = rng.uniform(-0.05, 0.05, 2)
     truth = _resting_pose(target_xy, rng.uniform(0, 2 * np.pi), half_height)
     azimuth = rng.uniform(0, 2 * np.pi)

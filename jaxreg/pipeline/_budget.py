@@ -1,0 +1,324 @@
+"""The register stage's error budget: every source of a pose's error, propagated to the
+covariance of the right perturbation of ``base_T_object`` (:mod:`jaxreg.uncertainty.budget`).
+
+The registration fits the segment (base frame) into the model: ``object_T_base``, point-to-plane
+residuals ``r_i = n_i . (object_T_base @ p_i - q_i)`` with the model point ``q_i`` nearest
+the moved segment point ``p_i`` and its normal ``n_i``. With the pairs held fixed, a right
+perturbation ``delta`` (base axes) of ``object_T_base`` changes ``r_i`` by ``J_i . delta``,
+``J_i = (R^T n_i, p_i x R^T n_i)``; the normal equations ``H = sum_i J_i J_i^T`` and the implicit
+function theorem turn any perturbation of the points into one of the pose. The terms:
+
+* **fit**: the cluster-robust ("sandwich") covariance ``H^-1 (sum_b g_b g_b^T) H^-1`` of the
+  residuals' gradients ``g_b = sum_{i in b} J_i r_i`` summed over spatial blocks ``b``: it sees
+  the residuals as they are (model mismatch included) and noise that is correlated between
+  neighbouring points (a stereo camera's matching window); the part beyond the depth term.
+* **segmentation**: the segment re-registered with its membership changed (the mask's border
+  eroded or grown by a few pixels, a contiguous piece of the visible part dropped), all
+  perturbations in one vmapped ICP call; the second moment of the poses about the estimate.
+* **calibration**: the user's hand-eye covariance, moved to the object in closed form (every
+  lifted point moves rigidly with the camera, so the fitted pose does too), and the intrinsics
+  and depth-scale uncertainty through the lifting's derivative and the normal equations.
+* **ambiguity**: the second moment of the equally good starts about the answer.
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+from jaxlie import SE3
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from jaxreg.core._program_cache import persistent_jit
+from jaxreg.registration.icp import icp
+from jaxreg.uncertainty.budget import combine
+
+__all__ = ["Calibration", "pose_budget"]
+
+
+class Calibration:
+    """The user's stated calibration uncertainty (host values).
+
+    Attributes:
+        hand_eye: ``(6, 6)`` covariance of the right perturbation of ``base_T_camera``
+            (camera axes, ``(v, w)``, metres and radians), or ``None``.
+        intrinsics_sigma: ``(4,)`` standard deviations of ``(fx, fy, cx, cy)`` in pixels.
+        depth_scale_sigma: relative standard deviation of the depth scale (0.01 = 1%).
+    """
+
+    def __init__(self, hand_eye=None, intrinsics_sigma=None, depth_scale_sigma=0.0):
+        if hand_eye is not None:
+            hand_eye = np.asarray(hand_eye, np.float64)
+            if hand_eye.shape != (6, 6) or not np.all(np.isfinite(hand_eye)):
+                raise ValueError(
+                    f"hand_eye_covariance must be a finite (6, 6) matrix, got {hand_eye.shape}"
+                )
+            if np.linalg.eigvalsh(0.5 * (hand_eye + hand_eye.T)).min() < -1e-12:
+                raise ValueError("hand_eye_covariance must be positive semi-definite")
+        sigma = np.zeros(4) if intrinsics_sigma is None else np.asarray(intrinsics_sigma, float)
+        if sigma.shape != (4,) or np.any(~np.isfinite(sigma)) or np.any(sigma < 0):
+            raise ValueError(
+                "intrinsics_sigma must be 4 non-negative standard deviations (fx, fy, cx, cy) "
+                f"in pixels, got {sigma}"
+            )
+        scale = float(depth_scale_sigma)
+        if not np.isfinite(scale) or scale < 0:
+            raise ValueError(f"depth_scale_sigma must be >= 0 (relative), got {scale}")
+        self.hand_eye, self.intrinsics_sigma, self.depth_scale_sigma = hand_eye, sigma, scale
+
+
+def _adjoint(wxyz_xyz: np.ndarray) -> np.ndarray:
+    return np.asarray(SE3(np.asarray(wxyz_xyz, np.float64)).adjoint())
+
+
+def _pairs(points, object_T_base, model_points, model_normals, distance, trim):
+    """The registration's pairs at the answer: segment points ``(K, 3)`` (base), their model
+    normals ``(K, 3)`` (object frame), residuals ``(K,)`` and the rows of ``points`` kept
+    ``(K,)``: those within ``distance`` of a model point with a usable normal, the ``trim``
+    fraction with the smallest distances."""
+    pose = SE3(np.asarray(object_T_base, np.float64))
+    moved = np.asarray(pose @ points)
+    usable = np.linalg.norm(model_normals, axis=1) > 0.5
+    tree = cKDTree(model_points[usable])
+    gap, index = tree.query(moved, distance_upper_bound=distance)
+    near = np.isfinite(gap)
+    keep = np.flatnonzero(near)
+    if trim < 1 and len(keep) > 3:
+        keep = keep[np.argsort(gap[keep], kind="stable")[: max(3, int(trim * len(keep)))]]
+    normals = model_normals[usable][index[keep]]
+    residual = np.einsum("ij,ij->i", normals, moved[keep] - model_points[usable][index[keep]])
+    return points[keep], normals, residual, keep
+
+
+def _jacobian(points, normals, object_T_base) -> np.ndarray:
+    """``(K, 6)`` rows ``J_i = (R^T n_i, p_i x R^T n_i)``."""
+    rotation = np.asarray(SE3(np.asarray(object_T_base, np.float64)).rotation().as_matrix())
+    n_base = normals @ rotation  # R^T n_i as rows
+    return np.concatenate([n_base, np.cross(points, n_base)], axis=1)
+
+
+def _blocks(points: np.ndarray, size: float) -> np.ndarray:
+    """``(K,)`` int labels of the cubic cells of edge ``size`` holding ``points``."""
+    cells = np.floor(points / size).astype(np.int64)
+    return np.unique(cells, axis=0, return_inverse=True)[1].reshape(-1)
+
+
+def _fit_term(jac, residual, blocks, inverse, depth_base) -> np.ndarray:
+    """The cluster-robust covariance (base axes) beyond ``depth_base`` (its PSD excess)."""
+    count = int(blocks.max()) + 1
+    gradients = np.zeros((count, 6))
+    np.add.at(gradients, blocks, jac * residual[:, None])
+    correction = count / max(count - 6, 1)  # few blocks underestimate their spread
+    sandwich = correction * inverse @ (gradients.T @ gradients) @ inverse
+    excess = sandwich - depth_base
+    values, vectors = np.linalg.eigh(0.5 * (excess + excess.T))
+    return (vectors * np.clip(values, 0.0, None)) @ vectors.T
+
+
+def _depth_base(jac, points, normals, object_T_base, noise, inverse, sensed) -> np.ndarray:
+    """The depth noise's covariance (base axes) by the same normal equations, over the
+    ``sensed`` ``(K,)`` rows (the others carry no depth noise)."""
+    rotation = np.asarray(SE3(np.asarray(object_T_base, np.float64)).rotation().as_matrix())
+    n_base = normals @ rotation
+    cov = np.asarray(noise.covariance(points.astype(np.float32)), np.float64)
+    variance = np.where(sensed, np.einsum("ki,kij,kj->k", n_base, cov, n_base), 0.0)
+    return inverse @ (jac.T * variance) @ jac @ inverse
+
+
+def _calibration_term(calibration, jac, points, normals, object_T_base, frame, inverse):
+    """Intrinsics and depth-scale uncertainty (base axes), through the lifting's derivative:
+    a camera point ``z ((u - cx) / fx, (v - cy) / fy, 1)`` moves by ``-x / fx`` per unit of
+    ``fx``, ``-z / fx`` per unit of ``cx`` (likewise in y), and by itself per unit of scale."""
+    camera = frame.base_T_camera
+    to_base = np.asarray(camera.rotation().as_matrix(), np.float64)
+    cam = (points - np.asarray(camera.translation(), np.float64)) @ to_base
+    fx, fy = float(frame.intrinsics.fx), float(frame.intrinsics.fy)
+    zero = np.zeros(len(cam))
+    x, y, z = cam.T
+    moves = [  # camera-frame motion of each point per unit of each parameter
+        (np.stack([-x / fx, zero, zero], 1), calibration.intrinsics_sigma[0]),
+        (np.stack([zero, -y / fy, zero], 1), calibration.intrinsics_sigma[1]),
+        (np.stack([-z / fx, zero, zero], 1), calibration.intrinsics_sigma[2]),
+        (np.stack([zero, -z / fy, zero], 1), calibration.intrinsics_sigma[3]),
+        (cam, calibration.depth_scale_sigma),
+    ]
+    rotation = np.asarray(SE3(np.asarray(object_T_base, np.float64)).rotation().as_matrix())
+    n_base = normals @ rotation
+    total = np.zeros((6, 6))
+    for motion, sigma in moves:
+        if sigma == 0:
+            continue
+        dr = np.einsum("ij,ij->i", n_base, motion @ to_base.T)  # residual change per unit
+        step = -inverse @ (jac.T @ dr)  # the pose's change per unit (base axes)
+        total += sigma**2 * np.outer(step, step)
+    return total
+
+
+def _pixels(frame, points: np.ndarray) -> np.ndarray:
+    """``(K, 2)`` int (row, col) of base-frame ``points`` in ``frame`` (clipped to it)."""
+    camera = frame.base_T_camera
+    cam = (points - np.asarray(camera.translation())) @ np.asarray(camera.rotation().as_matrix())
+    k = frame.intrinsics
+    u = float(k.fx) * cam[:, 0] / cam[:, 2] + float(k.cx)
+    v = float(k.fy) * cam[:, 1] / cam[:, 2] + float(k.cy)
+    h, w = frame.depth.shape
+    return np.stack(
+        [np.clip(np.rint(v), 0, h - 1).astype(int), np.clip(np.rint(u), 0, w - 1).astype(int)], 1
+    )
+
+
+def perturbed_segments(frame, mask, points, plane, min_height, size, rng, count=16):
+    """``(count, size, 3)`` float32 segments with their membership changed (NaN padding):
+    a quarter with the mask's border eroded by 1-3 pixels, a quarter with the ring of 1-3
+    pixels around it added (points above the table), half with a contiguous ~15% piece of the
+    visible part dropped. Each is subsampled to ``size`` points like the registered cloud."""
+    inside = ndimage.distance_transform_edt(mask)
+    outside = ndimage.distance_transform_edt(~mask)
+    rows, cols = _pixels(frame, points).T
+    border = inside[rows, cols]
+    ring_r, ring_c = np.nonzero((outside > 0) & (outside <= 3))
+    ring = np.asarray(frame.points_at(ring_r, ring_c), np.float64)
+    ring_ok = np.all(np.isfinite(ring), 1)
+    ring_ok[ring_ok] = (ring[ring_ok] @ np.asarray(plane.normal) + float(plane.offset)) > min_height
+    ring_depth, ring = outside[ring_r, ring_c][ring_ok], ring[ring_ok]
+    out = np.full((count, size, 3), np.nan, np.float32)
+    tree = cKDTree(points)
+    for k in range(count):
+        width = 1 + k % 3
+        if k < count // 4:
+            cloud = points[border > width]
+        elif k < count // 2:
+            cloud = np.concatenate([points, ring[ring_depth <= width]])
+        else:
+            centre = points[rng.integers(len(points))]
+            _, drop = tree.query(centre, k=max(1, int(0.15 * len(points))))
+            cloud = np.delete(points, np.atleast_1d(drop), axis=0)
+        if len(cloud) > size:
+            cloud = cloud[np.sort(rng.choice(len(cloud), size, replace=False))]
+        out[k, : len(cloud)] = cloud
+    return out
+
+
+@persistent_jit
+def _perturbed_fits(sources, points, normals, grid, init, distances, trim):
+    """Point-to-plane ICP of every perturbed segment ``(P, N, 3)`` from ``init`` (7,): the
+    poses ``(P, 7)`` and whether each converged to a usable answer ``(P,)``."""
+
+    def one(source):
+        result = icp(
+            source, points, SE3(init), method="point_to_plane", target_normals=normals,
+            max_correspondence_distance=distances, max_iterations=15, trim_fraction=trim,
+            neighbors=grid, tolerance=1e-5,
+        )  # fmt: skip
+        return result.pose.wxyz_xyz, jax.numpy.isfinite(result.inlier_rmse)
+
+    return jax.vmap(one)(sources)
+
+
+def _tangents(base: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """``(P, 6)`` right-perturbation tangents (base axes) taking ``base`` (7,) to each of
+    ``others`` ``(P, 7)`` (object_T_base)."""
+    relative = SE3(np.asarray(base, np.float64)).inverse() @ SE3(np.asarray(others, np.float64))
+    return np.asarray(relative.log())
+
+
+def _free(symmetry, hessian_object: np.ndarray) -> tuple[np.ndarray, str | None]:
+    """``(6,)`` bool free tangent axes (object axes) and why: the rotation about a continuous
+    symmetry axis, and any direction the normal equations leave (nearly) unconstrained,
+    each freeing the tangent axes it mostly spans."""
+    free = np.zeros(6, bool)
+    reasons = []
+    if symmetry is not None and symmetry.axis is not None:
+        axis = np.asarray(symmetry.axis, np.float64)
+        free[3:] |= np.abs(axis) > 1e-6
+        reasons.append(f"rotation about the symmetry axis {np.round(axis, 3).tolist()}")
+    values, vectors = np.linalg.eigh(0.5 * (hessian_object + hessian_object.T))
+    weak = values < 1e-6 * max(values.max(), 1e-300)
+    for vector in vectors[:, weak].T:
+        spans = np.abs(vector) > 0.5
+        if not np.any(free & spans):
+            free |= spans
+            reasons.append("a motion the visible surface does not constrain")
+    return free, ("; ".join(reasons) or None)
+
+
+def pose_budget(
+    *, points, source_size, model, object_T_base, pose, contact, frame, mask, plane,
+    min_height, distances, trim, noise, calibration, tangents, equal, symmetry, rng,
+):  # fmt: skip
+    """The error budget (:class:`~jaxreg.uncertainty.budget.PoseBudget`) of a refined pose.
+
+    Args:
+        points: ``(K, 3)`` the lifted segment (base frame, metres).
+        source_size: points per registered cloud (the refinement's ``max_points``).
+        model: the prepared model (``points``, ``normals``, ``fine_grid``).
+        object_T_base: ``(7,)`` wxyz_xyz of the refined answer.
+        pose: ``(7,)`` the reported ``base_T_object`` (the answer on its symmetry branch).
+        contact: ``(C, 3)`` the table's contact points the answer was settled with (base
+            frame, NaN padding), or ``None``: part of every fit here, without depth noise.
+        frame, mask, plane, min_height: the frame, the segment's pixels, the table plane and
+            the lift's height floor (for the grown border).
+        distances: the refinement's correspondence distances (metres), last the finest.
+        trim: the refinement's trim fraction.
+        noise: the camera's :class:`~jaxreg.uncertainty.DepthNoise` in the base frame.
+        calibration: :class:`Calibration`.
+        tangents: ``(S, 6)`` the refined starts' answers as right perturbations of ``pose``
+            (object axes, on its symmetry branch); ``equal`` ``(S,)`` flags those as good as
+            the answer.
+        symmetry: the model's ``Symmetry`` or ``None``.
+        rng: numpy Generator of the perturbations' draws.
+    """
+    found = SE3(np.asarray(object_T_base, np.float64))
+    branch = found @ SE3(np.asarray(pose, np.float64))  # the symmetry re-anchoring S
+    # right perturbation of object_T_base (base axes) -> of pose (object axes)
+    to_object = -_adjoint(np.asarray(branch.inverse().wxyz_xyz)) @ _adjoint(object_T_base)
+    support = np.zeros((0, 3)) if contact is None else contact[np.all(np.isfinite(contact), 1)]
+    measured = len(points)
+    pairs_points, normals, residual, kept = _pairs(
+        np.concatenate([points, support]).astype(np.float64), object_T_base,
+        model.points.astype(np.float64), model.normals.astype(np.float64),
+        float(distances[-1]), float(trim),
+    )  # fmt: skip
+    jac = _jacobian(pairs_points, normals, object_T_base)
+    hessian = jac.T @ jac
+    inverse = np.linalg.pinv(hessian, rcond=1e-9, hermitian=True)
+    sensed = kept < measured  # the contact points carry no depth noise
+    depth_base = _depth_base(jac, pairs_points, normals, object_T_base, noise, inverse, sensed)
+    blocks = _blocks(pairs_points, 0.012)
+    fit_base = _fit_term(jac, residual, blocks, inverse, depth_base)
+
+    segments = perturbed_segments(frame, mask, points, plane, min_height, source_size, rng)
+    if contact is not None:
+        segments = np.concatenate(
+            [segments, np.broadcast_to(contact, (len(segments),) + contact.shape)], 1
+        )
+    poses, ok = _perturbed_fits(
+        segments, model.points, model.normals, model.fine_grid,
+        np.asarray(object_T_base, np.float32), np.asarray(distances)[-15:], np.float32(trim),
+    )  # fmt: skip
+    moved = _tangents(object_T_base, np.asarray(poses)[np.asarray(ok)]) @ to_object.T
+
+    calibration_base = _calibration_term(
+        calibration, jac, pairs_points, normals, object_T_base, frame, inverse
+    )
+    hand_eye = np.zeros((6, 6))
+    if calibration.hand_eye is not None:
+        # every lifted point moves with the camera: base_T_object' = base_T_camera exp(e)
+        # camera_T_object = base_T_object exp(Ad_{object_T_camera} e), then re-anchored
+        object_T_camera = found @ frame.base_T_camera
+        ad = _adjoint(np.asarray(branch.inverse().wxyz_xyz)) @ _adjoint(
+            np.asarray(object_T_camera.wxyz_xyz)
+        )
+        hand_eye = ad @ calibration.hand_eye @ ad.T
+
+    others = np.asarray(tangents, np.float64)[np.asarray(equal)]
+    lift = np.linalg.inv(to_object)
+    free, reason = _free(symmetry, lift.T @ hessian @ lift)
+    terms = {
+        "depth": to_object @ depth_base @ to_object.T,
+        "fit": to_object @ fit_base @ to_object.T,
+        "segmentation": moved.T @ moved / max(len(moved), 1),
+        "calibration": hand_eye + to_object @ calibration_base @ to_object.T,
+        "ambiguity": others.T @ others / max(len(others), 1),
+    }
+    return combine(terms, free, reason)
