@@ -130,3 +130,31 @@ def test_calibration_arguments_are_checked(box):
         estimate_pose(scene.frame, scene.model_points, hand_eye_covariance=np.eye(3))
     with pytest.raises(ValueError, match="intrinsics_sigma"):
         estimate_pose(scene.frame, scene.model_points, intrinsics_sigma=(1.0, -1.0, 0.0, 0.0))
+
+
+def test_a_cylinder_is_free_about_its_axis_never_nan():
+    from jaxreg.synth import tabletop_scene
+
+    scene = tabletop_scene(7, object="cylinder", distractors=0, model_points=8192)
+    est = estimate_pose(scene.frame, scene.model_points, symmetry=scene.symmetry)
+    assert est.success
+    assert not np.any(np.isnan(est.covariance))
+    assert np.isinf(est.covariance[5, 5])  # the symmetry axis is the object's z
+    assert np.all(np.isfinite(est.covariance[:5, :5]))
+    assert np.all(est.covariance[5, :5] == 0) and np.all(est.covariance[:5, 5] == 0)
+    assert "symmetry axis" in est.budget.free_reason
+    for term in est.budget.terms.values():
+        assert not np.any(np.isnan(term)) and np.isinf(term[5, 5])
+    assert region_contains(_error(est, scene), est.covariance, 0.99)
+
+
+def test_equally_good_starts_that_disagree_widen_the_region(box):
+    scene, noise = box
+    # the box's half-turn symmetries undeclared: its flipped fits are equally good answers
+    est = estimate_pose(scene.frame, scene.model_points, depth_noise=noise)
+    assert est.success
+    assert est.stages["register"]["equally_good_starts"] >= 2
+    rotation_sigma = np.sqrt(np.diag(est.budget.terms["ambiguity"])[3:])
+    assert rotation_sigma.max() > np.radians(20)  # the flips are in the region
+    others = _without(est.budget, "ambiguity")
+    assert np.sqrt(np.diag(others)[3:]).max() < np.radians(5)

@@ -30,6 +30,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from jaxreg.core._program_cache import persistent_jit
+from jaxreg.pipeline._register_stage import CONTACT_WEIGHT
 from jaxreg.registration.icp import icp
 from jaxreg.uncertainty.budget import combine
 
@@ -200,15 +201,18 @@ def perturbed_segments(frame, mask, points, plane, min_height, size, rng, count=
 
 
 @persistent_jit
-def _perturbed_fits(sources, points, normals, grid, init, distances, trim):
-    """Point-to-plane ICP of every perturbed segment ``(P, N, 3)`` from ``init`` (7,): the
-    poses ``(P, 7)`` and whether each converged to a usable answer ``(P,)``."""
+def _perturbed_fits(sources, weights, points, normals, grid, init, distances, trim):
+    """Point-to-plane ICP of every perturbed segment ``(P, N, 3)`` (rows weighted by
+    ``weights`` ``(N,)``, NaN rows ignored) from ``init`` (7,): the poses ``(P, 7)`` and
+    whether each converged to a usable answer ``(P,)``."""
 
     def one(source):
+        usable = jax.numpy.all(jax.numpy.isfinite(source), axis=1)
         result = icp(
             source, points, SE3(init), method="point_to_plane", target_normals=normals,
             max_correspondence_distance=distances, max_iterations=15, trim_fraction=trim,
-            neighbors=grid, tolerance=1e-5,
+            source_weights=jax.numpy.where(usable, weights, 0.0), neighbors=grid,
+            tolerance=1e-5,
         )  # fmt: skip
         return result.pose.wxyz_xyz, jax.numpy.isfinite(result.inlier_rmse)
 
@@ -244,7 +248,7 @@ def _free(symmetry, hessian_object: np.ndarray) -> tuple[np.ndarray, str | None]
 
 def pose_budget(
     *, points, source_size, model, object_T_base, pose, contact, frame, mask, plane,
-    min_height, distances, trim, noise, calibration, tangents, equal, symmetry, rng,
+    min_height, distances, trim, noise, calibration, ambiguous, symmetry, rng,
 ):  # fmt: skip
     """The error budget (:class:`~jaxreg.uncertainty.budget.PoseBudget`) of a refined pose.
 
@@ -262,9 +266,9 @@ def pose_budget(
         trim: the refinement's trim fraction.
         noise: the camera's :class:`~jaxreg.uncertainty.DepthNoise` in the base frame.
         calibration: :class:`Calibration`.
-        tangents: ``(S, 6)`` the refined starts' answers as right perturbations of ``pose``
-            (object axes, on its symmetry branch); ``equal`` ``(S,)`` flags those as good as
-            the answer.
+        ambiguous: ``(A, 6)`` the answers as good as this one (other refined starts, the
+            answer turned and refined again) as right perturbations of ``pose`` (object axes,
+            on its symmetry branch).
         symmetry: the model's ``Symmetry`` or ``None``.
         rng: numpy Generator of the perturbations' draws.
     """
@@ -279,21 +283,25 @@ def pose_budget(
         model.points.astype(np.float64), model.normals.astype(np.float64),
         float(distances[-1]), float(trim),
     )  # fmt: skip
-    jac = _jacobian(pairs_points, normals, object_T_base)
+    sensed = kept < measured  # the contact points carry no depth noise
+    weight = np.where(sensed, 1.0, np.sqrt(CONTACT_WEIGHT))[:, None]
+    jac = _jacobian(pairs_points, normals, object_T_base) * weight
+    residual = residual * weight[:, 0]
     hessian = jac.T @ jac
     inverse = np.linalg.pinv(hessian, rcond=1e-9, hermitian=True)
-    sensed = kept < measured  # the contact points carry no depth noise
     depth_base = _depth_base(jac, pairs_points, normals, object_T_base, noise, inverse, sensed)
     blocks = _blocks(pairs_points, 0.012)
     fit_base = _fit_term(jac, residual, blocks, inverse, depth_base)
 
     segments = perturbed_segments(frame, mask, points, plane, min_height, source_size, rng)
+    weights = np.ones(source_size, np.float32)
     if contact is not None:
         segments = np.concatenate(
             [segments, np.broadcast_to(contact, (len(segments),) + contact.shape)], 1
         )
+        weights = np.concatenate([weights, np.full(len(contact), CONTACT_WEIGHT, np.float32)])
     poses, ok = _perturbed_fits(
-        segments, model.points, model.normals, model.fine_grid,
+        segments, weights, model.points, model.normals, model.fine_grid,
         np.asarray(object_T_base, np.float32), np.asarray(distances)[-15:], np.float32(trim),
     )  # fmt: skip
     moved = _tangents(object_T_base, np.asarray(poses)[np.asarray(ok)]) @ to_object.T
@@ -311,7 +319,7 @@ def pose_budget(
         )
         hand_eye = ad @ calibration.hand_eye @ ad.T
 
-    others = np.asarray(tangents, np.float64)[np.asarray(equal)]
+    others = np.asarray(ambiguous, np.float64).reshape(-1, 6)
     lift = np.linalg.inv(to_object)
     free, reason = _free(symmetry, lift.T @ hessian @ lift)
     terms = {

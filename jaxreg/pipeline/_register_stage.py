@@ -471,6 +471,9 @@ def _finish(object_T_base, best, equal, symmetry):
 # Resting on the table: the plane pins the height and tilt of an object standing on it.
 
 CONTACT_POINTS = 128  # virtual contact points appended to the refined cloud (static)
+# Weight of a contact point against a measured one: the plane is fitted to thousands of table
+# points, so its height is known far better than one depth pixel's.
+CONTACT_WEIGHT = 8.0
 
 
 def resting_contact(model: _Model, object_T_base: np.ndarray, plane, tolerance: float, voxel):
@@ -507,13 +510,38 @@ def resting_contact(model: _Model, object_T_base: np.ndarray, plane, tolerance: 
 @persistent_jit
 def _settle(source, contact, points, normals, grid, init, distances, trim, iterations):
     """Point-to-plane ICP of ``source`` ``(N, 3)`` with the ``contact`` points ``(C, 3)``
-    appended, from ``init`` (7,): the object settled on the table."""
+    appended (weight ``CONTACT_WEIGHT``), from ``init`` (7,): the object settled on the
+    table."""
     joined = jnp.concatenate([source, contact])
+    weights = jnp.concatenate(
+        [jnp.ones(source.shape[0], source.dtype), jnp.full(contact.shape[0], CONTACT_WEIGHT)]
+    ).astype(source.dtype)
+    weights = jnp.where(jnp.all(jnp.isfinite(joined), axis=1), weights, 0.0)
     return icp(
         joined, points, SE3(init), method="point_to_plane", target_normals=normals,
         max_correspondence_distance=distances, max_iterations=iterations, trim_fraction=trim,
-        neighbors=grid, tolerance=1e-5,
+        source_weights=weights, neighbors=grid, tolerance=1e-5,
     )  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------
+# Ambiguity: is the answer the only pose the image supports?
+
+PROBE_ANGLES_DEG = (-90.0, -60.0, -40.0, -25.0, -12.0, 12.0, 25.0, 40.0, 60.0, 90.0, 180.0)
+
+
+def probe_starts(model: _Model, object_T_base: np.ndarray) -> np.ndarray:
+    """``(3 * len(PROBE_ANGLES_DEG), 7)`` object_T_base starts: the answer turned about each
+    of the model's principal axes through its centroid by each probe angle (a mug whose handle
+    is hidden turns about its body's axis and still fits)."""
+    answer = SE3(np.asarray(object_T_base, np.float64))
+    centre = SE3.from_translation(np.asarray(model.centroid, np.float64))
+    starts = []
+    for axis in np.asarray(model.axes, np.float64).T:
+        for angle in np.radians(PROBE_ANGLES_DEG):
+            turn = SE3.from_rotation(SO3.exp(axis * angle))
+            starts.append((centre @ turn @ centre.inverse() @ answer).wxyz_xyz)
+    return np.asarray(starts, np.float32)
 
 
 def _distinct(poses: np.ndarray, count: int, min_distance: float) -> list[int]:

@@ -3,7 +3,7 @@ to blame when one fails.
 
 :func:`estimate_pose` takes one :class:`~jaxreg.camera.RGBDFrame` and a model (points in the
 object's own frame) and returns a :class:`PoseEstimate`: ``base_T_object``, the registration's
-fit, the covariance of the pose under the depth camera's noise, and per-stage milliseconds and
+fit, the pose's error budget and its total covariance, and per-stage milliseconds and
 diagnostics. The stages:
 
 1. **Segment** (:func:`jaxreg.pipeline.segment.segment_frame`): the table plane by RANSAC and the
@@ -42,10 +42,19 @@ diagnostics. The stages:
    inlier fraction times confirmed share (an upside-down tray fits the segment as well as
    the upright one; the image sees through its floor). Equally good refined poses are
    compared on one symmetry branch when a ``symmetry`` is given (the answer is reported on
-   the branch nearest the base axes); their disagreement is a diagnostic. The covariance is
-   :func:`jaxreg.icp_covariance` of the final registration with the depth noise
-   (:class:`~jaxreg.uncertainty.DepthNoise`) on the segment, moved to the right perturbation
-   of ``base_T_object``. FPFH + RANSAC starts are not used yet.
+   the branch nearest the base axes). An answer whose model has a flat face within
+   ``rest_tolerance`` of the table rests on it: it is moved onto the table and settled by ICP
+   with contact points on that face (a partial view pins an object's height poorly; the table
+   pins it). FPFH + RANSAC starts are not used yet.
+4. **Error budget** (:mod:`jaxreg.pipeline._budget`): one covariance per source of error, the
+   right perturbation of ``base_T_object`` in the object's axes: the depth noise
+   (:class:`~jaxreg.uncertainty.DepthNoise`), the fit (the residuals as they are, correlated
+   between neighbouring points), the segmentation (the segment re-registered with its border
+   eroded or grown and pieces of the visible part dropped, in one vmapped call), the
+   calibration the user states (hand-eye, intrinsics, depth scale) and the ambiguity of
+   equally good starts that disagree; a continuous symmetry's rotation is free (``inf``).
+   Their sum is ``PoseEstimate.covariance``; ``jaxreg.studies.calibration_study`` measures
+   how well it covers the real error.
 
 A stage fails on its own evidence, and the estimate then makes no pose claim (``pose`` is
 ``None``): no plane or nothing on it, or no cluster of the model's size (segment); too few
@@ -90,6 +99,7 @@ from jaxreg.pipeline._register_stage import (
     _settle,
     _support,
     overhang,
+    probe_starts,
     resting_contact,
     visibility as visibility,
 )
@@ -560,6 +570,14 @@ def _register(
     equal = (scores >= scores[ranked[0]] - 0.02) & (rmses <= rmse * 1.1 + 1e-4)
     answers, contact, lowest = _rest(source, model, results, ranked[0], seg.plane, trim, s)
     wxyz_xyz, spread, tangents = _finish(answers, np.int32(ranked[0]), equal, symmetry)
+    probed = _probe(frame, seg, model, source, answers[ranked[0]], scores[ranked[0]], rmse, trim, s)
+    _, _, probe_tangents = _finish(
+        np.concatenate([answers[ranked[0]][None], probed[0]]), np.int32(0),
+        np.concatenate([[False], probed[1]]), symmetry,
+    )  # fmt: skip
+    ambiguous = np.concatenate(
+        [np.asarray(tangents)[equal], np.asarray(probe_tangents)[1:][probed[1]]]
+    )
     spread_mm, spread_deg = (float(x) for x in np.asarray(spread))
     stages["register"] = {
         "ms": _ms(start),
@@ -572,6 +590,7 @@ def _register(
         "inlier_rmse_mm": round(rmse * 1e3, 3),
         "inlier_fraction": round(fraction, 3),
         "equally_good_starts": int(equal.sum()),
+        "equally_good_probes": int(probed[1].sum()),
         "start_agreement_mm": round(spread_mm * 1e3, 3),
         "start_agreement_deg": round(spread_deg, 3),
         "model_confirmed": round(confirmed, 3),
@@ -615,13 +634,29 @@ def _register(
         object_T_base=answers[ranked[0]], pose=np.asarray(wxyz_xyz), contact=contact,
         frame=frame, mask=mask, plane=seg.plane, min_height=s.lift_min_height,
         distances=fine_distances, trim=trim, noise=noise, calibration=calibration,
-        tangents=np.asarray(tangents), equal=equal, symmetry=symmetry,
+        ambiguous=ambiguous, symmetry=symmetry,
         rng=np.random.default_rng(1),
     )  # fmt: skip
     stages["register"]["ms"] = _ms(start)
     return PoseEstimate(
         SE3(wxyz_xyz), rmse, fraction, budget.total, None, reason, stages, mask, points, budget
     )
+
+
+def _probe(frame, seg, model, source, answer, score, rmse, trim, settings: _Settings):
+    """The answer turned about the model's axes (:func:`probe_starts`), refined and judged
+    like the refined starts: their poses ``(P, 7)`` (object_T_base) and which are as good as
+    the answer ``(P,)`` (score within 0.02, residual within 10%)."""
+    starts = SE3(jax.device_put(probe_starts(model, answer)))
+    probed = _register_starts(
+        source, model.points, model.normals, model.fine_grid, starts, settings.fine_distances,
+        trim, 30,
+    )  # fmt: skip
+    poses = np.asarray(probed.pose.wxyz_xyz)
+    seen = np.asarray(_judge(frame, seg.plane, poses, model.points, _TOLERANCE))
+    scores = np.asarray(probed.inlier_fraction) * _confirmed_share(seen)
+    rmses = np.nan_to_num(np.asarray(probed.inlier_rmse), nan=np.inf)
+    return poses, (scores >= score - 0.02) & (rmses <= rmse * 1.1 + 1e-4)
 
 
 def _rest(source, model, results, best: int, plane, trim, settings: _Settings):

@@ -20,6 +20,7 @@ import dataclasses
 from collections.abc import Callable, Sequence
 
 import numpy as np
+import trimesh
 from scipy.stats import chi2
 
 from jaxreg.geometry.metrics import canonicalise
@@ -175,6 +176,7 @@ def calibration_study(
     *,
     sensor: StereoSensor | None = None,
     margins: Sequence[float] = (0.001, 0.002, 0.003, 0.004, 0.005),
+    model_samples: int = 20_000,
     scene_options: dict | None = None,
     estimate_options: dict | None = None,
     progress: Callable[[FrameOutcome], object] | None = None,
@@ -189,6 +191,8 @@ def calibration_study(
         sensor: the depth camera (default ``StereoSensor.d435()``); its noise model is
             passed to :func:`~jaxreg.estimate_pose` as ``depth_noise``.
         margins: grasp margins per side (metres) of the grasp comparison.
+        model_samples: points sampled on each object's mesh, once, with the faces' normals:
+            its model for every frame.
         scene_options: extra keyword arguments of :func:`~jaxreg.synth.tabletop_scene`.
         estimate_options: extra keyword arguments of :func:`~jaxreg.estimate_pose`.
         progress: called with each frame's outcome as it is done.
@@ -200,14 +204,22 @@ def calibration_study(
     frames = []
     for spec in objects:
         name, mesh, symmetry = (spec, None, None) if isinstance(spec, str) else spec
+        model_points = model_normals = None  # one model per object, as a user keeps one
         for seed in seeds:
             options = dict(scene_options or {})
             if mesh is not None:
                 options.update(mesh=mesh, symmetry=symmetry)
             scene = tabletop_scene(int(seed), object=name, sensor=sensor, **options)
+            if model_points is None:
+                samples, faces = trimesh.sample.sample_surface(
+                    scene.model, model_samples, seed=0
+                )
+                model_points = samples.astype(np.float32)
+                model_normals = scene.model.face_normals[faces].astype(np.float32)
             noise = sensor.depth_noise(scene.frame.intrinsics)
             estimate = estimate_pose(
-                scene.frame, scene.model_points, symmetry=scene.symmetry, depth_noise=noise,
+                scene.frame, model_points, model_normals=model_normals,
+                symmetry=scene.symmetry, depth_noise=noise,
                 **(estimate_options or {}),
             )  # fmt: skip
             outcome = _outcome(name, int(seed), scene, estimate)
