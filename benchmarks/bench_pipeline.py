@@ -49,7 +49,7 @@ def run_jaxreg(scene, model, noise):
     start = time.perf_counter()
     est = estimate_pose(scene.frame, model, symmetry=symmetry, depth_noise=noise)
     total = (time.perf_counter() - start) * 1e3
-    stages = {name: est.stages.get(name, {}).get("ms") for name in STAGES}
+    stages = {name: getattr(est.stages.get(name), "ms", None) for name in STAGES}
     return est.pose, total, stages, est.failed_stage
 
 

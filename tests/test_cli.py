@@ -68,7 +68,7 @@ def test_pose_finds_the_carton_and_makes_no_claim_where_it_is_not(pcl_dir, tmp_p
     assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 2.0
     mug = pcl_dir / "table_scene_mug_stereo_textured.pcd"
     assert (
-        main(["pose", "--scene", str(mug), "--model", str(tmp_path / "model.pcd"), "--json"]) == 0
+        main(["pose", "--scene", str(mug), "--model", str(tmp_path / "model.pcd"), "--json"]) == 1
     )
     report = json.loads(capsys.readouterr().out)
     assert report["failed_stage"] is not None and report["pose"] is None
@@ -80,11 +80,11 @@ def test_a_garbage_scene_file_is_one_clear_error(capsys, tmp_path):
     garbage.write_bytes(b"VERSION .7\nFIELDS x y\x00\xff garbage")
     model = tmp_path / "model.pcd"
     model.write_text("not a model")
-    assert main(["pose", "--scene", str(garbage), "--model", str(model)]) == 1
+    assert main(["pose", "--scene", str(garbage), "--model", str(model)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("jaxreg pose: ") and len(err.splitlines()) == 1
     assert "Traceback" not in err
-    assert main(["demo", "--object", "teapot"]) == 1
+    assert main(["demo", "--object", "teapot"]) == 2
     assert "unknown object 'teapot'" in capsys.readouterr().err
 
 
@@ -93,3 +93,35 @@ def test_bad_command_line_is_one_clear_error(capsys):
         main(["nonsense"])
     assert exit_.value.code != 0
     assert "invalid choice" in capsys.readouterr().err
+
+
+def test_pose_on_a_depth_png_exits_0_found_and_1_not_there(tmp_path, capsys):
+    """A depth PNG + intrinsics JSON frame (written from the demo's scene), a model in
+    millimetres, and the options estimate_pose takes; a mask on a distractor exits 1 with the
+    report still printed."""
+    import trimesh
+    from PIL import Image
+
+    from jaxreg.geometry.metrics import add_s
+    from jaxreg.io import write_frame, write_pcd
+    from jaxreg.synth import tabletop_scene
+
+    scene = tabletop_scene(4, object="box")
+    write_frame(tmp_path / "scene.png", scene.frame)
+    samples, _ = trimesh.sample.sample_surface(scene.model, 20_000, seed=0)
+    write_pcd(tmp_path / "model.pcd", (1000 * samples).astype(np.float32))
+    Image.fromarray((255 * (scene.labels == 2)).astype(np.uint8)).save(tmp_path / "other.png")
+    Image.fromarray((255 * scene.mask).astype(np.uint8)).save(tmp_path / "mask.png")
+    common = ["pose", "--scene", str(tmp_path / "scene.png"), "--model",
+              str(tmp_path / "model.pcd"), "--model-units", "mm", "--json"]  # fmt: skip
+    options = ["--symmetry", "box", "--depth-noise", "0", "0", "0.0025"]
+    for extra in ([], ["--mask", str(tmp_path / "mask.png")]):
+        assert main([*common, *options, *extra]) == 0, extra
+        report = json.loads(capsys.readouterr().out)
+        assert report["failed_stage"] is None
+        pose = SE3.from_matrix(jnp.asarray(report["pose"], jnp.float32))
+        assert float(add_s(scene.model_points, pose, scene.truth)) < 0.005
+    assert main([*common, "--mask", str(tmp_path / "other.png")]) == 1
+    report = json.loads(capsys.readouterr().out)
+    assert report["pose"] is None and report["failed_stage"] is not None and report["reason"]
+    assert set(report["stages"]["segment"]) >= {"ms", "mask_pixels", "mask_grid_points"}

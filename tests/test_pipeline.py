@@ -44,8 +44,8 @@ def test_finds_the_box_with_error_bars_and_stage_diagnostics(scene):
     assert est.failed_stage is None and est.success
     assert float(add_s(scene.model_points, est.pose, scene.truth)) < 0.005
     assert set(est.stages) == {"segment", "lift", "register"}
-    assert all(stage["ms"] > 0 for stage in est.stages.values())
-    assert est.stages["lift"]["valid_depth_fraction"] > 0.8
+    assert all(stage.ms > 0 for stage in est.stages.values())
+    assert est.stages["lift"].valid_depth_fraction > 0.8
     # the covariance is a finite, positive definite error bar of sub-millimetre order
     eig = np.linalg.eigvalsh(est.covariance)
     assert np.all(np.isfinite(eig)) and eig.min() > 0
@@ -85,7 +85,7 @@ def test_depth_holes_over_the_object_fail_the_lift(scene):
     est = estimate_pose(_with_depth(scene.frame, depth), model, pixel=_centre(scene.mask))
     assert est.failed_stage == "lift" and est.pose is None
     assert "valid depth" in est.reason
-    assert est.stages["lift"]["valid_depth_fraction"] < 0.5
+    assert est.stages["lift"].valid_depth_fraction < 0.5
 
 
 def test_phantom_edge_points_are_removed_as_flying_pixels(scene):
@@ -103,7 +103,7 @@ def test_phantom_edge_points_are_removed_as_flying_pixels(scene):
     clean = estimate_pose(scene.frame, model, symmetry=symmetry)
     est = estimate_pose(_with_depth(scene.frame, phantom), model, symmetry=symmetry)
     added = (
-        est.stages["lift"]["flying_pixels_removed"] - clean.stages["lift"]["flying_pixels_removed"]
+        est.stages["lift"].flying_pixels_removed - clean.stages["lift"].flying_pixels_removed
     )
     # the phantoms in the segment's footprint are removed as flying pixels; none is lifted
     assert band.sum() > 100 and added > 20
@@ -151,11 +151,11 @@ def test_a_larger_box_of_a_similar_shape_is_not_taken_for_the_target(scene):
     )
     assert prompted.pose is None and prompted.failed_stage == "register"
     assert "beyond the model" in prompted.reason
-    assert max(prompted.stages["register"]["overhang_mm"]) > 3
+    assert max(prompted.stages["register"].overhang_mm) > 3
     est = estimate_pose(other.frame, model, symmetry=symmetry)
     assert est.failed_stage is None
     assert float(add_s(other.model_points, est.pose, other.truth)) < 0.005
-    assert max(est.stages["register"]["overhang_mm"]) < 0
+    assert max(est.stages["register"].overhang_mm) < 0
     # the measure itself: the model's own surface spans the model; a 10% larger copy reaches
     # 10% beyond it (a box's end faces hold more than 2% of its points)
     prepared = _prepare_model(model, None, 0.004, 0.04, 0.015)
@@ -190,7 +190,7 @@ def test_a_target_seen_from_above_is_a_candidate_though_far_from_its_visible_cen
     _, model, symmetry = scene
     frame8 = tabletop_scene(8, object="box")
     est = estimate_pose(frame8.frame, model, symmetry=symmetry)
-    assert max(est.stages["segment"]["cluster_radii_mm"]) > 76 + 20
+    assert max(est.stages["segment"].cluster_radii_mm) > 76 + 20
     assert est.failed_stage is None
     assert float(add_s(frame8.model_points, est.pose, frame8.truth)) < 0.005
 
@@ -221,3 +221,63 @@ def test_resting_starts_stand_the_model_on_the_table_on_each_principal_half_axis
     # the front toward the camera meets the cloud's front (slid horizontally toward the eye)
     front = np.percentile(np.asarray(cloud)[:, 0], 95)
     np.testing.assert_allclose(pts[..., 0].max(1), front, atol=2e-3)
+
+
+def test_your_own_mask_skips_the_table_and_clusters_and_works_without_a_table(scene):
+    scene, model, symmetry = scene
+    est = estimate_pose(scene.frame, model, mask=scene.mask, symmetry=symmetry)
+    assert est.failed_stage is None
+    assert float(add_s(scene.model_points, est.pose, scene.truth)) < 0.005
+    seg = est.stages["segment"]
+    assert seg.mask_pixels == scene.mask.sum() and seg.cluster_sizes is None
+    assert seg.plane_inliers > 0  # the table outside the mask still filters the segment
+    assert not est.mask[~scene.mask].any()  # nothing outside the caller's mask is lifted
+    # a frame without a table: only the object has depth
+    depth = np.where(scene.mask, np.asarray(scene.frame.depth), np.nan)
+    alone = estimate_pose(_with_depth(scene.frame, depth), model, mask=scene.mask)
+    assert alone.failed_stage is None and alone.stages["segment"].plane_inliers is None
+    assert float(add_s(scene.model_points, alone.pose, scene.truth)) < 0.005
+    # the table route finds nothing standing on a table in the same frame
+    assert estimate_pose(_with_depth(scene.frame, depth), model).failed_stage == "segment"
+
+
+def test_a_mask_on_another_object_claims_no_pose(scene):
+    from jaxreg.synth import tabletop_scene
+
+    _, model, symmetry = scene
+    cluttered = tabletop_scene(4, object="box")  # the same box beside two distractors
+    for label in (2, 3):
+        est = estimate_pose(cluttered.frame, model, mask=cluttered.labels == label)
+        assert est.pose is None and est.failed_stage in ("segment", "register"), label
+    # a mask cut from another scene: the mug's pixels of seed 5, on this frame
+    other = tabletop_scene(5, object="mug").mask
+    est = estimate_pose(cluttered.frame, model, mask=other, symmetry=symmetry)
+    assert est.pose is None and est.failed_stage is not None
+
+
+def test_a_model_in_other_units_is_refused_naming_the_units(scene):
+    scene, model, _ = scene
+    with pytest.raises(ValueError, match="millimetres"):
+        estimate_pose(scene.frame, 1000 * model)
+    for mask in (None, scene.mask):
+        est = estimate_pose(scene.frame, 10 * model, mask=mask)
+        assert est.pose is None and "metres" in est.reason, est.reason
+        assert "340282" not in est.reason
+    millimetres = _with_depth(scene.frame, 1000 * np.asarray(scene.frame.depth))
+    with pytest.raises(ValueError, match="depth must be metres"):
+        estimate_pose(millimetres, model)
+
+
+@pytest.mark.parametrize("name, seed", [("mug", 1), ("cylinder", 2), ("container", 3)])
+def test_every_object_is_found_on_the_table_and_with_its_mask(name, seed):
+    """The main job on each object besides the box (which the tests above cover): one frame
+    with two distractors, by the table route and with the true mask."""
+    from jaxreg.synth import tabletop_scene
+
+    scene = tabletop_scene(seed, object=name)
+    samples, _ = trimesh.sample.sample_surface(scene.model, 20_000, seed=0)
+    model = samples.astype(np.float32)
+    for mask in (None, scene.mask):
+        est = estimate_pose(scene.frame, model, mask=mask, symmetry=scene.symmetry)
+        assert est.failed_stage is None, est.reason
+        assert float(add_s(scene.model_points, est.pose, scene.truth)) < 0.005

@@ -7,12 +7,18 @@
 * ``jaxreg pose --scene FILE --model FILE [--intrinsics FILE] [--json] [--out DIR]`` does the
   same on your data: an organized PCD, or a 16-bit depth PNG with its intrinsics JSON
   (:func:`jaxreg.io.read_frame`), and a model as points (PCD, PLY) or a mesh (OBJ, STL, PLY),
-  in metres.
+  in metres unless ``--model-units mm|cm`` says otherwise. ``--mask PNG`` (nonzero = the
+  object, from your own segmenter), ``--pixel U V`` or ``--box U0 V0 U1 V1`` name the object;
+  ``--symmetry`` and ``--depth-noise`` describe the model and the camera (see ``--help``).
 
 With ``--json`` stdout is one JSON object (the fields of the design's command line section);
 ``--out DIR`` also writes ``report.json`` and the pictures ``depth.png``,
 ``segmentation.png`` (the lifted segment over the image) and ``model_overlay.png`` (the model
-drawn at the estimated pose) to DIR. Errors are one line on stderr and exit status 1.
+drawn at the estimated pose) to DIR.
+
+Exit status: 0 when a pose is found; 1 when the evidence says the object is not there (the
+report, or the JSON, is still printed, with the failed stage and its reason); 2 on bad input
+or any other error (one line on stderr, no traceback).
 
 Compilation cache: the commands (never ``import jaxreg``) enable JAX's persistent compilation
 cache, and keep the pipeline's compiled programs beside it (:mod:`jaxreg.core._program_cache`), so a
@@ -155,7 +161,7 @@ def build_report(estimate, model_points: np.ndarray, opening: float) -> dict:
         "pose": None,
         "failed_stage": estimate.failed_stage,
         "reason": estimate.reason,
-        "stages": estimate.stages,
+        "stages": {name: record.as_dict() for name, record in estimate.stages.items()},
         "inlier_rmse_mm": round(estimate.inlier_rmse * 1e3, 3),
         "inlier_fraction": round(estimate.inlier_fraction, 4),
         "predicted_grasp_success": None,
@@ -191,43 +197,55 @@ def build_report(estimate, model_points: np.ndarray, opening: float) -> dict:
     return _clean(report)
 
 
-def print_report(report: dict, title: str, out=sys.stdout) -> None:
-    """A readable stage-by-stage report."""
+def print_report(report: dict, stages: dict, title: str, out=sys.stdout) -> None:
+    """A readable stage-by-stage report of ``report`` (:func:`build_report`) and the
+    estimate's typed stage records ``stages``."""
 
     def line(text=""):
         print(text, file=out)
 
     line(title)
-    seg = report["stages"].get("segment")
-    if seg:
-        line(
-            f"  segment  {seg['ms']:8.1f} ms  table plane: {seg['plane_inliers']} grid points "
-            f"({seg['plane_inlier_fraction']:.0%}); {len(seg['cluster_sizes'])} clusters above it "
-            f"(sizes {seg['cluster_sizes']})"
+    seg = stages.get("segment")
+    if seg is not None and seg.mask_pixels is not None:
+        table = (
+            "no table under it"
+            if seg.plane_inliers is None
+            else f"table plane: {seg.plane_inliers} grid points ({seg.plane_inlier_fraction:.0%})"
         )
-        for c in seg.get("candidates", []):
-            line(
-                f"           candidate {c['clusters']}: score {c['score']:.2f} (model explains "
-                f"{c['explained']:.0%}, image contradicts {c['contradicted']:.0%})"
-            )
-    lift = report["stages"].get("lift")
-    if lift:
-        text = f"  lift     {lift['ms']:8.1f} ms  {lift['valid_depth_fraction']:.0%} valid depth"
-        if "points" in lift:
+        line(
+            f"  segment  {seg.ms:8.1f} ms  your mask: {seg.mask_pixels} pixels, "
+            f"{seg.mask_grid_points} grid points with depth; {table}"
+        )
+    elif seg is not None:
+        line(
+            f"  segment  {seg.ms:8.1f} ms  table plane: {seg.plane_inliers} grid points "
+            f"({seg.plane_inlier_fraction:.0%}); {len(seg.cluster_sizes)} clusters above it "
+            f"(sizes {seg.cluster_sizes})"
+        )
+    for c in (seg.candidates if seg is not None else None) or []:
+        line(
+            f"           candidate {c.clusters or 'mask'}: score {c.score:.2f} (model explains "
+            f"{c.explained:.0%}, image contradicts {c.contradicted:.0%})"
+        )
+    lift = stages.get("lift")
+    if lift is not None:
+        text = f"  lift     {lift.ms:8.1f} ms  {lift.valid_depth_fraction:.0%} valid depth"
+        if lift.points is not None:
             text += (
-                f", {lift['flying_pixels_removed']} flying pixels and "
-                f"{lift['isolated_points_removed']} isolated points removed -> "
-                f"{lift['points']} points"
+                f", {lift.flying_pixels_removed} flying pixels and "
+                f"{lift.isolated_points_removed} isolated points removed -> "
+                f"{lift.points} points"
             )
         line(text)
-    reg = report["stages"].get("register")
-    if reg:
+    reg = stages.get("register")
+    if reg is not None:
+        residual = "none" if reg.inlier_rmse_mm is None else f"{reg.inlier_rmse_mm:.2f} mm"
         line(
-            f"  register {reg['ms']:8.1f} ms  {reg['starts']} starts, best {reg['refined_starts']} "
-            f"refined: {reg['inlier_fraction']:.0%} inliers, residual {reg['inlier_rmse_mm']:.2f} "
-            f"mm; {reg['equally_good_starts']} equally good starts agree within "
-            f"{reg['start_agreement_mm']:.1f} mm / {reg['start_agreement_deg']:.1f} deg; image "
-            f"confirms {reg['model_confirmed']:.0%} of the visible model"
+            f"  register {reg.ms:8.1f} ms  {reg.starts} starts, best {reg.refined_starts} "
+            f"refined: {reg.inlier_fraction:.0%} inliers, residual {residual}; "
+            f"{reg.equally_good_starts} equally good starts agree within "
+            f"{reg.start_agreement_mm:.1f} mm / {reg.start_agreement_deg:.1f} deg; image "
+            f"confirms {reg.model_confirmed:.0%} of the visible model"
         )
     if report["failed_stage"]:
         line(f"  FAILED at {report['failed_stage']}: {report['reason']} (no pose claimed)")
@@ -342,10 +360,10 @@ def _finish(args, report: dict, title: str, frame, estimate, model_points) -> in
     if args.json:
         print(json.dumps(report))
     else:
-        print_report(report, title)
+        print_report(report, estimate.stages, title)
         if args.out is not None:
             print(f"  wrote report.json and {', '.join(report['pictures'])} to {args.out}")
-    return 0
+    return 0 if estimate.pose is not None else 1
 
 
 @persistent_jit
@@ -402,16 +420,70 @@ def run_demo(args) -> int:
     return _finish(args, report, title, scene.frame, estimate, model)
 
 
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per model unit
+
+
+def _symmetry(spec: str | None):
+    """The :class:`jaxreg.Symmetry` named by ``--symmetry`` (axes of the model's own frame,
+    through its origin), or ``None``."""
+    from jaxreg.geometry.metrics import Symmetry
+
+    if spec is None or spec == "none":
+        return None
+    half = {a: np.diag([1.0 if i == a else -1.0 for i in range(3)]) for a in range(3)}
+    z = np.array([0.0, 0.0, 1.0])
+    if spec == "box":
+        return Symmetry(np.stack([np.eye(3), half[0], half[1], half[2]]))
+    if spec == "cylinder":
+        return Symmetry(np.stack([np.eye(3), half[0]]), axis=z)
+    if spec == "revolution":
+        return Symmetry(np.eye(3)[None], axis=z)
+    if spec.startswith("turns:") and spec[6:].isdigit() and int(spec[6:]) >= 1:
+        angles = 2 * np.pi * np.arange(int(spec[6:])) / int(spec[6:])
+        c, s = np.cos(angles), np.sin(angles)
+        zero, one = np.zeros_like(c), np.ones_like(c)
+        turns = np.stack([c, -s, zero, s, c, zero, zero, zero, one], -1).reshape(-1, 3, 3)
+        return Symmetry(turns)
+    raise ValueError(
+        f"unknown --symmetry {spec!r}: choose none, box, cylinder, revolution or turns:N"
+    )
+
+
+def _read_mask(path: Path) -> np.ndarray:
+    """``(H, W)`` bool of a mask image: True where any channel is nonzero."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            values = np.asarray(image)
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such file") from None
+    except OSError as error:
+        raise ValueError(f"{path}: not a readable mask image ({error})") from None
+    return values.any(axis=-1) if values.ndim == 3 else values != 0
+
+
 def run_pose(args) -> int:
     from jaxreg.io import load_points, read_frame
     from jaxreg.pipeline.estimate import estimate_pose
+    from jaxreg.uncertainty import DepthNoise
 
     frame = read_frame(args.scene, args.intrinsics)
     model = np.asarray(load_points(args.model, n_points=None), np.float32)
+    model = model * np.float32(UNITS[args.model_units])
     if len(model) < 10:
         raise ValueError(f"{args.model}: the model has {len(model)} points; give a surface")
+    options = {"symmetry": _symmetry(args.symmetry)}
+    if args.depth_noise is not None:
+        options["depth_noise"] = DepthNoise(tuple(args.depth_noise), frame.base_T_camera)
+    if args.mask is not None:
+        options["mask"] = _read_mask(args.mask)
+    if args.pixel is not None:
+        options["pixel"] = tuple(args.pixel)
+    if args.box is not None:
+        options["box"] = tuple(args.box)
     progress = _progress(args.json)
-    estimate = estimate_pose(frame, model, progress=progress)
+    estimate = estimate_pose(frame, model, progress=progress, **options)
     progress(None)
     report = build_report(estimate, model, args.gripper_opening)
     report["scene"] = str(args.scene)
@@ -441,8 +513,28 @@ def _add_demo(sub) -> None:
 def _add_pose(sub) -> None:
     pose = sub.add_parser("pose", help="estimate a model's pose in your depth frame")
     pose.add_argument("--scene", type=Path, required=True, help="organized PCD or depth PNG")
-    pose.add_argument("--model", type=Path, required=True, help="model points or mesh (metres)")
+    pose.add_argument("--model", type=Path, required=True, help="model points or mesh")
+    pose.add_argument(
+        "--model-units", choices=tuple(UNITS), default="m",
+        help="the model file's units (default m; CAD files are often mm)",
+    )  # fmt: skip
     pose.add_argument("--intrinsics", type=Path, help="intrinsics JSON of a depth PNG")
+    which = pose.add_mutually_exclusive_group()
+    which.add_argument("--mask", type=Path, help="PNG of the object's pixels (nonzero = object)")
+    which.add_argument("--pixel", type=float, nargs=2, metavar=("U", "V"), help="a pixel on it")
+    which.add_argument(
+        "--box", type=float, nargs=4, metavar=("U0", "V0", "U1", "V1"), help="a box around it"
+    )
+    pose.add_argument(
+        "--symmetry", default="none",
+        help="the model's symmetry about its own axes through its origin: none (default), box "
+        "(half turns about x, y, z), cylinder (any turn about z, half turn about x), "
+        "revolution (any turn about z), turns:N (N equal turns about z)",
+    )  # fmt: skip
+    pose.add_argument(
+        "--depth-noise", type=float, nargs=3, metavar=("A", "B", "C"),
+        help="the camera's depth sigma in metres, A + B z + C z^2 (default 0 0 0.0025)",
+    )  # fmt: skip
     _common(pose)
     pose.set_defaults(run=run_pose)
 
@@ -471,7 +563,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"jaxreg {args.command}: interrupted", file=sys.stderr)
         return 130
-    except Exception as err:  # one clear line, never a traceback
+    except Exception as err:  # bad input: one clear line, never a traceback
         message = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         print(f"jaxreg {args.command}: {message}", file=sys.stderr)
-        return 1
+        return 2

@@ -180,7 +180,9 @@ def perturbed_segments(frame, mask, points, plane, min_height, size, rng, count=
     ring_r, ring_c = np.nonzero((outside > 0) & (outside <= 3))
     ring = np.asarray(frame.points_at(ring_r, ring_c), np.float64)
     ring_ok = np.all(np.isfinite(ring), 1)
-    ring_ok[ring_ok] = (ring[ring_ok] @ np.asarray(plane.normal) + float(plane.offset)) > min_height
+    if plane is not None:  # above the table band, as the lift keeps
+        height = ring[ring_ok] @ np.asarray(plane.normal) + float(plane.offset)
+        ring_ok[ring_ok] = height > min_height
     ring_depth, ring = outside[ring_r, ring_c][ring_ok], ring[ring_ok]
     out = np.full((count, size, 3), np.nan, np.float32)
     tree = cKDTree(points)

@@ -17,7 +17,7 @@ from jaxreg.core._program_cache import persistent_jit
 from jaxreg.registration._icp_setup import _bucket
 from jaxreg.search.neighbors import voxel_downsample
 
-__all__ = ["lift_region"]
+__all__ = ["lift_pixels", "lift_region"]
 
 
 def _flying(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray, tolerance: np.ndarray, need):
@@ -64,13 +64,23 @@ def _lift_pixels(frame: RGBDFrame, rows, cols):
     return frame.points_at(rows, cols)
 
 
+def lift_pixels(frame: RGBDFrame, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Base-frame points ``(P, 3)`` of the pixels ``(rows, cols)`` (NaN at holes), lifted
+    in a list padded to a bucketed length (a few stored programs serve every count)."""
+    padded = _bucket(max(len(rows), 1))
+    r_pad = np.zeros(padded, np.int32)
+    c_pad = np.zeros(padded, np.int32)
+    r_pad[: len(rows)], c_pad[: len(cols)] = rows, cols
+    return np.asarray(_lift_pixels(frame, r_pad, c_pad))[: len(rows)]
+
+
 def lift_region(
     frame: RGBDFrame,
     rows: np.ndarray,
     cols: np.ndarray,
     sigma: np.ndarray,
-    plane_normal: np.ndarray,
-    plane_offset: float,
+    plane_normal: np.ndarray | None,
+    plane_offset: float | None,
     *,
     min_height: float,
     voxel_size: float,
@@ -79,8 +89,9 @@ def lift_region(
     """Lift the pixels ``(rows, cols)`` (each with depth; ``sigma`` its depth noise, metres)
     into the base frame and filter them: flying pixels (fewer than
     ``min_consistent_neighbors`` of 8 neighbours within ``max(4 mm, 4 sigma)``), points not
-    between ``min_height`` and 0.5 m above the plane ``n . x + d = 0``, a ``voxel_size``
-    downsample, and isolated voxels.
+    between ``min_height`` and 0.5 m above the plane ``n . x + d = 0`` (no such filter when
+    ``plane_normal`` is ``None``: a frame without a table), a ``voxel_size`` downsample, and
+    isolated voxels.
 
     Returns ``(mask, points, counts)``: ``(H, W)`` bool of the pixels kept, ``(K, 3)``
     float32 base-frame points, and the counts of pixels kept and removed by each filter.
@@ -89,13 +100,12 @@ def lift_region(
     shape = depth.shape
     flying = _flying(depth, rows, cols, np.maximum(0.004, 4 * sigma), min_consistent_neighbors)
     rows, cols = rows[~flying], cols[~flying]
-    padded = _bucket(max(len(rows), 1))
-    r_pad = np.zeros(padded, np.int32)
-    c_pad = np.zeros(padded, np.int32)
-    r_pad[: len(rows)], c_pad[: len(cols)] = rows, cols
-    lifted = np.asarray(_lift_pixels(frame, r_pad, c_pad))[: len(rows)]
-    height = lifted @ plane_normal + plane_offset
-    band = (height > min_height) & (height < 0.5)
+    lifted = lift_pixels(frame, rows, cols)
+    if plane_normal is None:
+        band = np.ones(len(lifted), bool)
+    else:
+        height = lifted @ plane_normal + plane_offset
+        band = (height > min_height) & (height < 0.5)
     rows, cols, lifted = rows[band], cols[band], lifted[band]
     mask = np.zeros(shape, bool)
     mask[rows, cols] = True

@@ -350,7 +350,9 @@ def _score_candidates(
     skipped (zeros), so one compiled shape serves any number of candidates up to C. Starts:
     ``num_starts`` rotations of a grid over SO(3) and the 4 PCA frames, slid along the line
     of sight to the cloud's front, and ``6 * yaws`` resting on the table
-    (:func:`_resting_starts`). ICP runs in three ``rounds`` (options of
+    (:func:`_resting_starts`); without a table (``plane`` is ``None``) their share goes to
+    the rotation grid (``num_starts + 6 * yaws`` rotations), and nothing is judged against a
+    plane. ICP runs in three ``rounds`` (options of
     :func:`_coarse_problem`), each on fewer starts: every start takes the first; the
     ``survivors`` whose model then explains most of the cloud (1 cm; not thinned to
     distinct poses: a start that will win may still sit near a better-fitting one) take the
@@ -364,11 +366,13 @@ def _score_candidates(
     def one(cloud):
         ok = jnp.all(jnp.isfinite(cloud), -1)
         eye = frame.base_T_camera.translation()
-        grid = rotation_inits(cloud, model_points, num_starts)
+        rotations = num_starts if plane is not None else num_starts + 6 * yaws
+        grid = rotation_inits(cloud, model_points, rotations)
         inits = SE3(jnp.concatenate([grid.wxyz_xyz, pca_inits(cloud, model_points).wxyz_xyz]))
         inits = _front_aligned(inits, cloud, ok, model_points, eye)
-        resting = _resting_starts(cloud, ok, model_points, model_axes, plane, eye, yaws)
-        inits = SE3(jnp.concatenate([inits.wxyz_xyz, resting.wxyz_xyz]))
+        if plane is not None:
+            resting = _resting_starts(cloud, ok, model_points, model_axes, plane, eye, yaws)
+            inits = SE3(jnp.concatenate([inits.wxyz_xyz, resting.wxyz_xyz]))
         source = (
             jnp.zeros_like(problem.source)
             .at[: cloud.shape[0]]

@@ -56,8 +56,16 @@ diagnostics. The stages:
    Their sum is ``PoseEstimate.covariance``; ``jaxreg.studies.calibration_study`` measures
    how well it covers the real error.
 
+With a ``mask`` from the caller's own segmenter (a learned detector, a mask drawn by hand),
+the segment stage takes the mask instead of the clusters
+(:func:`~jaxreg.pipeline._segment_stage.segment_mask`): the table plane is fitted outside it
+and used when the object stands on it; without one, the coarse search has no resting starts
+and the lift no band above a table. Lift and register are the same, and can still refuse.
+
 A stage fails on its own evidence, and the estimate then makes no pose claim (``pose`` is
-``None``): no plane or nothing on it, or no cluster of the model's size (segment); too few
+``None``): no plane or nothing on it, no cluster of the model's size, a mask with too few
+points with depth, or segments far smaller or larger than the model (segment; the message
+names the units when the model's scale cannot fit the frame's metres); too few
 pixels with depth in the footprint, or too few points left after filtering (lift); too small
 a fraction of the segment explained by the model, too large a residual, a model that the
 depth image contradicts (surface predicted where the camera sees through it), or a segment
@@ -79,23 +87,20 @@ import equinox as eqx
 import jax
 import numpy as np
 from jaxlie import SE3
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from jaxreg.camera.model import RGBDFrame
 from jaxreg.geometry.metrics import Symmetry
 from jaxreg.pipeline._budget import Calibration, pose_budget
 from jaxreg.pipeline._lift import lift_region
+from jaxreg.pipeline._records import LiftRecord, RegisterRecord, SegmentRecord
 from jaxreg.pipeline._register_stage import (
-    _coarse_problem,
     _confirmed_share,
-    _diameter,
     _distinct,
     _finish,
     _judge,
-    _near_model,
     _prepare_model,
     _register_starts,
-    _score_candidates,
     _settle,
     _support,
     overhang,
@@ -103,15 +108,15 @@ from jaxreg.pipeline._register_stage import (
     resting_contact,
     visibility as visibility,
 )
-from jaxreg.pipeline.segment import SegmentStatus, choose_cluster, cluster_mask, segment_frame
-from jaxreg.registration._icp_setup import _bucket
+from jaxreg.pipeline._segment_stage import segment_mask, segment_table
+from jaxreg.pipeline._settings import _TOLERANCE, _Failed, _ms, _padded, _Settings
+from jaxreg.pipeline.segment import TablePlane
 from jaxreg.uncertainty import DepthNoise
 from jaxreg.uncertainty.budget import PoseBudget
 
 __all__ = ["PoseEstimate", "estimate_pose", "visibility"]
 
 STAGES = ("segment", "lift", "register")
-_TOLERANCE = np.float32(0.01)  # depth agreement (metres) of the image's judgement of a pose
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,7 +136,10 @@ class PoseEstimate:
             diagonal of free axes (``0`` off it), never NaN with a pose; NaN without one.
         failed_stage: ``None``, ``"segment"``, ``"lift"`` or ``"register"``.
         reason: why that stage failed, or a one-line summary of a success.
-        stages: ``{stage: {"ms": float, ...diagnostics}}`` for the stages that ran.
+        stages: ``{stage: record}`` for the stages that ran: a
+            :class:`~jaxreg.pipeline._records.SegmentRecord`, ``LiftRecord`` or
+            ``RegisterRecord`` (``ms`` and the stage's diagnostics as attributes;
+            ``as_dict()`` for JSON).
         mask: ``(H, W)`` bool pixels of the lifted segment (all False if lift did not run).
         points: ``(K, 3)`` base-frame points that were registered (empty if none).
         budget: the :class:`~jaxreg.uncertainty.budget.PoseBudget` (one covariance per
@@ -145,7 +153,7 @@ class PoseEstimate:
     covariance: np.ndarray
     failed_stage: str | None
     reason: str
-    stages: dict[str, dict[str, Any]]
+    stages: dict[str, SegmentRecord | LiftRecord | RegisterRecord]
     mask: np.ndarray
     points: np.ndarray
     budget: PoseBudget | None = None
@@ -157,76 +165,52 @@ class PoseEstimate:
 
 
 # --------------------------------------------------------------------------------------------
-# The stages. Each records its diagnostics in ``stages[name]`` and raises ``_Failed`` when its
-# evidence says there is no pose to claim.
+# The stages. Each records its diagnostics in ``stages[name]`` (a typed record) and raises
+# ``_Failed`` when its evidence says there is no pose to claim.
 
 
-@dataclasses.dataclass(frozen=True)
-class _Settings:
-    """:func:`estimate_pose`'s keyword settings, as its stages read them."""
-
-    pixel: tuple[float, float] | None
-    box: tuple[float, float, float, float] | None
-    voxel_size: float
-    stride: int
-    plane_distance: float
-    min_height: float
-    lift_min_height: float
-    cluster_distance: float
-    cluster_margin: float
-    max_candidates: int
-    num_starts: int
-    resting_yaws: int
-    coarse_points: int
-    coarse_screen: int
-    coarse_survivors: int
-    coarse_first: int
-    coarse_keep: int
-    max_points: int
-    min_segment_points: int
-    min_valid_fraction: float
-    min_consistent_neighbors: int
-    min_inlier_fraction: float
-    max_inlier_rmse: float
-    max_contradicted: float
-    max_overhang: float
-    rest_tolerance: float
-    coarse_distances: np.ndarray = dataclasses.field(
-        default_factory=lambda: np.geomspace(0.04, 0.01, 20).astype(np.float32)
-    )
-
-    @property
-    def fine_distances(self) -> np.ndarray:
-        """The refinement's correspondence distances (metres, 15 mm down to 1.5 voxels)."""
-        return np.geomspace(0.015, 1.5 * self.voxel_size, 30).astype(np.float32)
+def _check_units(frame: RGBDFrame, model_points: np.ndarray) -> None:
+    """``ValueError`` naming the units when the model or the depth cannot be metres: a model
+    more than 3 m across (a graspable object in millimetres), or a median depth beyond 20 m
+    (a depth camera's image in millimetres)."""
+    span = float(np.linalg.norm(np.ptp(model_points, axis=0)))
+    if span > 3.0:
+        raise ValueError(
+            f"model_points span {span:.4g} m across: they must be metres; a model in "
+            "millimetres (as CAD files usually are) needs model_points * 0.001 "
+            "(jaxreg pose --model-units mm)"
+        )
+    sample = np.asarray(frame.depth)[::8, ::8]
+    sample = sample[np.isfinite(sample)]
+    if len(sample) and float(np.median(sample)) > 20.0:
+        raise ValueError(
+            f"the frame's median depth is {float(np.median(sample)):.4g} m: depth must be "
+            "metres; a depth image in millimetres needs depth * 0.001 (read_frame's "
+            "depth_scale says what a PNG count is)"
+        )
 
 
-class _Failed(Exception):
-    """A stage found no pose to claim: its name, the reason, and what it had segmented."""
-
-    def __init__(self, stage: str, reason: str, mask=None, points=None):
-        super().__init__(reason)
-        self.stage, self.reason, self.mask, self.points = stage, reason, mask, points
-
-
-def _padded(points: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarray:
-    """``(size, 3)`` float32: ``points`` subsampled (without replacement) when longer, NaN
-    rows (ignored by ICP) after them when shorter."""
-    if len(points) > size:
-        points = points[np.sort(rng.choice(len(points), size, replace=False))]
-    out = np.full((size, 3), np.nan, np.float32)
-    out[: len(points)] = points
-    return out
-
-
-def _ms(start: float) -> float:
-    return round((time.perf_counter() - start) * 1e3, 2)
+def _check_mask(mask, shape: tuple[int, int]) -> np.ndarray:
+    """The caller's mask as ``(H, W)`` bool (nonzero = object), or ``ValueError``."""
+    mask = np.asarray(mask)
+    if mask.shape != tuple(shape):
+        raise ValueError(
+            f"mask must be an (H, W) = {tuple(shape)} image like the frame's depth, got shape "
+            f"{mask.shape}"
+        )
+    if mask.dtype != bool and not np.issubdtype(mask.dtype, np.integer):
+        raise ValueError(f"mask must be bool or integer (nonzero = object), got {mask.dtype}")
+    mask = mask != 0
+    if not mask.any():
+        raise ValueError("the mask is empty: set the object's pixels (True or nonzero)")
+    return mask
 
 
 def estimate_pose(
     frame: RGBDFrame,
     model_points: Float[Any, "M 3"],
     *,
+    mask: Bool[Any, "H W"] | None = None,
     model_normals: Float[Any, "M 3"] | None = None,
     symmetry: Symmetry | None = None,
     depth_noise: DepthNoise | None = None,
@@ -268,6 +252,10 @@ def estimate_pose(
         frame: the depth frame; points are expressed in its base frame.
         model_points: ``(M, 3)`` points on the model's surface in its own frame (metres),
             e.g. :func:`jaxreg.io.load_points` of a mesh or scan.
+        mask: ``(H, W)`` bool (or integer, nonzero = object) image of the object's pixels
+            from your own segmenter: the table plane and clusters are skipped (see
+            :func:`~jaxreg.pipeline._segment_stage.segment_mask`); the lift's filters and
+            the registration's evidence, which can still refuse, are kept.
         model_normals: ``(M, 3)`` unit normals of the model points (a mesh's face normals),
             used instead of normals estimated from the points; give them for thin-walled
             objects, whose two faces a point neighbourhood mixes.
@@ -325,8 +313,10 @@ def estimate_pose(
         :class:`PoseEstimate`.
 
     Raises:
-        ValueError: a frame that is not an ``RGBDFrame``, a model that is not ``(M, 3)``
-            finite points, or both prompts.
+        ValueError: a frame that is not an ``RGBDFrame`` or whose depth is not in metres, a
+            model that is not ``(M, 3)`` finite points in metres, a mask that is not an
+            ``(H, W)`` image of the frame with some pixel set, or more than one of ``mask``,
+            ``pixel``, ``box``.
     """
     if not isinstance(frame, RGBDFrame):
         raise ValueError(f"frame must be a jaxreg.RGBDFrame, got {type(frame).__name__}")
@@ -345,35 +335,63 @@ def estimate_pose(
     model_points = model_points[finite]
     if len(model_points) == 0:
         raise ValueError("model_points holds no finite point")
+    _check_units(frame, model_points)
     if pixel is not None and box is not None:
         raise ValueError("give at most one prompt: pixel=(u, v) or box=(u0, v0, u1, v1)")
     calibration = Calibration(hand_eye_covariance, intrinsics_sigma, depth_scale_sigma)
+    if mask is not None:
+        if pixel is not None or box is not None:
+            raise ValueError("give a mask or a prompt (pixel, box), not both")
+        mask = _check_mask(mask, frame.depth.shape)
     key = jax.random.PRNGKey(0) if key is None else key
     progress = progress or (lambda stage: None)
     settings = _Settings(
-        pixel, box, voxel_size, stride, plane_distance, min_height, lift_min_height,
-        cluster_distance, cluster_margin, max_candidates, num_starts, resting_yaws,
-        coarse_points, coarse_screen, coarse_survivors, coarse_first, coarse_keep, max_points,
-        min_segment_points, min_valid_fraction, min_consistent_neighbors, min_inlier_fraction,
-        max_inlier_rmse, max_contradicted, max_overhang, rest_tolerance,
-    )  # fmt: skip
+        pixel=pixel,
+        box=box,
+        voxel_size=voxel_size,
+        stride=stride,
+        plane_distance=plane_distance,
+        min_height=min_height,
+        lift_min_height=lift_min_height,
+        cluster_distance=cluster_distance,
+        cluster_margin=cluster_margin,
+        max_candidates=max_candidates,
+        num_starts=num_starts,
+        resting_yaws=resting_yaws,
+        coarse_points=coarse_points,
+        coarse_screen=coarse_screen,
+        coarse_survivors=coarse_survivors,
+        coarse_first=coarse_first,
+        coarse_keep=coarse_keep,
+        max_points=max_points,
+        min_segment_points=min_segment_points,
+        min_valid_fraction=min_valid_fraction,
+        min_consistent_neighbors=min_consistent_neighbors,
+        min_inlier_fraction=min_inlier_fraction,
+        max_inlier_rmse=max_inlier_rmse,
+        max_contradicted=max_contradicted,
+        max_overhang=max_overhang,
+        rest_tolerance=rest_tolerance,
+    )
     model = _prepare_model(
         model_points, model_normals, voxel_size, float(settings.coarse_distances[0]),
         float(settings.fine_distances[0]),
     )  # fmt: skip
     noise = _noise(depth_noise, frame)
-    stages: dict[str, dict[str, Any]] = {}
+    stages: dict[str, Any] = {}
     rng = np.random.default_rng(0)  # the coarse clouds' and the source's subsamples
     try:
         progress("segment")
-        seg, joined, coarse_poses, coarse_fraction = _segment(
-            frame, model, settings, key, rng, stages
-        )
+        if mask is None:
+            found = segment_table(frame, model, settings, key, rng, stages)
+        else:
+            found = segment_mask(frame, model, settings, mask, key, rng, stages)
+        plane, region, coarse_poses, coarse_fraction = found
         progress("lift")
-        mask, points = _lift(frame, seg, joined, noise, settings, stages)
+        lifted, points = _lift(frame, region, plane, noise, settings, stages)
         progress("register")
         return _register(
-            frame, seg, model, settings, coarse_poses, coarse_fraction, mask, points, noise,
+            frame, plane, model, settings, coarse_poses, coarse_fraction, lifted, points, noise,
             symmetry, calibration, rng, stages,
         )  # fmt: skip
     except _Failed as failure:
@@ -386,135 +404,22 @@ def estimate_pose(
         )  # fmt: skip
 
 
-def _segment(frame, model, settings: _Settings, key, rng, stages):
-    """Plane, clusters, and the candidate clusters scored by registration: the segment, the
-    winning clusters (with the pieces split off them), the winner's coarse poses
-    (object_T_base ``(K, 7)``, best first) and the fraction of it they explain."""
+def _lift(frame, region, plane: TablePlane | None, noise: DepthNoise, settings: _Settings, stages):
+    """The segment's footprint ``region`` ``(H, W)`` lifted and filtered
+    (:mod:`jaxreg.pipeline._lift`; the band above the ``plane``, if any): the mask of the lifted
+    pixels ``(H, W)`` and the base-frame points ``(K, 3)``."""
     s = settings
     start = time.perf_counter()
-    seg = jax.block_until_ready(
-        segment_frame(
-            frame, key=key, stride=s.stride, plane_distance=s.plane_distance,
-            min_height=s.min_height, cluster_distance=s.cluster_distance,
-        )
-    )  # fmt: skip
-    sizes = np.asarray(seg.clusters.sizes)
-    radii = np.asarray(seg.radii)
-    diag = stages["segment"] = {
-        "ms": None,
-        "plane_inliers": int(seg.plane.num_inliers),
-        "plane_inlier_fraction": round(float(seg.plane.inlier_fraction), 3),
-        "valid_grid_points": int(seg.valid_points),
-        "above_plane": int(seg.above_plane),
-        "cluster_sizes": [int(size) for size in sizes if size > 0],
-        "cluster_radii_mm": [
-            round(float(r) * 1e3, 1) for r, size in zip(radii, sizes, strict=True) if size > 0
-        ],
-        "overflow": bool(seg.clusters.overflow),
-    }
-
-    def fail(reason: str):
-        diag["ms"] = _ms(start)
-        raise _Failed("segment", reason)
-
-    if seg.status != SegmentStatus.success:
-        fail(seg.status_message())
-    grid_points = np.asarray(seg.points)
-    labels = np.asarray(seg.clusters.labels)
-    live = [k for k in range(len(sizes)) if sizes[k] > 0]
-    if s.pixel is not None or s.box is not None:
-        chosen = choose_cluster(seg, pixel=s.pixel, box=s.box)
-        if chosen is None:
-            fail(f"the prompt {s.pixel or s.box} touches no cluster")
-        seeds = [chosen]
-    else:
-        seeds = live
-    centroids = np.asarray(seg.centroids)
-    groups: list[tuple[int, ...]] = []
-    for k in seeds:  # a cluster, and with the pieces near it (one object split by a rim)
-        near = np.linalg.norm(centroids[live] - centroids[k], axis=1) < 1.2 * model.radius
-        for group in ((k,), tuple(sorted({k, *np.asarray(live)[near].tolist()}))):
-            if group not in groups:
-                groups.append(group)
-    candidates = []
-    for group in groups:  # a partial view's centroid is off the object's: compare diameters
-        cloud = grid_points[np.isin(labels, group)]
-        if _diameter(cloud) <= model.diameter + s.cluster_margin:
-            candidates.append((group, cloud))
-    candidates.sort(key=lambda item: -len(item[1]))
-    candidates = candidates[: s.max_candidates]
-    if not candidates:
-        fail(
-            f"no cluster of the model's size: cluster radii {diag['cluster_radii_mm']} mm, "
-            f"none spans at most the model's {model.diameter * 1e3:.0f} mm "
-            f"(+{s.cluster_margin * 1e3:.0f} mm allowed)"
-        )
-    clouds = np.full((s.max_candidates, s.coarse_points, 3), np.nan, np.float32)
-    for i, (_, cloud) in enumerate(candidates):
-        clouds[i] = _padded(cloud, s.coarse_points, rng)
-    used = np.arange(s.max_candidates) < len(candidates)
-    problem, *rounds = _coarse_problem(
-        model, s.coarse_points, s.coarse_distances, (s.coarse_screen, s.coarse_first)
-    )
-    coarse = jax.block_until_ready(
-        _score_candidates(
-            frame, seg.plane, problem, tuple(rounds), clouds, used, model.points, model.screen,
-            model.axes, _TOLERANCE, s.num_starts, s.resting_yaws, s.coarse_survivors,
-            s.coarse_keep,
-        )
-    )  # fmt: skip
-    scored = []
-    for i, (group, cloud) in enumerate(candidates):
-        counts = np.asarray(coarse.visibility[i, 0])
-        confirmed, contradicted = _support(counts)
-        explained = float(coarse.explained[i, 0])
-        score = explained * confirmed
-        reach = float(overhang(model, np.asarray(coarse.poses[i, 0]), cloud).max())
-        scored.append((score, group, i, explained, contradicted, reach))
-    scored.sort(key=lambda item: (item[5] > s.max_overhang, -item[0]))  # larger objects last
-    _, group, chosen, coarse_fraction, _, _ = scored[0]
-    coarse_poses = np.asarray(coarse.poses[chosen])  # object_T_base per start, best first
-    # pieces of the object the clustering split off: clusters the coarse pose explains
-    members = labels >= 0
-    points = _padded(grid_points[members], _bucket(int(members.sum())), rng)
-    near = np.asarray(_near_model(model.fine_grid, coarse_poses[0], points, np.float32(0.01)))
-    near, member_labels = near[: members.sum()], labels[members]
-    joined = sorted({*group, *(k for k in live if near[member_labels == k].mean() >= 0.6)})
-    diag.update(
-        candidates=[
-            {
-                "clusters": list(g),
-                "score": round(sc, 3),
-                "explained": round(f, 3),
-                "contradicted": round(c, 3),
-                "overhang_mm": round(r * 1e3, 1),
-            }
-            for sc, g, _, f, c, r in scored
-        ],  # fmt: skip
-        chosen_clusters=list(joined),
-        ms=_ms(start),
-    )
-    return seg, joined, coarse_poses, coarse_fraction
-
-
-def _lift(frame, seg, joined, noise: DepthNoise, settings: _Settings, stages):
-    """The winning clusters' footprint lifted and filtered (:mod:`jaxreg.pipeline._lift`): the mask
-    of the lifted pixels ``(H, W)`` and the base-frame points ``(K, 3)``."""
-    s = settings
-    start = time.perf_counter()
-    region = cluster_mask(seg, joined, frame.depth.shape)
     depth = np.asarray(frame.depth)
     rows, cols = np.nonzero(region)
     has_depth = np.isfinite(depth[rows, cols])
     valid_fraction = float(has_depth.mean()) if len(rows) else 0.0
     rows, cols = rows[has_depth], cols[has_depth]
-    diag = stages["lift"] = {
-        "ms": None,
-        "footprint_pixels": int(region.sum()),
-        "valid_depth_fraction": round(valid_fraction, 3),
-    }
+    diag = LiftRecord(
+        ms=0.0, footprint_pixels=int(region.sum()), valid_depth_fraction=round(valid_fraction, 3)
+    )
     if valid_fraction < s.min_valid_fraction:
-        diag["ms"] = _ms(start)
+        stages["lift"] = dataclasses.replace(diag, ms=_ms(start))
         raise _Failed(
             "lift",
             f"too little valid depth: {valid_fraction:.0%} of the segment's {int(region.sum())} "
@@ -525,12 +430,13 @@ def _lift(frame, seg, joined, noise: DepthNoise, settings: _Settings, stages):
     sigma = np.polynomial.polynomial.polyval(
         depth[rows, cols], np.asarray(noise.coefficients, np.float64)
     )
+    normal, offset = (None, None) if plane is None else (np.asarray(plane.normal), plane.offset)
     mask, points, counts = lift_region(
-        frame, rows, cols, sigma, np.asarray(seg.plane.normal), float(seg.plane.offset),
+        frame, rows, cols, sigma, normal, None if offset is None else float(offset),
         min_height=s.lift_min_height, voxel_size=s.voxel_size,
         min_consistent_neighbors=s.min_consistent_neighbors,
     )  # fmt: skip
-    diag.update(**counts, ms=_ms(start))
+    stages["lift"] = dataclasses.replace(diag, **counts, ms=_ms(start))
     if len(points) < s.min_segment_points:
         raise _Failed(
             "lift",
@@ -543,7 +449,7 @@ def _lift(frame, seg, joined, noise: DepthNoise, settings: _Settings, stages):
 
 
 def _register(
-    frame, seg, model, settings: _Settings, coarse_poses, coarse_fraction, mask, points, noise,
+    frame, plane, model, settings: _Settings, coarse_poses, coarse_fraction, mask, points, noise,
     symmetry, calibration, rng, stages,
 ):  # fmt: skip
     """The best distinct coarse poses refined on the lifted points and judged; the estimate,
@@ -560,7 +466,7 @@ def _register(
     )
     fractions = np.asarray(results.inlier_fraction)
     rmses = np.nan_to_num(np.asarray(results.inlier_rmse), nan=np.inf)
-    seen = np.asarray(_judge(frame, seg.plane, results.pose.wxyz_xyz, model.points, _TOLERANCE))
+    seen = np.asarray(_judge(frame, plane, results.pose.wxyz_xyz, model.points, _TOLERANCE))
     scores = fractions * _confirmed_share(seen)
     ranked = np.lexsort((rmses, -np.round(scores, 2)))
     best = results[int(ranked[0])]
@@ -568,9 +474,11 @@ def _register(
     confirmed, contradicted = _support(seen[ranked[0]])
     reach = overhang(model, np.asarray(results.pose.wxyz_xyz[ranked[0]]), points)
     equal = (scores >= scores[ranked[0]] - 0.02) & (rmses <= rmse * 1.1 + 1e-4)
-    answers, contact, lowest = _rest(source, model, results, ranked[0], seg.plane, trim, s)
+    answers, contact, lowest = _rest(source, model, results, ranked[0], plane, trim, s)
     wxyz_xyz, spread, tangents = _finish(answers, np.int32(ranked[0]), equal, symmetry)
-    probed = _probe(frame, seg, model, source, answers[ranked[0]], scores[ranked[0]], rmse, trim, s)
+    probed = _probe(
+        frame, plane, model, source, answers[ranked[0]], scores[ranked[0]], rmse, trim, s
+    )
     _, _, probe_tangents = _finish(
         np.concatenate([answers[ranked[0]][None], probed[0]]), np.int32(0),
         np.concatenate([[False], probed[1]]), symmetry,
@@ -579,33 +487,38 @@ def _register(
         [np.asarray(tangents)[equal], np.asarray(probe_tangents)[1:][probed[1]]]
     )
     spread_mm, spread_deg = (float(x) for x in np.asarray(spread))
-    stages["register"] = {
-        "ms": _ms(start),
-        "starts": s.num_starts + 4 + 6 * s.resting_yaws,
-        "coarse_kept_starts": int(coarse_poses.shape[0]),
-        "refined_starts": len(picks),
-        "trim_fraction": round(float(trim), 3),
-        "iterations": int(best.iterations),
-        "icp_status": str(best.status_message()),
-        "inlier_rmse_mm": round(rmse * 1e3, 3),
-        "inlier_fraction": round(fraction, 3),
-        "equally_good_starts": int(equal.sum()),
-        "equally_good_probes": int(probed[1].sum()),
-        "start_agreement_mm": round(spread_mm * 1e3, 3),
-        "start_agreement_deg": round(spread_deg, 3),
-        "model_confirmed": round(confirmed, 3),
-        "model_contradicted": round(contradicted, 3),
-        "overhang_mm": [round(float(r) * 1e3, 1) for r in reach],
-        "resting_on_table": contact is not None,
-        "contact_shift_mm": None if lowest is None else round(-lowest * 1e3, 2),
-    }
+    matched = fraction > 0 and rmse < 1.0  # no match leaves ICP's empty-sum residual
+    stages["register"] = RegisterRecord(
+        ms=_ms(start),
+        starts=s.num_starts + 4 + 6 * s.resting_yaws,
+        coarse_kept_starts=int(coarse_poses.shape[0]),
+        refined_starts=len(picks),
+        trim_fraction=round(float(trim), 3),
+        iterations=int(best.iterations),
+        icp_status=str(best.status_message()),
+        inlier_rmse_mm=round(rmse * 1e3, 3) if matched else None,
+        inlier_fraction=round(fraction, 3),
+        equally_good_starts=int(equal.sum()),
+        equally_good_probes=int(probed[1].sum()),
+        start_agreement_mm=round(spread_mm * 1e3, 3),
+        start_agreement_deg=round(spread_deg, 3),
+        model_confirmed=round(confirmed, 3),
+        model_contradicted=round(contradicted, 3),
+        overhang_mm=[round(float(r) * 1e3, 1) for r in reach],
+        resting_on_table=contact is not None,
+        contact_shift_mm=None if lowest is None else round(-lowest * 1e3, 2),
+    )
     problems = []
     if fraction < s.min_inlier_fraction:
         problems.append(
             f"the model explains only {fraction:.0%} of the segment (need "
             f"{s.min_inlier_fraction:.0%})"
         )
-    if not rmse <= s.max_inlier_rmse:
+    if not matched:
+        problems.append(
+            f"no segment point lies within {fine_distances[-1] * 1e3:.0f} mm of the model"
+        )
+    elif not rmse <= s.max_inlier_rmse:
         problems.append(
             f"the residual is {rmse * 1e3:.1f} mm (at most {s.max_inlier_rmse * 1e3:g})"
         )
@@ -632,7 +545,7 @@ def _register(
     budget = pose_budget(
         points=points, source_size=s.max_points, model=model,
         object_T_base=answers[ranked[0]], pose=np.asarray(wxyz_xyz), contact=contact,
-        frame=frame, mask=mask, plane=seg.plane, min_height=s.lift_min_height,
+        frame=frame, mask=mask, plane=plane, min_height=s.lift_min_height,
         distances=fine_distances, trim=trim, noise=noise, calibration=calibration,
         ambiguous=ambiguous, symmetry=symmetry,
         rng=np.random.default_rng(1),
@@ -643,7 +556,7 @@ def _register(
     )
 
 
-def _probe(frame, seg, model, source, answer, score, rmse, trim, settings: _Settings):
+def _probe(frame, plane, model, source, answer, score, rmse, trim, settings: _Settings):
     """The answer turned about the model's axes (:func:`probe_starts`), refined and judged
     like the refined starts: their poses ``(P, 7)`` (object_T_base) and which are as good as
     the answer ``(P,)`` (score within 0.02, residual within 10%)."""
@@ -653,7 +566,7 @@ def _probe(frame, seg, model, source, answer, score, rmse, trim, settings: _Sett
         trim, 30,
     )  # fmt: skip
     poses = np.asarray(probed.pose.wxyz_xyz)
-    seen = np.asarray(_judge(frame, seg.plane, poses, model.points, _TOLERANCE))
+    seen = np.asarray(_judge(frame, plane, poses, model.points, _TOLERANCE))
     scores = np.asarray(probed.inlier_fraction) * _confirmed_share(seen)
     rmses = np.nan_to_num(np.asarray(probed.inlier_rmse), nan=np.inf)
     return poses, (scores >= score - 0.02) & (rmses <= rmse * 1.1 + 1e-4)
@@ -666,6 +579,8 @@ def _rest(source, model, results, best: int, plane, trim, settings: _Settings):
     height above the table before (metres; ``None`` likewise)."""
     answers = np.array(results.pose.wxyz_xyz, np.float32)
     contact, lowest = None, None
+    if plane is None:  # no table: nothing to rest on
+        return answers, contact, lowest
     for i, answer in enumerate(answers):
         resting = resting_contact(
             model, answer, plane, settings.rest_tolerance, settings.voxel_size

@@ -333,8 +333,11 @@ def _largest(roots, max_clusters, min_size, unconverged, iterations) -> Clusters
     counts = jax.ops.segment_sum(jnp.ones_like(roots), roots, num_segments=size + 1)[:size]
     k = min(max_clusters + 1, size)
     sizes, ids = jax.lax.top_k(counts, k)
+    if k <= max_clusters:  # fewer points than slots (a tiny image): the rest are empty
+        sizes = jnp.concatenate([sizes, jnp.zeros(max_clusters + 1 - k, sizes.dtype)])
+        ids = jnp.concatenate([ids, jnp.full(max_clusters + 1 - k, size, ids.dtype)])
     keep = sizes[:max_clusters] >= min_size
-    extra = sizes[max_clusters] >= min_size if k > max_clusters else jnp.bool_(False)
+    extra = sizes[max_clusters] >= min_size
     match = (roots[:, None] == ids[None, :max_clusters]) & keep[None, :]
     out = jnp.where(match.any(-1), jnp.argmax(match, -1), -1).astype(jnp.int32)
     sizes = jnp.where(keep, sizes[:max_clusters], 0)
