@@ -250,7 +250,7 @@ def _free(symmetry, hessian_object: np.ndarray) -> tuple[np.ndarray, str | None]
 
 def pose_budget(
     *, points, source_size, model, object_T_base, pose, contact, frame, mask, plane,
-    min_height, distances, trim, noise, calibration, ambiguous, symmetry, rng,
+    min_height, distances, trim, noise, calibration, ambiguous, symmetry, view_free, rng,
 ):  # fmt: skip
     """The error budget (:class:`~jaxreg.uncertainty.budget.PoseBudget`) of a refined pose.
 
@@ -272,6 +272,8 @@ def pose_budget(
             answer turned and refined again) as right perturbations of ``pose`` (object axes,
             on its symmetry branch).
         symmetry: the model's ``Symmetry`` or ``None``.
+        view_free: ``((6,) bool, reason)``: tangent axes the view leaves free (a mug whose
+            handle is hidden turns about its body's axis and fits as well), or no axis.
         rng: numpy Generator of the perturbations' draws.
     """
     found = SE3(np.asarray(object_T_base, np.float64))
@@ -324,6 +326,9 @@ def pose_budget(
     others = np.asarray(ambiguous, np.float64).reshape(-1, 6)
     lift = np.linalg.inv(to_object)
     free, reason = _free(symmetry, lift.T @ hessian @ lift)
+    if np.any(view_free[0] & ~free):
+        free = free | view_free[0]
+        reason = "; ".join(r for r in (reason, view_free[1]) if r)
     terms = {
         "depth": to_object @ depth_base @ to_object.T,
         "fit": to_object @ fit_base @ to_object.T,

@@ -531,7 +531,10 @@ def _settle(source, contact, points, normals, grid, init, distances, trim, itera
 # --------------------------------------------------------------------------------------------
 # Ambiguity: is the answer the only pose the image supports?
 
-PROBE_ANGLES_DEG = (-90.0, -60.0, -40.0, -25.0, -12.0, 12.0, 25.0, 40.0, 60.0, 90.0, 180.0)
+PROBE_ANGLES_DEG = (
+    -150.0, -120.0, -90.0, -60.0, -40.0, -25.0, -12.0, 12.0, 25.0, 40.0, 60.0, 90.0, 120.0,
+    150.0, 180.0,
+)
 
 
 def probe_starts(model: _Model, object_T_base: np.ndarray) -> np.ndarray:

@@ -95,6 +95,7 @@ from jaxreg.pipeline._budget import Calibration, pose_budget
 from jaxreg.pipeline._lift import lift_region
 from jaxreg.pipeline._records import LiftRecord, RegisterRecord, SegmentRecord
 from jaxreg.pipeline._register_stage import (
+    PROBE_ANGLES_DEG,
     _confirmed_share,
     _distinct,
     _finish,
@@ -483,8 +484,9 @@ def _register(
         np.concatenate([answers[ranked[0]][None], probed[0]]), np.int32(0),
         np.concatenate([[False], probed[1]]), symmetry,
     )  # fmt: skip
+    view_free, view_reason, turned = _unfixed_turns(model, probed[1])
     ambiguous = np.concatenate(
-        [np.asarray(tangents)[equal], np.asarray(probe_tangents)[1:][probed[1]]]
+        [np.asarray(tangents)[equal], np.asarray(probe_tangents)[1:][probed[1] & ~turned]]
     )
     spread_mm, spread_deg = (float(x) for x in np.asarray(spread))
     matched = fraction > 0 and rmse < 1.0  # no match leaves ICP's empty-sum residual
@@ -547,7 +549,7 @@ def _register(
         object_T_base=answers[ranked[0]], pose=np.asarray(wxyz_xyz), contact=contact,
         frame=frame, mask=mask, plane=plane, min_height=s.lift_min_height,
         distances=fine_distances, trim=trim, noise=noise, calibration=calibration,
-        ambiguous=ambiguous, symmetry=symmetry,
+        ambiguous=ambiguous, symmetry=symmetry, view_free=(view_free, view_reason),
         rng=np.random.default_rng(1),
     )  # fmt: skip
     stages["register"]["ms"] = _ms(start)
@@ -566,10 +568,51 @@ def _probe(frame, plane, model, source, answer, score, rmse, trim, settings: _Se
         trim, 30,
     )  # fmt: skip
     poses = np.asarray(probed.pose.wxyz_xyz)
+    for i, pose in enumerate(poses):
+        poses[i] = _onto_table(model, pose, plane, settings)[0]
     seen = np.asarray(_judge(frame, plane, poses, model.points, _TOLERANCE))
     scores = np.asarray(probed.inlier_fraction) * _confirmed_share(seen)
     rmses = np.nan_to_num(np.asarray(probed.inlier_rmse), nan=np.inf)
     return poses, (scores >= score - 0.02) & (rmses <= rmse * 1.1 + 1e-4)
+
+
+def _unfixed_turns(model, equal: np.ndarray):
+    """Turns about a model axis that the view does not fix: where the probes as good as the
+    answer (``equal`` ``(3 * A,)``, axis-major) span 120 degrees or more about one of the
+    model's principal axes, and that axis is (within 25 degrees) one of the object frame's,
+    the rotation about it is free. Returns the free tangent axes ``(6,)``, why, and which
+    probes turned about a free axis ``(3 * A,)``."""
+    angles = np.asarray(PROBE_ANGLES_DEG)
+    free = np.zeros(6, bool)
+    turned = np.zeros(len(equal), bool)
+    reasons = []
+    for k, axis in enumerate(np.asarray(model.axes).T):
+        rows = slice(k * len(angles), (k + 1) * len(angles))
+        good = np.sort(np.mod(np.append(angles[equal[rows]], 0.0), 360.0))
+        gaps = np.diff(np.append(good, good[0] + 360.0))
+        span = 360.0 - gaps.max()  # the shortest arc holding every good turn
+        frame_axis = int(np.argmax(np.abs(axis)))
+        if span >= 120 and abs(axis[frame_axis]) > np.cos(np.radians(25)):
+            free[3 + frame_axis] = True
+            turned[rows] = True
+            reasons.append(
+                f"the view does not fix the rotation about the object's "
+                f"{'xyz'[frame_axis]} axis (equally good answers span {span:.0f} deg)"
+            )
+    return free, "; ".join(reasons) or None, turned
+
+
+def _onto_table(model, answer, plane, settings: _Settings):
+    """``answer`` (object_T_base wxyz_xyz) moved onto the table when it rests there
+    (:func:`resting_contact`), and the contact (points, lowest height) or ``None``."""
+    if plane is None:
+        return answer, None
+    resting = resting_contact(model, answer, plane, settings.rest_tolerance, settings.voxel_size)
+    if resting is None:
+        return answer, None
+    normal = np.asarray(plane.normal, np.float64)
+    shifted = SE3(np.asarray(answer, np.float64)) @ SE3.from_translation(resting[1] * normal)
+    return np.asarray(shifted.wxyz_xyz, np.float32), resting
 
 
 def _rest(source, model, results, best: int, plane, trim, settings: _Settings):
@@ -579,18 +622,9 @@ def _rest(source, model, results, best: int, plane, trim, settings: _Settings):
     height above the table before (metres; ``None`` likewise)."""
     answers = np.array(results.pose.wxyz_xyz, np.float32)
     contact, lowest = None, None
-    if plane is None:  # no table: nothing to rest on
-        return answers, contact, lowest
     for i, answer in enumerate(answers):
-        resting = resting_contact(
-            model, answer, plane, settings.rest_tolerance, settings.voxel_size
-        )
-        if resting is None:
-            continue
-        normal = np.asarray(plane.normal, np.float64)
-        shifted = SE3(np.asarray(answer, np.float64)) @ SE3.from_translation(resting[1] * normal)
-        answers[i] = np.asarray(shifted.wxyz_xyz, np.float32)
-        if i != best:
+        answers[i], resting = _onto_table(model, answer, plane, settings)
+        if resting is None or i != best:
             continue
         settled = _settle(
             source, resting[0], model.points, model.normals, model.fine_grid, answers[i],
