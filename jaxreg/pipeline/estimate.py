@@ -588,9 +588,7 @@ def _unfixed_turns(model, equal: np.ndarray):
     reasons = []
     for k, axis in enumerate(np.asarray(model.axes).T):
         rows = slice(k * len(angles), (k + 1) * len(angles))
-        good = np.sort(np.mod(np.append(angles[equal[rows]], 0.0), 360.0))
-        gaps = np.diff(np.append(good, good[0] + 360.0))
-        span = 360.0 - gaps.max()  # the shortest arc holding every good turn
+        span = _good_arc(angles, equal[rows])
         frame_axis = int(np.argmax(np.abs(axis)))
         if span >= 120 and abs(axis[frame_axis]) > np.cos(np.radians(25)):
             free[3 + frame_axis] = True
@@ -600,6 +598,26 @@ def _unfixed_turns(model, equal: np.ndarray):
                 f"{'xyz'[frame_axis]} axis (equally good answers span {span:.0f} deg)"
             )
     return free, "; ".join(reasons) or None, turned
+
+
+def _good_arc(angles: np.ndarray, good: np.ndarray) -> float:
+    """Degrees spanned by the run of consecutive good turns around the circle that holds the
+    answer (turn 0): a contiguous range of equally good answers about it, unlike isolated
+    flips or a second basin elsewhere."""
+    turns = np.mod(np.append(angles, 0.0), 360.0)
+    flags = np.append(good, True)
+    order = np.argsort(turns, kind="stable")
+    turns, flags = turns[order], flags[order]
+    if flags.all():
+        return 360.0
+    n, here = len(turns), int(np.flatnonzero(turns == 0.0)[0])
+    right = here
+    while flags[(right + 1) % n]:
+        right += 1
+    left = here
+    while flags[(left - 1) % n]:
+        left -= 1
+    return float(turns[right % n] - turns[left % n]) % 360.0
 
 
 def _onto_table(model, answer, plane, settings: _Settings):
