@@ -158,3 +158,15 @@ def test_equally_good_starts_that_disagree_widen_the_region(box):
     assert rotation_sigma.max() > np.radians(20)  # the flips are in the region
     others = _without(est.budget, "ambiguity")
     assert np.sqrt(np.diag(others)[3:]).max() < np.radians(5)
+
+
+def test_only_a_contiguous_run_of_good_turns_around_the_answer_frees_an_axis():
+    from jaxreg.pipeline._register_stage import PROBE_ANGLES_DEG
+    from jaxreg.pipeline.estimate import _good_arc
+
+    angles = np.asarray(PROBE_ANGLES_DEG)
+    assert _good_arc(angles, angles == 180) == 0  # an isolated flip: ambiguity, not freedom
+    assert _good_arc(angles, np.abs(angles) <= 60) == 120
+    assert _good_arc(angles, (angles >= -40) & (angles <= 150)) == 190
+    assert _good_arc(angles, angles >= 120) == 0  # a second basin away from the answer
+    assert _good_arc(angles, np.ones(len(angles), bool)) == 360

@@ -567,7 +567,7 @@ def _probe(frame, plane, model, source, answer, score, rmse, trim, settings: _Se
         source, model.points, model.normals, model.fine_grid, starts, settings.fine_distances,
         trim, 30,
     )  # fmt: skip
-    poses = np.asarray(probed.pose.wxyz_xyz)
+    poses = np.array(probed.pose.wxyz_xyz, np.float32)
     for i, pose in enumerate(poses):
         poses[i] = _onto_table(model, pose, plane, settings)[0]
     seen = np.asarray(_judge(frame, plane, poses, model.points, _TOLERANCE))
