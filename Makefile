@@ -8,7 +8,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench figs lint clean system-libs
+.PHONY: demo test bench bench-report figs lint clean system-libs
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -31,15 +31,22 @@ test: $(STAMP) system-libs
 	$(PY) -m ruff check jaxreg tests benchmarks examples paper_figs
 	$(PY) -m pytest -q -n 2 --dist loadfile
 
-# Every benchmark table, peers in the same run; the whole output (with the date, the machine
-# and the load average before each script) is kept in benchmarks/results/make_bench.txt.
+# Every benchmark table, peers in the same run. The whole output (the date, the machine, the
+# CPU and the peers' versions first, the load average before each script) is kept in
+# benchmarks/results/make_bench.txt, and benchmarks/_report.py writes benchmarks/README.md and
+# README.md's summary of the goals from it.
 bench: $(STAMP) system-libs
 	cd benchmarks && { \
-		echo "make bench, $$(date -u '+%Y-%m-%d %H:%M UTC'), $$(uname -m), $$(nproc) cores"; \
+		../$(PY) _report.py --header; \
 		for f in bench_*.py; do \
 			echo "== $$f (load average $$(cut -d' ' -f1-3 /proc/loadavg), $$(date -u +%H:%M) UTC)"; \
 			PYTHONUNBUFFERED=1 ../$(PY) $$f || exit 1; \
 		done; } 2>&1 | tee results/make_bench.txt
+	$(PY) benchmarks/_report.py benchmarks/results/make_bench.txt
+
+# benchmarks/README.md and README.md's summary again from the kept log, without running anything.
+bench-report: $(STAMP)
+	$(PY) benchmarks/_report.py benchmarks/results/make_bench.txt
 
 # Every paper figure: PNG, its numbers (CSV) and its caption (TXT) in paper_figs/out/.
 figs: $(STAMP)

@@ -16,8 +16,8 @@ from jaxreg.camera.pnp import (
     PlanarPnPResult,
     PnPResult,
     PnPStatus,
-    _finish,
-    _fit,
+    _reprojection,
+    _result,
     solve_pnp,
     solve_pnp_planar,
 )
@@ -414,9 +414,9 @@ def test_singular_information_gives_inf_covariance_and_degenerate_status(general
     K_ = jnp.asarray(K)
 
     def finish(w):
-        fit = _fit(pose, X, uv, K_, None, w)
+        fit = _reprojection(pose, X, uv, K_, None, w)
         ok = PnPStatus.success
-        return jax.device_get(_finish(pose, fit, 3, jnp.array(True), ok, X, K_, None, w, 0.5))
+        return jax.device_get(_result(pose, fit, 3, jnp.array(True), ok, X, K_, None, w, 0.5))
 
     w = jnp.zeros(N_POINTS).at[:2].set(1.0)
     singular = finish(w)

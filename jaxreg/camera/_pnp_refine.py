@@ -96,7 +96,7 @@ def _rotation_coefficients(w):
     return a, b, c
 
 
-def _chart(T0: SE3, delta: Array) -> SE3:
+def _pose_at(T0: SE3, delta: Array) -> SE3:
     """The pose at chart coordinate delta = (v, w): X -> T0 (exp(w) X + v)."""
     return T0 @ SE3.from_rotation_and_translation(SO3.exp(delta[3:]), delta[:3])
 
@@ -287,14 +287,16 @@ def refine_poses(T0: SE3, active, X, uv, K, dist, w, *, max_iterations: int, axe
     """
     per_start = (0, 0, None, None, None, None, None)  # T0, active vary by start
     in_axes = (0, 0, 0, 0, axes[0], axes[1], 0)
-    prepare = jax.vmap(jax.vmap(_prepare, in_axes=per_start), in_axes=in_axes)
+    prepare = jax.vmap(jax.vmap(_start_state, in_axes=per_start), in_axes=in_axes)
     problem, state = prepare(T0, active, X, uv, K, dist, w)
     shape = state.shape[:2]
     flat = lambda a: a.reshape(-1, *a.shape[2:])  # noqa: E731
     state = _run(jax.tree.map(flat, problem), flat(state), max_iterations)
     state = state.reshape(*shape, *state.shape[1:])
     scale = jnp.stack(problem.scale, axis=-1)
-    finish = jax.vmap(jax.vmap(_finish, in_axes=per_start + (0, 0)), in_axes=in_axes + (0, 0))
+    finish = jax.vmap(
+        jax.vmap(_implicit_pose, in_axes=per_start + (0, 0)), in_axes=in_axes + (0, 0)
+    )
     return finish(T0, active, X, uv, K, dist, w, scale, state)
 
 
@@ -309,7 +311,7 @@ def _start(T0: SE3, active, X, uv, K, dist, w):
     return T0, ok, start, start.rotation().as_matrix(), start.translation(), X, uv, sw
 
 
-def _prepare(T0: SE3, active, X, uv, K, dist, w):
+def _start_state(T0: SE3, active, X, uv, K, dist, w):
     """One start's problem (constants) and the loop's initial state. The normal equations at
     the start are evaluated once, unscaled: their diagonal gives the column scales (1 where
     zero or not finite), and rescaled they are the initial state's."""
@@ -326,7 +328,7 @@ def _prepare(T0: SE3, active, X, uv, K, dist, w):
     return unscaled._replace(scale=s), _initial_state(A, g, cost, ok)
 
 
-def _finish(T0: SE3, active, X, uv, K, dist, w, scale, state):
+def _implicit_pose(T0: SE3, active, X, uv, K, dist, w, scale, state):
     """The pose the loop reached, differentiable by the implicit function theorem at it
     (`scale` `(6,)`: the loop's column scales, a constant)."""
     T0, ok, start, R0, t0, X, uv, sw = _start(T0, active, X, uv, K, dist, w)
@@ -345,7 +347,7 @@ def _finish(T0: SE3, active, X, uv, K, dist, w, scale, state):
 
     found = jax.lax.stop_gradient(state[:6])
     y = jax.lax.custom_root(gradient, found, lambda _, y0: y0, tangent_solve)
-    pose = SE3(jnp.where(ok, _chart(start, y / scale).wxyz_xyz, T0.wxyz_xyz))
+    pose = SE3(jnp.where(ok, _pose_at(start, y / scale).wxyz_xyz, T0.wxyz_xyz))
     return pose, state[43].astype(jnp.int32), state[45] > 0
 
 

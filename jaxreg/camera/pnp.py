@@ -214,7 +214,7 @@ def _normalised_rmse(pose: SE3, X: Array, m: Array, w: Array) -> Array:
     return jnp.where(jnp.isfinite(rmse), rmse, jnp.inf)
 
 
-class _Fit(eqx.Module):
+class _Reprojection(eqx.Module):
     """How well one pose explains one problem (batch `(...)` when vmapped)."""
 
     rmse: Array  # pixel reprojection RMSE over the valid points
@@ -227,18 +227,18 @@ class _Fit(eqx.Module):
         return jnp.where(self.finite, jnp.where(self.behind, 1, 0), 2)
 
 
-def _fit(pose: SE3, X, uv, K, dist, w) -> _Fit:
+def _reprojection(pose: SE3, X, uv, K, dist, w) -> _Reprojection:
     Xc = pose @ X
     res = (project(Xc, K, dist) - uv) * jnp.sqrt(w)[:, None]
     rmse = jnp.sqrt(jnp.sum(res * res) / jnp.maximum(jnp.sum(w), jnp.finfo(res.dtype).tiny))
-    return _Fit(
+    return _Reprojection(
         rmse=rmse,
         behind=jnp.any((Xc[:, 2] <= 0) & (w > 0)),
         finite=jnp.all(jnp.isfinite(pose.wxyz_xyz)) & jnp.isfinite(rmse),
     )
 
 
-def _ranking(fits: _Fit, converged: Array, eligible: Array | bool = True) -> Array:
+def _ranking(fits: _Reprojection, converged: Array, eligible: Array | bool = True) -> Array:
     """Order of a batch `(S,)` of fits, best first: eligible before not, then by tier (in front
     of the camera before behind it before non-finite), then by reprojection error.
 
@@ -256,8 +256,18 @@ def _ranking(fits: _Fit, converged: Array, eligible: Array | bool = True) -> Arr
     return jnp.lexsort((rmse, ~(tied & converged), tier))
 
 
-def _finish(
-    pose, fit: _Fit, iterations, lm_converged, status, X, K, dist, w, sigma_px, covariance=None
+def _result(
+    pose,
+    fit: _Reprojection,
+    iterations,
+    lm_converged,
+    status,
+    X,
+    K,
+    dist,
+    w,
+    sigma_px,
+    covariance=None,
 ):
     """The `PnPResult` of one pose: covariance (`pose_covariance`'s, computed unless given), and the
     final status (input failures first)."""
@@ -304,7 +314,7 @@ class _Refined(eqx.Module):
     """One problem's refined pose(s) before the covariance: batch `()` or `(2,)` (candidates)."""
 
     pose: SE3
-    fit: _Fit
+    fit: _Reprojection
     iterations: Array
     converged: Array
     status: PnPStatus  # the input's, per problem
@@ -344,7 +354,7 @@ def _planar_starts(X, uv, K, dist, w) -> _Starts:
 
 def _general_choose(st: _Starts, poses, iterations, converged, K, dist) -> _Refined:
     """The best refined start (see the module docstring)."""
-    fits = jax.vmap(lambda T: _fit(T, st.X, st.uv, K, dist, st.w))(poses)
+    fits = jax.vmap(lambda T: _reprojection(T, st.X, st.uv, K, dist, st.w))(poses)
     best = _ranking(fits, converged, st.eligible)[0]
     pose, fit, iterations, converged = jax.tree.map(
         lambda leaf: leaf[best], (poses, fits, iterations, converged)
@@ -354,7 +364,7 @@ def _general_choose(st: _Starts, poses, iterations, converged, K, dist) -> _Refi
 
 def _planar_choose(st: _Starts, poses, iterations, converged, K, dist) -> _Refined:
     """Both candidates, best first."""
-    fits = jax.vmap(lambda T: _fit(T, st.X, st.uv, K, dist, st.w))(poses)
+    fits = jax.vmap(lambda T: _reprojection(T, st.X, st.uv, K, dist, st.w))(poses)
     order = _ranking(fits, converged)
     poses, fits, iterations, converged = jax.tree.map(
         lambda leaf: leaf[order], (poses, fits, iterations, converged)
@@ -366,7 +376,7 @@ def _planar_result(refined: _Refined, K, dist, sigma_px, covariance) -> PlanarPn
     """Both candidates' results, the ambiguity ratio and the separation of one problem."""
     r = refined
     both = jax.vmap(
-        lambda T, fit, it, conv, cov: _finish(
+        lambda T, fit, it, conv, cov: _result(
             T, fit, it, conv, r.status, r.X, K, dist, r.w, sigma_px, cov
         )
     )(r.pose, r.fit, r.iterations, r.converged, covariance)
@@ -396,7 +406,7 @@ def _planar_result(refined: _Refined, K, dist, sigma_px, covariance) -> PlanarPn
 _CORE_NDIMS = (2, 2, 2, 1, 1)
 
 
-def _prepare(name, object_points, image_points, K, dist_coeffs, weights, sigma_px):
+def _checked_inputs(name, object_points, image_points, K, dist_coeffs, weights, sigma_px):
     """Host-side shape checks; returns float arrays of one dtype, sigma_px in that dtype and
     the broadcast batch shape."""
     object_points, image_points, K = (jnp.asarray(a) for a in (object_points, image_points, K))
@@ -484,7 +494,7 @@ def _solve_batch(starts_fn, choose_fn, finish_fn, arrays, batch, sigma_px, *, re
 
 def _general_result(refined: _Refined, K, dist, sigma_px, covariance) -> PnPResult:
     r = refined
-    return _finish(
+    return _result(
         r.pose,
         r.fit,
         r.iterations,
@@ -559,7 +569,7 @@ def solve_pnp(
     floating input by implicit differentiation at the optimum. Raises `ValueError` for N < 4 or
     malformed shapes.
     """
-    arrays, sigma_px, batch = _prepare(
+    arrays, sigma_px, batch = _checked_inputs(
         "solve_pnp", object_points, image_points, K, dist_coeffs, weights, sigma_px
     )
     return _solve_general(arrays, sigma_px, batch=batch, max_iterations=max_iterations)
@@ -587,7 +597,7 @@ def solve_pnp_planar(
     weakly determined directions). Returns a `PlanarPnPResult`: `.pose` / `.best` the best
     candidate, `.candidates` both (batch `(..., 2)`), `.ambiguity_ratio`, `.separation_deg`.
     """
-    arrays, sigma_px, batch = _prepare(
+    arrays, sigma_px, batch = _checked_inputs(
         "solve_pnp_planar", object_points, image_points, K, dist_coeffs, weights, sigma_px
     )
     return _solve_planar(

@@ -352,7 +352,7 @@ def _progress(quiet: bool):
     return report
 
 
-def _finish(args, report: dict, title: str, frame, estimate, model_points) -> int:
+def _emit(args, report: dict, title: str, frame, estimate, model_points) -> int:
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         report["pictures"] = write_pictures(args.out, frame, estimate, model_points)
@@ -417,7 +417,7 @@ def run_demo(args) -> int:
             report["grasp"].update(measured_grasp(report["grasp"], offset))
     report["scene"] = {"seed": args.seed, "object": args.object, "distractors": 2}
     title = f"jaxreg demo: a {args.object} (seed {args.seed})"
-    return _finish(args, report, title, scene.frame, estimate, model)
+    return _emit(args, report, title, scene.frame, estimate, model)
 
 
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per model unit
@@ -488,7 +488,7 @@ def run_pose(args) -> int:
     report = build_report(estimate, model, args.gripper_opening)
     report["scene"] = str(args.scene)
     report["model"] = str(args.model)
-    return _finish(
+    return _emit(
         args, report, f"jaxreg pose: {args.model} in {args.scene}", frame, estimate, model
     )
 

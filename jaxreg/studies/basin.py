@@ -216,7 +216,7 @@ def _scores(problem, opts, starts, truth, symmetry, thresholds):
 
 
 @eqx.filter_jit
-def _register(problem, opts, starts, truth, symmetry, thresholds, mesh):
+def _register_shard(problem, opts, starts, truth, symmetry, thresholds, mesh):
     """:func:`_scores` with the start axis split over ``mesh``: each device runs its own loop
     over its own starts (``shard_map``), so the loop needs no collective per iteration and a
     device stops when its own starts have finished."""
@@ -340,7 +340,7 @@ def basin_sweep(
     for i in range(count):
         block = flat[i * chunk : (i + 1) * chunk]
         sharded = jax.make_array_from_callback(block.shape, sharding, block.__getitem__)
-        out = _register(constants[0], constants[1], sharded, *constants[2:], mesh)
+        out = _register_shard(constants[0], constants[1], sharded, *constants[2:], mesh)
         parts.append(multihost_utils.process_allgather(out, tiled=True))
         if progress is not None:
             progress(min((i + 1) * chunk, total), total)
