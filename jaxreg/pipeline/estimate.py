@@ -552,7 +552,7 @@ def _register(
         ambiguous=ambiguous, symmetry=symmetry, view_free=(view_free, view_reason),
         rng=np.random.default_rng(1),
     )  # fmt: skip
-    stages["register"]["ms"] = _ms(start)
+    stages["register"] = dataclasses.replace(stages["register"], ms=_ms(start))
     return PoseEstimate(
         SE3(wxyz_xyz), rmse, fraction, budget.total, None, reason, stages, mask, points, budget
     )
