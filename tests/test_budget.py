@@ -170,3 +170,85 @@ def test_only_a_contiguous_run_of_good_turns_around_the_answer_frees_an_axis():
     assert _good_arc(angles, (angles >= -40) & (angles <= 150)) == 190
     assert _good_arc(angles, angles >= 120) == 0  # a second basin away from the answer
     assert _good_arc(angles, np.ones(len(angles), bool)) == 360
+
+
+# --------------------------------------------------------------------------------------------
+# The terms' pieces.
+
+
+def _box_points(rng, n=1500):
+    """Points on three faces of a 6 x 4 x 10 cm box (object frame) and their normals."""
+    half = np.array([0.03, 0.02, 0.05])
+    points, normals = [], []
+    for axis in range(3):
+        p = rng.uniform(-half, half, (n // 3, 3))
+        p[:, axis] = half[axis]
+        points.append(p)
+        normals.append(np.tile(np.eye(3)[axis], (n // 3, 1)))
+    return np.concatenate(points), np.concatenate(normals)
+
+
+def test_the_depth_term_is_icp_covariance_of_the_same_pairs():
+    import jaxreg as jr
+    from jaxreg.pipeline import _budget
+    from jaxreg.uncertainty import DepthNoise
+
+    rng = np.random.default_rng(0)
+    model, normals = _box_points(rng)
+    object_T_base = SE3.exp(np.array([0.01, -0.02, 0.3, 0.2, -0.1, 0.3]))
+    segment = np.asarray(object_T_base.inverse() @ model)  # base frame, exact
+    camera = SE3.exp(np.array([0.0, 0.0, -0.3, 0.0, 0.0, 0.0]))
+    noise = DepthNoise((0.0, 0.0, 2.5e-3), camera)
+    pairs, pair_normals, _, kept = _budget._pairs(
+        segment, np.asarray(object_T_base.wxyz_xyz), model, normals, 0.006, 1.0
+    )
+    jac = _budget._jacobian(pairs, pair_normals, np.asarray(object_T_base.wxyz_xyz))
+    inverse = np.linalg.inv(jac.T @ jac)
+    host = _budget._depth_base(
+        jac, pairs, pair_normals, np.asarray(object_T_base.wxyz_xyz), noise, inverse,
+        np.ones(len(kept), bool),
+    )  # fmt: skip
+    reference = np.asarray(
+        jr.icp_covariance(
+            segment.astype(np.float32), model.astype(np.float32), object_T_base,
+            method="point_to_plane", target_normals=normals.astype(np.float32),
+            max_correspondence_distance=0.006, source_noise=noise,
+        )  # fmt: skip
+    )
+    np.testing.assert_allclose(np.sqrt(np.diag(host)), np.sqrt(np.diag(reference)), rtol=0.1)
+
+
+def test_the_fit_term_sees_residuals_shared_by_neighbouring_points():
+    from jaxreg.pipeline import _budget
+
+    rng = np.random.default_rng(1)
+    model, normals = _box_points(rng, 3000)
+    pose = np.asarray(SE3.identity().wxyz_xyz)
+    jac = _budget._jacobian(model, normals, pose)
+    inverse = np.linalg.inv(jac.T @ jac)
+    blocks = _budget._blocks(model, 0.012)
+    sigma = 0.001
+    depth = inverse * sigma**2  # independent residuals of this sigma: H^-1 sigma^2
+    independent = rng.normal(0.0, sigma, len(model))
+    shared = rng.normal(0.0, sigma, blocks.max() + 1)[blocks]  # one offset per 12 mm patch
+    alone = _budget._fit_term(jac, independent, blocks, inverse, depth)
+    patches = _budget._fit_term(jac, shared, blocks, inverse, depth)
+    assert np.trace(alone) < 0.5 * np.trace(depth)  # nothing beyond the depth noise
+    assert np.trace(patches) > 3 * np.trace(depth)  # far fewer independent errors than points
+
+
+def test_perturbed_segments_erode_grow_and_drop_pieces(box):
+    from jaxreg.pipeline._budget import perturbed_segments
+
+    scene, _ = box
+    frame, mask = scene.frame, scene.mask
+    cloud = np.asarray(frame.points(mask)).reshape(-1, 3)
+    points = cloud[np.all(np.isfinite(cloud), axis=1)]
+    size = len(points) + 500
+    segments = perturbed_segments(
+        frame, mask, points, None, 0.0, size, np.random.default_rng(0), count=8
+    )
+    counts = np.sum(np.all(np.isfinite(segments), axis=2), axis=1)
+    assert np.all(counts[:2] < len(points))  # eroded
+    assert np.all(counts[2:4] > len(points))  # grown by the ring around the mask
+    np.testing.assert_allclose(counts[4:], len(points) - int(0.15 * len(points)), atol=1)

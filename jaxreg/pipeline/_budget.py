@@ -268,9 +268,12 @@ def pose_budget(
         trim: the refinement's trim fraction.
         noise: the camera's :class:`~jaxreg.uncertainty.DepthNoise` in the base frame.
         calibration: :class:`Calibration`.
-        ambiguous: ``(A, 6)`` the answers as good as this one (other refined starts, the
-            answer turned and refined again) as right perturbations of ``pose`` (object axes,
-            on its symmetry branch).
+        ambiguous: ``((A, 6), (A,), r)`` the answers as good as this one (other refined
+            starts, the answer turned and refined again) as right perturbations of ``pose``
+            (object axes, on its symmetry branch), their residuals and the answer's ``r``
+            (metres, as ICP reports them). Each weighs by its
+            likelihood against the answer's: ``exp(-N (r_i^2 - r^2) / (2 r^2))`` with ``N``
+            the segment's independent patches (12 mm blocks) and ``r`` the answer's residual.
         symmetry: the model's ``Symmetry`` or ``None``.
         view_free: ``((6,) bool, reason)``: tangent axes the view leaves free (a mug whose
             handle is hidden turns about its body's axis and fits as well), or no axis.
@@ -323,7 +326,11 @@ def pose_budget(
         )
         hand_eye = ad @ calibration.hand_eye @ ad.T
 
-    others = np.asarray(ambiguous, np.float64).reshape(-1, 6)
+    others = np.asarray(ambiguous[0], np.float64).reshape(-1, 6)
+    patches = int(blocks.max()) + 1
+    best = float(ambiguous[2])
+    excess = patches * (np.asarray(ambiguous[1], np.float64) ** 2 - best**2)
+    likelihood = np.exp(-0.5 * np.clip(excess / max(best**2, 1e-12), 0.0, None))
     lift = np.linalg.inv(to_object)
     free, reason = _free(symmetry, lift.T @ hessian @ lift)
     if np.any(view_free[0] & ~free):
@@ -334,6 +341,6 @@ def pose_budget(
         "fit": to_object @ fit_base @ to_object.T,
         "segmentation": moved.T @ moved / max(len(moved), 1),
         "calibration": hand_eye + to_object @ calibration_base @ to_object.T,
-        "ambiguity": others.T @ others / max(len(others), 1),
+        "ambiguity": (others.T * likelihood) @ others / (1.0 + likelihood.sum()),
     }
     return combine(terms, free, reason)

@@ -485,8 +485,12 @@ def _register(
         np.concatenate([[False], probed[1]]), symmetry,
     )  # fmt: skip
     view_free, view_reason, turned = _unfixed_turns(model, probed[1])
-    ambiguous = np.concatenate(
-        [np.asarray(tangents)[equal], np.asarray(probe_tangents)[1:][probed[1] & ~turned]]
+    kept = probed[1] & ~turned
+    others = equal & (np.arange(len(equal)) != ranked[0])
+    ambiguous = (
+        np.concatenate([np.asarray(tangents)[others], np.asarray(probe_tangents)[1:][kept]]),
+        np.concatenate([rmses[others], probed[2][kept]]),
+        rmse,
     )
     spread_mm, spread_deg = (float(x) for x in np.asarray(spread))
     matched = fraction > 0 and rmse < 1.0  # no match leaves ICP's empty-sum residual
@@ -560,8 +564,9 @@ def _register(
 
 def _probe(frame, plane, model, source, answer, score, rmse, trim, settings: _Settings):
     """The answer turned about the model's axes (:func:`probe_starts`), refined and judged
-    like the refined starts: their poses ``(P, 7)`` (object_T_base) and which are as good as
-    the answer ``(P,)`` (score within 0.02, residual within 10%)."""
+    like the refined starts: their poses ``(P, 7)`` (object_T_base), which are as good as
+    the answer ``(P,)`` (score within 0.02, residual within 10%) and their residuals
+    ``(P,)`` (metres)."""
     starts = SE3(jax.device_put(probe_starts(model, answer)))
     probed = _register_starts(
         source, model.points, model.normals, model.fine_grid, starts, settings.fine_distances,
@@ -573,7 +578,7 @@ def _probe(frame, plane, model, source, answer, score, rmse, trim, settings: _Se
     seen = np.asarray(_judge(frame, plane, poses, model.points, _TOLERANCE))
     scores = np.asarray(probed.inlier_fraction) * _confirmed_share(seen)
     rmses = np.nan_to_num(np.asarray(probed.inlier_rmse), nan=np.inf)
-    return poses, (scores >= score - 0.02) & (rmses <= rmse * 1.1 + 1e-4)
+    return poses, (scores >= score - 0.02) & (rmses <= rmse * 1.1 + 1e-4), rmses
 
 
 def _unfixed_turns(model, equal: np.ndarray):
