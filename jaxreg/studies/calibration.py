@@ -44,6 +44,7 @@ class FrameOutcome:
         delta: ``(6,)`` the true error, right perturbation of the estimate (object axes).
         covariance: ``(6, 6)`` the reported total.
         sigmas: ``source -> (6,)`` per-axis sigma of each budget term and ``"total"``.
+        terms: ``source -> (6, 6)`` the budget's terms.
         d2, dof: squared Mahalanobis distance of ``delta`` and its degrees of freedom over
             the 6-dof pose; ``d2_translation``, ``dof_translation`` over the translation.
         predicted_sigma: ``sqrt(trace)`` of the translation block (metres).
@@ -59,6 +60,7 @@ class FrameOutcome:
     delta: np.ndarray
     covariance: np.ndarray
     sigmas: dict[str, np.ndarray]
+    terms: dict[str, np.ndarray]
     d2: float
     dof: int
     d2_translation: float
@@ -150,7 +152,7 @@ def _outcome(name, seed, scene, estimate) -> FrameOutcome:
     if estimate.pose is None:
         nan6 = np.full(6, np.nan)
         return FrameOutcome(
-            name, seed, False, estimate.failed_stage, nan6, np.full((6, 6), np.nan), {},
+            name, seed, False, estimate.failed_stage, nan6, np.full((6, 6), np.nan), {}, {},
             np.nan, 0, np.nan, 0, np.nan, np.nan, axis, np.nan, np.nan,
         )  # fmt: skip
     truth = canonicalise(scene.truth, estimate.pose, scene.symmetry)
@@ -164,7 +166,8 @@ def _outcome(name, seed, scene, estimate) -> FrameOutcome:
     }
     block = np.where(np.isfinite(cov[:3, :3]), cov[:3, :3], np.inf)
     return FrameOutcome(
-        name, seed, True, None, delta, cov, sigmas, d2, dof, d2t, doft,
+        name, seed, True, None, delta, cov, sigmas, dict(estimate.budget.terms), d2, dof, d2t,
+        doft,
         float(np.sqrt(np.trace(block))), float(np.linalg.norm(delta[:3])), axis,
         estimate.budget.lateral_sigma(axis), float(delta[:3] @ axis),
     )  # fmt: skip

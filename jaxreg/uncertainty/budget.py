@@ -23,7 +23,7 @@ from scipy.stats import chi2
 __all__ = ["SOURCES", "PoseBudget", "free_axes", "grasp_axis", "mahalanobis", "region_contains"]
 
 # The sources, in the order reports list them.
-SOURCES = ("depth", "fit", "segmentation", "calibration", "ambiguity")
+SOURCES = ("depth", "fit", "mismatch", "segmentation", "calibration", "ambiguity")
 
 _TRANSLATION = np.array([True, True, True, False, False, False])
 
@@ -83,8 +83,9 @@ class PoseBudget:
         terms: ``source -> (6, 6)`` covariance of the right perturbation of ``base_T_object``
             (object axes, ``(v, w)``, metres and radians) for each of :data:`SOURCES`: the
             depth noise, the fit (residuals beyond the depth noise, correlated between
-            neighbouring points), the segmentation (how the pose moves when the segment's
-            membership changes), the calibration (hand-eye, intrinsics, depth scale as
+            neighbouring points), the mismatch (model and sensor disagreeing over a patch in
+            a way the residuals do not show), the segmentation (how the pose moves when the
+            segment's membership changes), the calibration (hand-eye, intrinsics, depth scale as
             stated by the user; zero when none is stated) and the ambiguity (equally good
             starts that disagree). Free axes are ``inf`` in every term.
         free: ``(6,)`` bool tangent axes left free (no finite variance).
