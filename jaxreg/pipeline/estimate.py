@@ -76,6 +76,7 @@ from jaxreg.camera.model import RGBDFrame
 from jaxreg.geometry.metrics import Symmetry
 from jaxreg.pipeline._lift import lift_region
 from jaxreg.pipeline._register_stage import (
+    _bucketed_symmetry,
     _coarse_problem,
     _confirmed_share,
     _diameter,
@@ -91,7 +92,6 @@ from jaxreg.pipeline._register_stage import (
     visibility as visibility,
 )
 from jaxreg.pipeline.segment import SegmentStatus, choose_cluster, cluster_mask, segment_frame
-from jaxreg.registration._icp_setup import _bucket
 from jaxreg.uncertainty import DepthNoise
 
 __all__ = ["PoseEstimate", "estimate_pose", "visibility"]
@@ -441,10 +441,10 @@ def _segment(frame, model, settings: _Settings, key, rng, stages):
     _, group, chosen, coarse_fraction, _, _ = scored[0]
     coarse_poses = np.asarray(coarse.poses[chosen])  # object_T_base per start, best first
     # pieces of the object the clustering split off: clusters the coarse pose explains
-    members = labels >= 0
-    points = _padded(grid_points[members], _bucket(int(members.sum())), rng)
+    members = labels >= 0  # the whole grid, non-members NaN: one shape for every frame
+    points = np.where(members[..., None], grid_points, np.nan).astype(np.float32)
     near = np.asarray(_near_model(model.fine_grid, coarse_poses[0], points, np.float32(0.01)))
-    near, member_labels = near[: members.sum()], labels[members]
+    near, member_labels = near[members], labels[members]
     joined = sorted({*group, *(k for k in live if near[member_labels == k].mean() >= 0.6)})
     diag.update(
         candidates=[
@@ -536,7 +536,7 @@ def _register(
     equal = (scores >= scores[ranked[0]] - 0.02) & (rmses <= rmse * 1.1 + 1e-4)
     wxyz_xyz, spread, covariance = _finish(
         source, model.points, model.normals, model.fine_grid, results.pose.wxyz_xyz,
-        np.int32(ranked[0]), equal, symmetry, fine_distances[-1], trim, noise,
+        np.int32(ranked[0]), equal, _bucketed_symmetry(symmetry), fine_distances[-1], trim, noise,
     )  # fmt: skip
     spread_mm, spread_deg = (float(x) for x in np.asarray(spread))
     stages["register"] = {
