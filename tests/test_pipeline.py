@@ -103,7 +103,7 @@ def test_models_of_every_object_and_point_count_give_the_programs_one_shape(scen
 def test_nan_model_rows_count_nowhere_in_the_images_judgement(scene):
     """visibility's counts (confirmed, contradicted, occluded, unknown, self-hidden) of a
     model padded with NaN rows are those of the model alone."""
-    from jaxreg.pipeline import visibility
+    from jaxreg.pipeline.estimate import visibility
 
     box, model, _ = scene
     points = model[::20]
