@@ -55,8 +55,11 @@ depth image contradicts (surface predicted where the camera sees through it), or
 that spans beyond the model (register).
 
 Host-side entry point: bad arguments raise ``ValueError``. The compiled pieces have static
-shapes: the segment grid is fixed by the image size and stride, and the clouds given to ICP
-are padded (or subsampled) to ``max_points``.
+shapes: the segment grid is fixed by the image size and stride, the clouds given to ICP
+are padded (or subsampled) to ``max_points``, and the prepared model's arrays are padded to
+a few fixed sizes, so a new model (another object, another sampling) runs the programs
+compiled for the one before; only a model that outgrows those sizes, or the first whose
+``symmetry`` has a continuous axis, compiles (once).
 """
 
 from __future__ import annotations
