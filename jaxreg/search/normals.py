@@ -198,9 +198,9 @@ def _host_pca(points: np.ndarray, mask, k: int, viewpoint) -> NormalEstimate:
     vp = np.zeros(3) if viewpoint is None else np.asarray(viewpoint)
     n, pad = len(points), _bucket(len(points)) - len(points)
     arrays = (points, ok, cov.astype(dtype), count)
-    rows = (np.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1)) for a in arrays)
-    padded = _finish(*rows, vp.astype(dtype))
-    return jax.tree.map(lambda a: jax.device_put(np.asarray(a)[:n]), padded)
+    padded = [np.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1)) for a in arrays]
+    estimate = _finish(*padded, vp.astype(dtype))
+    return jax.tree.map(lambda a: jax.device_put(np.asarray(a)[:n]), estimate)
 
 
 def estimate_normals_with_curvature(
