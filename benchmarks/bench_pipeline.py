@@ -5,7 +5,7 @@ Usage: python benchmarks/bench_pipeline.py [--seeds 50] [--first-seed 0] [--no-o
 Frames: ``jaxreg.synth.tabletop_scene(seed, object=OBJECTS[seed % 4])`` for seeds 0..N-1 (box,
 mug, cylinder, container in turn; two distractors; a RealSense D435's depth noise at 848x480).
 The model is 20,000 points sampled on the object's mesh (one sample per object, as a user
-keeps one model per object; a new model array compiles anew), the same for both pipelines. Success
+keeps one model per object), the same for both pipelines. Success
 is ADD-S < 5 mm against the known pose (ADD-S forgives the objects' symmetries).
 
 * jaxreg: ``estimate_pose`` with its defaults and the D435's depth noise model; each frame is

@@ -91,6 +91,7 @@ from jaxreg.search.features import fpfh as fpfh, match_features as match_feature
 from jaxreg.search.neighbors import (
     NeighborGrid as NeighborGrid,
     build_grid as build_grid,
+    pad_grid as pad_grid,
     validate_grid as validate_grid,
     voxel_downsample as voxel_downsample,
 )

@@ -10,6 +10,7 @@ from jaxreg.io import load_points
 from jaxreg.search.neighbors import (
     build_grid,
     knn,
+    pad_grid,
     query_knn,
     query_nearest,
     query_radius,
@@ -238,6 +239,26 @@ def test_masked_and_non_finite_target_rows_are_never_returned():
     empty = build_grid(points, 0.2, mask=np.zeros(300, bool))
     idx, _, valid = query_nearest(empty, queries)
     assert not np.asarray(valid).any() and np.all(np.asarray(idx) == 300)
+
+
+def test_a_padded_grid_answers_as_the_grid_it_pads():
+    """pad_grid's tables (cells, leaf map, candidate rows and slots) take the sizes asked
+    for, and every query finds the same neighbour at the same distance as before."""
+    rng = np.random.default_rng(11)
+    points = surface_cloud(rng, 2000).astype(np.float32)
+    grid = build_grid(points, 0.02)
+    queries = (points[::7] + rng.normal(0, 0.01, (len(points[::7]), 3))).astype(np.float32)
+    queries[:20] = rng.uniform(-1, 1, (20, 3))  # outside the grid: invalid either way
+    big = pad_grid(grid, cells=4 * grid.cells.shape[0], entries=4 * grid.leaf_map.shape[0],
+                   leaves=2 * grid.num_leaves, capacity=grid.capacity + 40)  # fmt: skip
+    assert big.cells.shape[0] == 4 * grid.cells.shape[0]
+    assert big.leaf_map.shape[0] == 4 * grid.leaf_map.shape[0]
+    assert (big.num_leaves, big.capacity) == (2 * grid.num_leaves, grid.capacity + 40)
+    assert pad_grid(grid).candidate_index.shape == grid.candidate_index.shape  # no shrinking
+    for before, after in zip(nearest(grid, queries), nearest(big, queries), strict=True):
+        np.testing.assert_array_equal(np.asarray(before), np.asarray(after))
+    valid = np.asarray(nearest(big, queries)[2])
+    assert valid.sum() > len(queries) // 2 and not valid[:20].any()
 
 
 def test_knn_matches_ckdtree(dtype):

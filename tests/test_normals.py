@@ -122,22 +122,25 @@ def test_concrete_clouds_use_host_knn_with_the_same_result():
 
 def test_concrete_clouds_compile_one_program():
     """A command line process pays for every JAX program it compiles or loads: the host path
-    runs its eigenproblems as one program and no eager operation (the shape is this test's
-    own, so every program compiled here is new)."""
+    runs its eigenproblems as one program and no eager operation (the padded size, 4096
+    rows, is this test's own, so every program compiled here is new), and a cloud of another
+    size in the same power of two (a new model) runs that program."""
     compiled = []
 
     def listen(event, duration, **kwargs):
         if event.endswith("backend_compile_duration"):
             compiled.append(kwargs.get("fun_name"))
 
-    d = np.random.default_rng(6).normal(size=(317, 3))
+    d = np.random.default_rng(6).normal(size=(3170, 3))
     points = 0.08 * d / np.linalg.norm(d, axis=1, keepdims=True)  # float64: converted on the host
     jax.monitoring.register_event_duration_secs_listener(listen)
     try:
         est = estimate_normals_with_curvature(points, 9, viewpoint=(0.0, 0.0, 5.0))
+        other = estimate_normals_with_curvature(points[:2500], 9, viewpoint=(0.0, 0.0, 5.0))
     finally:
         jax.monitoring.unregister_event_duration_listener(listen)
     assert len(compiled) == 1, compiled
+    assert other.normals.shape == (2500, 3) and bool(other.valid.all())
     assert est.normals.dtype == jnp.float32 and bool(est.valid.all())
     reference = estimate(points.astype(np.float32), 9, viewpoint=jnp.array([0.0, 0.0, 5.0]))
     np.testing.assert_allclose(np.asarray(est.normals), np.asarray(reference.normals), atol=1e-5)

@@ -55,6 +55,66 @@ def test_finds_the_box_with_error_bars_and_stage_diagnostics(scene):
     assert np.mean(est.mask[scene.mask]) > 0.6 and np.mean(scene.mask[est.mask]) > 0.9
 
 
+def test_a_new_model_runs_the_programs_already_compiled(scene):
+    """A model of another point count and symmetry group after the first: not one XLA
+    compilation (jax.monitoring's compile events), and the object is found."""
+    box, model, symmetry = scene
+    estimate_pose(box.frame, model, symmetry=symmetry)  # compiled here or by a test before
+    other = trimesh.sample.sample_surface(box.model, 6000, seed=3)[0].astype(np.float32)
+    compiles = []
+
+    def listen(event, duration, **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(duration)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        est = estimate_pose(box.frame, other, symmetry=None)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert compiles == []
+    assert est.failed_stage is None
+    assert float(add_s(box.model_points, est.pose, box.truth)) < 0.005
+
+
+def test_models_of_every_object_and_point_count_give_the_programs_one_shape(scene):
+    """Every array the compiled register stage takes from a model (points, normals, the
+    sparse screen, both grids' tables) has one shape for the four objects at 6k and 20k
+    points (padding: NaN points with zero normals after the model's own rows)."""
+    from jaxreg.pipeline._register_stage import _prepare_model
+    from jaxreg.synth import OBJECTS, object_mesh
+
+    def shapes(prepared):
+        arrays = (prepared.points, prepared.normals, prepared.screen, prepared.grid)
+        return [np.shape(a) for a in jax.tree.leaves((*arrays, prepared.fine_grid))]
+
+    reference = shapes(_prepare_model(scene[1], None, 0.004, 0.04, 0.015))
+    for name in OBJECTS:
+        mesh, _ = object_mesh(name)
+        for count in (6000, 20_000):
+            points = trimesh.sample.sample_surface(mesh, count, seed=1)[0].astype(np.float32)
+            prepared = _prepare_model(points, None, 0.004, 0.04, 0.015)
+            assert shapes(prepared) == reference, (name, count)
+    real = np.isfinite(prepared.points).all(1)
+    assert 1000 < real.sum() < len(real) and not real[real.argmin() :].any()  # rows, then NaN
+    assert not np.any(prepared.normals[~real])
+
+
+def test_nan_model_rows_count_nowhere_in_the_images_judgement(scene):
+    """visibility's counts (confirmed, contradicted, occluded, unknown, self-hidden) of a
+    model padded with NaN rows are those of the model alone."""
+    from jaxreg.pipeline.estimate import visibility
+
+    box, model, _ = scene
+    points = model[::20]
+    padded = np.concatenate([points, np.full((200, 3), np.nan, np.float32)])
+    alone = np.asarray(visibility(box.frame, box.truth, points, np.float32(0.01)))
+    assert alone[0] > 100  # the true pose: much of the model confirmed
+    np.testing.assert_array_equal(
+        np.asarray(visibility(box.frame, box.truth, padded, np.float32(0.01))), alone
+    )
+
+
 def test_a_stray_table_slab_is_a_candidate_the_registration_rejects(scene):
     scene, model, symmetry = scene
     # a 2 cm board on the table beside the box, about its size in the image
@@ -218,6 +278,10 @@ def test_resting_starts_stand_the_model_on_the_table_on_each_principal_half_axis
     # six half-axes down, four headings each: the object's z axis up, down or level
     assert np.sum(np.isclose(down[:, 2], 1, atol=1e-5)) == 4
     assert np.sum(np.isclose(down[:, 2], -1, atol=1e-5)) == 4
+    # NaN rows (a model padded to a bucketed size) change no start
+    padded = jnp.concatenate([jnp.asarray(model), jnp.full((12, 3), jnp.nan)])
+    again = _resting_starts(cloud, ok, padded, jnp.asarray(axes), plane, eye, 4)
+    np.testing.assert_allclose(again.wxyz_xyz, starts.wxyz_xyz, atol=1e-6)
     # the front toward the camera meets the cloud's front (slid horizontally toward the eye)
     front = np.percentile(np.asarray(cloud)[:, 0], 95)
     np.testing.assert_allclose(pts[..., 0].max(1), front, atol=2e-3)

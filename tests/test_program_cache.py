@@ -6,6 +6,7 @@ import pickle
 import subprocess
 import sys
 import textwrap
+from collections import OrderedDict
 
 import jax
 import jax.numpy as jnp
@@ -192,3 +193,26 @@ def test_static_objects_holding_arrays_are_keyed_by_their_bytes(store):
     np.testing.assert_array_equal(run(x, _Held(edited)), np.ones(3))
     np.testing.assert_array_equal(run(x, _Held(base.copy())), np.zeros(3))  # same bytes
     assert len(list(store.glob("*.jaxprog"))) == 2
+
+
+def test_the_process_keeps_only_the_most_recently_used_programs(fitmod, monkeypatch):
+    """In memory (no folder here) at most ``_MAX_PROGRAMS`` executables: the least recently
+    used is dropped (its code pages with it) and traced and compiled again when called."""
+    monkeypatch.setattr(_program_cache, "_MAX_PROGRAMS", 2)
+    monkeypatch.setattr(_program_cache, "_LOADED", OrderedDict())
+    fit = _program_cache.persistent_jit(fitmod.fit)
+
+    def call(n):
+        return fit(_source(n), _source(n) + 0.5, 2.0)
+
+    first = call(20)
+    call(30)
+    call(20)  # used again: the most recent
+    assert len(fitmod.TRACES) == 2
+    call(40)  # drops the 30-point program
+    assert len(_program_cache._LOADED) == 2 and len(fitmod.TRACES) == 3
+    call(20)
+    assert len(fitmod.TRACES) == 3
+    call(30)
+    assert len(fitmod.TRACES) == 4
+    np.testing.assert_array_equal(call(20).pose.wxyz_xyz, first.pose.wxyz_xyz)

@@ -25,9 +25,15 @@ repr; for an object holding arrays, such as a prepared model closed into the pro
 constants, also a digest of the arrays' bytes, since a repr shortens them), and each array's
 shape and dtype. Deleting the folder is always safe.
 
-Falls back to the plain compiled call, with nothing written, when the call is traced (inside
-``jit``, ``vmap`` or ``grad``: stored programs are not differentiated here), when the output
-holds something that cannot be pickled, or when storing fails.
+In memory, with or without a folder, the process keeps the ``_MAX_PROGRAMS`` executables it
+used most recently and drops the others (compiled or loaded again when next called): each
+executable holds XLA's code pages (on a CPU, hundreds of memory maps, of the kernel's 65,530),
+so a long-running process that meets new shapes keeps a bounded footprint.
+
+Falls back to the plain compiled call (``equinox.filter_jit``, whose cache is not bounded),
+with nothing written, when the call is traced (inside ``jit``, ``vmap`` or ``grad``: stored
+programs are not differentiated here), when the output holds something that cannot be
+pickled, or when compiling or storing fails.
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ import tempfile
 import threading
 import time
 import weakref
+from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
 
@@ -56,7 +63,8 @@ from jax.experimental import serialize_executable
 __all__ = ["persistent_jit", "set_folder"]
 
 _FOLDER: Path | None = None
-_LOADED: dict[str, tuple[Callable, object] | None] = {}
+_MAX_PROGRAMS = 32  # executables kept in memory, least recently used dropped first
+_LOADED: OrderedDict[str, tuple[Callable, object] | None] = OrderedDict()
 _DIGESTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # static leaf -> key text
 _HITS = threading.local()  # .count: XLA persistent-cache hits seen by this thread
 
@@ -223,10 +231,9 @@ def _load(blob: bytes, in_tree, out_tree, custom_calls: list[str]) -> Callable:
     return compiled
 
 
-def _store(fn: Callable, arrays: list, static, in_tree, path: Path):
-    """Traces and compiles ``fn`` once and writes its executable, or where that does not
-    load back, its :mod:`jax.export` program, with the output tree to ``path``; returns
-    (callable of the flat arrays, output tree)."""
+def _flat(fn: Callable, arrays: list, static, in_tree):
+    """``fn`` as a function of the flat arrays, its output trees appended to a list, and the
+    arrays' specs: (flat function, output trees, specs)."""
     box = []
 
     def flat(*values):
@@ -236,6 +243,21 @@ def _store(fn: Callable, arrays: list, static, in_tree, path: Path):
         return out_leaves
 
     specs = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type) for a in arrays]
+    return flat, box, specs
+
+
+def _compile(fn: Callable, arrays: list, static, in_tree):
+    """Traces and compiles ``fn`` (nothing written); returns (callable of the flat arrays,
+    output tree)."""
+    flat, box, specs = _flat(fn, arrays, static, in_tree)
+    return jax.jit(flat).lower(*specs).compile(), box[0]
+
+
+def _store(fn: Callable, arrays: list, static, in_tree, path: Path):
+    """Traces and compiles ``fn`` once and writes its executable, or where that does not
+    load back, its :mod:`jax.export` program, with the output tree to ``path``; returns
+    (callable of the flat arrays, output tree)."""
+    flat, box, specs = _flat(fn, arrays, static, in_tree)
     _count_cache_hits()
     hits = getattr(_HITS, "count", 0)
     compiled = jax.jit(flat).lower(*specs).compile()
@@ -262,29 +284,37 @@ def _read(path: Path):
 
 
 def _program(fn: Callable, arrays: list, static, in_tree, key: str):
+    """The program of ``key``: kept in memory, read from the folder, or compiled (and
+    stored when there is a folder); ``None`` where none could be made."""
     if key in _LOADED:
+        _LOADED.move_to_end(key)
         return _LOADED[key]
-    path = _FOLDER / f"{fn.__name__}-{key}.jaxprog"
     program = None
-    with contextlib.suppress(Exception):  # unreadable (another jaxlib build?): written anew
-        program = _read(path) if path.is_file() else None
-    if program is None:
-        with contextlib.suppress(Exception):  # a program that cannot be stored is compiled
-            program = _store(fn, arrays, static, in_tree, path)  # the ordinary way
+    if _FOLDER is None:
+        with contextlib.suppress(Exception):  # compiled the ordinary way instead
+            program = _compile(fn, arrays, static, in_tree)
+    else:
+        path = _FOLDER / f"{fn.__name__}-{key}.jaxprog"
+        with contextlib.suppress(Exception):  # unreadable (another jaxlib build?): written anew
+            program = _read(path) if path.is_file() else None
+        if program is None:
+            with contextlib.suppress(Exception):  # a program that cannot be stored is compiled
+                program = _store(fn, arrays, static, in_tree, path)  # the ordinary way
     _LOADED[key] = program
+    while len(_LOADED) > _MAX_PROGRAMS:
+        _LOADED.popitem(last=False)
     return program
 
 
 def persistent_jit(fn: Callable) -> Callable:
-    """``equinox.filter_jit(fn)``, with the traced program stored on disk between processes
-    once :func:`set_folder` has named a folder. ``fn`` must depend only on its arguments (no
-    closed-over arrays or mutable globals)."""
+    """``equinox.filter_jit(fn)`` (arrays traced, everything else static), its executables
+    kept among the process's ``_MAX_PROGRAMS`` most recently used and stored on disk between
+    processes once :func:`set_folder` has named a folder. ``fn`` must depend only on its
+    arguments (no closed-over arrays or mutable globals)."""
     jitted = eqx.filter_jit(fn)
 
     @functools.wraps(fn)
     def call(*args):
-        if _FOLDER is None:
-            return jitted(*args)
         dynamic, static = eqx.partition(args, eqx.is_array)
         arrays, in_tree = jax.tree.flatten(dynamic)
         if any(isinstance(a, jax.core.Tracer) for a in arrays):

@@ -14,7 +14,6 @@ import numpy as np
 
 from jaxreg.camera.model import RGBDFrame
 from jaxreg.core._program_cache import persistent_jit
-from jaxreg.registration._icp_setup import _bucket
 from jaxreg.search.neighbors import voxel_downsample
 
 __all__ = ["lift_pixels", "lift_region"]
@@ -57,6 +56,11 @@ def _isolated(points: np.ndarray, voxel: float, need: int = 2) -> np.ndarray:
     return count < need
 
 
+# Pixels lifted by one program: footprints pad to 2^15 pixels (an object of 8% of an 848x480
+# image) or the next power of two, so every segment of a frame size shares a program or a few.
+_PIXELS = 1 << 15
+
+
 @persistent_jit
 def _lift_pixels(frame: RGBDFrame, rows, cols):
     """Base-frame points ``(P, 3)`` of the given pixels (padded index arrays): one stored
@@ -67,7 +71,7 @@ def _lift_pixels(frame: RGBDFrame, rows, cols):
 def lift_pixels(frame: RGBDFrame, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """Base-frame points ``(P, 3)`` of the pixels ``(rows, cols)`` (NaN at holes), lifted
     in a list padded to a bucketed length (a few stored programs serve every count)."""
-    padded = _bucket(max(len(rows), 1))
+    padded = max(_PIXELS, 1 << (max(len(rows), 1) - 1).bit_length())
     r_pad = np.zeros(padded, np.int32)
     c_pad = np.zeros(padded, np.int32)
     r_pad[: len(rows)], c_pad[: len(cols)] = rows, cols

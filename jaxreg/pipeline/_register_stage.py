@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import math
 
 import equinox as eqx
 import jax
@@ -24,12 +25,18 @@ from scipy.spatial.transform import Rotation
 from jaxreg.camera.model import RGBDFrame
 from jaxreg.core._program_cache import persistent_jit
 from jaxreg.geometry.lie import geodesic_angle
-from jaxreg.geometry.metrics import canonicalise
+from jaxreg.geometry.metrics import Symmetry, canonicalise
 from jaxreg.pipeline.segment import TablePlane
 from jaxreg.registration._icp_core import run
 from jaxreg.registration._icp_setup import Settings, prepare
 from jaxreg.registration.icp import icp, multistart_icp, pca_inits, rotation_inits
-from jaxreg.search.neighbors import NeighborGrid, build_grid, query_nearest, voxel_downsample
+from jaxreg.search.neighbors import (
+    NeighborGrid,
+    build_grid,
+    pad_grid,
+    query_nearest,
+    voxel_downsample,
+)
 from jaxreg.search.normals import estimate_normals
 
 __all__ = ["visibility"]
@@ -40,8 +47,8 @@ __all__ = ["visibility"]
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class _Model:
-    points: np.ndarray  # (M, 3) object frame, voxelled
-    normals: np.ndarray  # (M, 3)
+    points: np.ndarray  # (R, 3) object frame, voxelled; NaN rows pad it to a size of _ROWS
+    normals: np.ndarray  # (R, 3), zero on the padding rows
     grid: NeighborGrid  # exact to the coarse registration's largest distance
     fine_grid: NeighborGrid  # exact to the refinement's: shorter candidate lists, faster
     radius: float  # largest distance from the centroid
@@ -49,12 +56,49 @@ class _Model:
     centroid: np.ndarray
     axes: np.ndarray  # (3, 3) principal axes as columns, largest extent first
     bounds: np.ndarray  # (2, 3) least and greatest coordinate along each axis (given points)
-    screen: np.ndarray  # (M1, 3) voxelled at 3 voxels: the coarse starts' first judgement
+    screen: np.ndarray  # (R1, 3) voxelled at 3 voxels: the coarse starts' first judgement
     # _coarse_problem's, per schedule (not in the repr that keys stored programs)
     coarse: dict = dataclasses.field(default_factory=dict, repr=False)
 
 
 _MODELS: dict[tuple, _Model] = {}
+
+# A model's sizes are program shapes: every array the compiled programs take from a model is
+# padded to the first of a few sizes that holds it, so that a new model (another object,
+# another sampling) runs the programs compiled for the one before. The first sizes hold the
+# four synthetic objects sampled at 6k-20k points (up to 4.6k points at 4 mm); a larger model
+# doubles the size it outgrows. Rows: NaN points (normals zero), never matched or judged.
+_ROWS = 6144  # model points
+_SCREEN_ROWS = 512  # the coarse judgement's sparse points
+_SYMMETRY_ROWS = 8  # rotations of a Symmetry (a box's 4, a square tray's 8)
+# Grid tables (pad_grid's sizes). The coarse grid's leaf map is capped at its size: refining
+# a concave model (a mug's handle) deeper costs megabytes for a few candidates less per leaf.
+_COARSE_TABLES = {"cells": 1 << 9, "entries": 1 << 18, "leaves": 1 << 13, "capacity": 128}
+_FINE_TABLES = {"cells": 1 << 12, "entries": 1 << 17, "leaves": 1 << 14, "capacity": 16}
+
+
+def _size(n: int, first: int) -> int:
+    """The first of ``first``, ``2 first``, ``4 first``, ... that is at least ``n``."""
+    return first << max(0, math.ceil(math.log2(max(n, 1) / first)))
+
+
+def _padded_rows(values: np.ndarray, first: int, fill: float) -> np.ndarray:
+    """``values`` ``(N, 3)`` float32 with rows of ``fill`` after them, to ``_size(N, first)``."""
+    out = np.full((_size(len(values), first), 3), fill, np.float32)
+    out[: len(values)] = values
+    return out
+
+
+def _padded_grid(grid: NeighborGrid, tables: dict) -> NeighborGrid:
+    """``grid``'s tables padded to the first sizes of ``tables`` that hold them (each doubled
+    as often as it needs)."""
+    built = {
+        "cells": grid.cells.shape[0],
+        "entries": grid.leaf_map.shape[0],
+        "leaves": grid.num_leaves,
+        "capacity": grid.capacity,
+    }
+    return pad_grid(grid, **{name: _size(built[name], first) for name, first in tables.items()})
 
 
 def _voxel_normals(points: np.ndarray, normals: np.ndarray, voxel: float):
@@ -106,19 +150,22 @@ def _prepare_model(
     centroid = points.mean(0)
     if model_normals is None:
         normals = np.asarray(estimate_normals(points, k=20, viewpoint=centroid))
-    usable = np.linalg.norm(normals, axis=1) > 0.5
-    grid = build_grid(points, grid_distance, mask=usable)
+    rows = _padded_rows(points, _ROWS, np.nan)
+    row_normals = _padded_rows(normals, _ROWS, 0.0)
+    usable = np.linalg.norm(row_normals, axis=1) > 0.5
+    grid = build_grid(rows, grid_distance, mask=usable, max_map=_COARSE_TABLES["entries"])
     # leaves of at most 16 candidates: queries ~2x faster than the default 48, built once;
     # the default where the model's shape needs longer lists (exact either way)
-    fine_grid = build_grid(points, fine_distance, capacity=16, mask=usable)
+    fine_grid = build_grid(rows, fine_distance, capacity=16, mask=usable)
     if bool(fine_grid.overflow):
-        fine_grid = build_grid(points, fine_distance, mask=usable)
+        fine_grid = build_grid(rows, fine_distance, mask=usable)
+    grid, fine_grid = _padded_grid(grid, _COARSE_TABLES), _padded_grid(fine_grid, _FINE_TABLES)
     _, vectors = np.linalg.eigh(np.cov((points - centroid).T))
     axes = vectors[:, ::-1]
     given = (model_points - centroid) @ axes  # voxel centroids lie up to half a voxel inside
     model = _Model(
-        points=points,
-        normals=normals.astype(np.float32),
+        points=rows,
+        normals=row_normals,
         grid=grid,
         fine_grid=fine_grid,
         radius=float(np.linalg.norm(points - centroid, axis=1).max()),
@@ -126,7 +173,7 @@ def _prepare_model(
         centroid=centroid,
         axes=axes,
         bounds=np.stack([given.min(0), given.max(0)]),
-        screen=voxel_downsample(points, 3 * voxel_size).astype(np.float32),
+        screen=_padded_rows(voxel_downsample(points, 3 * voxel_size), _SCREEN_ROWS, np.nan),
     )
     if len(_MODELS) > 8:
         _MODELS.clear()
@@ -160,7 +207,7 @@ def visibility(
     (metres) it is confirmed; measured farther, the camera sees through where the surface
     should be (contradicted, evidence against the pose or the object's presence); measured
     nearer, something else hides it (occluded); a hole or a pixel outside the image is
-    unknown.
+    unknown. NaN rows of ``model_points`` (a model padded to a bucketed size) count nowhere.
     """
     camera_T_object = frame.base_T_camera.inverse() @ base_T_object
     cam = camera_T_object @ jnp.asarray(model_points, frame.depth.dtype)
@@ -185,7 +232,7 @@ def visibility(
         known = known | below
         confirmed = confirmed & ~below
     occluded = known & (diff < -tolerance) & ~contradicted
-    unknown = ~known & (facing | ~inside)
+    unknown = ~known & (facing | ~inside) & jnp.all(jnp.isfinite(cam), -1)
     return jnp.stack(
         [
             confirmed.sum(),
@@ -264,14 +311,15 @@ def _coarse_problem(model: _Model, size: int, distances: np.ndarray, splits: tup
 def _front_aligned(inits: SE3, cloud, ok, model_points, eye) -> SE3:
     """Starts (object_T_base) slid along the line of sight so that the model's nearest
     point to the camera lies as near as the cloud's (its 5th percentile): a partial view's
-    centroid sits on the visible surface, in front of the object's centre."""
+    centroid sits on the visible surface, in front of the object's centre. NaN model rows
+    (padding) are ignored."""
     centroid = jnp.sum(jnp.where(ok[:, None], cloud, 0.0), 0) / jnp.maximum(ok.sum(), 1)
     view = (centroid - eye) / jnp.linalg.norm(centroid - eye)
     depth = jnp.where(ok, jnp.where(ok[:, None], cloud, 0.0) @ view, jnp.nan)
     front = jnp.nanpercentile(depth, 5.0)
     placed = inits.inverse()  # base_T_object
     model_front = (
-        jnp.min(
+        jnp.nanmin(
             jnp.einsum("sij,mj->smi", placed.rotation().as_matrix(), model_points) @ view, axis=1
         )
         + placed.translation() @ view
@@ -288,7 +336,8 @@ def _resting_starts(cloud, ok, model_points, model_axes, plane, eye, yaws: int) 
     plane's normal, turned to ``yaws`` headings about it, the lowest model point on the
     plane, and the model slid horizontally toward the camera until its front meets the
     cloud's (5th percentile along the horizontal line of sight; a partial view's centroid
-    lies on its visible side). Batch ``(6 * yaws,)``."""
+    lies on its visible side). NaN rows of ``model_points`` (padding) are ignored. Batch
+    ``(6 * yaws,)``."""
     n = plane.normal
     dtype = cloud.dtype
     downs = jnp.concatenate([model_axes.T, -model_axes.T])  # (6, 3) object frame
@@ -308,13 +357,14 @@ def _resting_starts(cloud, ok, model_points, model_axes, plane, eye, yaws: int) 
     along = (centroid - eye) - ((centroid - eye) @ n) * n
     along = along / jnp.maximum(jnp.linalg.norm(along), 1e-9)
     front = jnp.nanpercentile(jnp.where(ok, cloud @ along, jnp.nan), 5.0)
-    model_mid = jnp.mean(moved, axis=1)  # (S, 3)
+    real = jnp.all(jnp.isfinite(model_points), -1)  # NaN rows pad the model
+    model_mid = jnp.sum(jnp.where(real[:, None], moved, 0.0), 1) / real.sum()  # (S, 3)
     # horizontal: the model's centre over the cloud's centroid, then slid along `along`
     horizontal = centroid - (centroid @ n) * n - (model_mid - (model_mid @ n)[:, None] * n)
     horizontal = horizontal - (horizontal @ along)[:, None] * along
-    model_front = jnp.min(moved @ along, axis=1)
+    model_front = jnp.nanmin(moved @ along, axis=1)
     horizontal = horizontal + (front - model_front)[:, None] * along
-    lift = -plane.offset - jnp.min(moved @ n, axis=1)  # lowest point on the plane
+    lift = -plane.offset - jnp.nanmin(moved @ n, axis=1)  # lowest point on the plane
     translations = horizontal + lift[:, None] * n
     placed = SE3.from_rotation_and_translation(SO3.from_matrix(rotations), translations)
     return placed.inverse()
@@ -549,6 +599,17 @@ def probe_starts(model: _Model, object_T_base: np.ndarray) -> np.ndarray:
             turn = SE3.from_rotation(SO3.exp(axis * angle))
             starts.append((centre @ turn @ centre.inverse() @ answer).wxyz_xyz)
     return np.asarray(starts, np.float32)
+
+
+def _bucketed_symmetry(symmetry: Symmetry | None) -> Symmetry:
+    """``symmetry`` (``None``: the identity alone) with its rotations padded to a size of
+    ``_SYMMETRY_ROWS`` by copies of the identity, which select nothing new: objects of
+    different symmetry groups share :func:`_finish`'s program (one per kind of axis)."""
+    if symmetry is None:
+        symmetry = Symmetry(np.eye(3)[None])
+    rotations = np.asarray(symmetry.rotations)
+    extra = np.repeat(rotations[:1], _size(len(rotations), _SYMMETRY_ROWS) - len(rotations), 0)
+    return Symmetry(np.concatenate([rotations, extra]), symmetry.axis)
 
 
 def _distinct(poses: np.ndarray, count: int, min_distance: float) -> list[int]:

@@ -32,7 +32,6 @@ from jaxreg.pipeline.segment import (
     cluster_mask,
     segment_frame,
 )
-from jaxreg.registration._icp_setup import _bucket
 
 
 def segment_table(frame, model, settings: _Settings, key, rng, stages):
@@ -110,10 +109,10 @@ def segment_table(frame, model, settings: _Settings, key, rng, stages):
     group = candidates[chosen][0]
     coarse_poses = np.asarray(coarse.poses[chosen])  # object_T_base per start, best first
     # pieces of the object the clustering split off: clusters the coarse pose explains
-    members = labels >= 0
-    points = _padded(grid_points[members], _bucket(int(members.sum())), rng)
+    members = labels >= 0  # the whole grid, non-members NaN: one shape for every frame
+    points = np.where(members[..., None], grid_points, np.nan).astype(np.float32)
     near = np.asarray(_near_model(model.fine_grid, coarse_poses[0], points, np.float32(0.01)))
-    near, member_labels = near[: members.sum()], labels[members]
+    near, member_labels = near[members], labels[members]
     joined = sorted({*group, *(k for k in live if near[member_labels == k].mean() >= 0.6)})
     region = cluster_mask(seg, joined, frame.depth.shape)
     stages["segment"] = dataclasses.replace(

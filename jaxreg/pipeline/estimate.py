@@ -72,8 +72,11 @@ depth image contradicts (surface predicted where the camera sees through it), or
 that spans beyond the model (register).
 
 Host-side entry point: bad arguments raise ``ValueError``. The compiled pieces have static
-shapes: the segment grid is fixed by the image size and stride, and the clouds given to ICP
-are padded (or subsampled) to ``max_points``.
+shapes: the segment grid is fixed by the image size and stride, the clouds given to ICP
+are padded (or subsampled) to ``max_points``, and the prepared model's arrays are padded to
+a few fixed sizes, so a new model (another object, another sampling) runs the programs
+compiled for the one before; only a model that outgrows those sizes, or the first whose
+``symmetry`` has a continuous axis, compiles (once).
 """
 
 from __future__ import annotations
@@ -96,6 +99,7 @@ from jaxreg.pipeline._lift import lift_region
 from jaxreg.pipeline._records import LiftRecord, RegisterRecord, SegmentRecord
 from jaxreg.pipeline._register_stage import (
     PROBE_ANGLES_DEG,
+    _bucketed_symmetry,
     _confirmed_share,
     _distinct,
     _finish,
@@ -476,13 +480,14 @@ def _register(
     reach = overhang(model, np.asarray(results.pose.wxyz_xyz[ranked[0]]), points)
     equal = (scores >= scores[ranked[0]] - 0.02) & (rmses <= rmse * 1.1 + 1e-4)
     answers, contact, lowest = _rest(source, model, results, ranked[0], plane, trim, s)
-    wxyz_xyz, spread, tangents = _finish(answers, np.int32(ranked[0]), equal, symmetry)
+    padded_symmetry = _bucketed_symmetry(symmetry)
+    wxyz_xyz, spread, tangents = _finish(answers, np.int32(ranked[0]), equal, padded_symmetry)
     probed = _probe(
         frame, plane, model, source, answers[ranked[0]], scores[ranked[0]], rmse, trim, s
     )
     _, _, probe_tangents = _finish(
         np.concatenate([answers[ranked[0]][None], probed[0]]), np.int32(0),
-        np.concatenate([[False], probed[1]]), symmetry,
+        np.concatenate([[False], probed[1]]), padded_symmetry,
     )  # fmt: skip
     view_free, view_reason, turned = _unfixed_turns(model, probed[1])
     kept = probed[1] & ~turned

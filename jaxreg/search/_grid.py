@@ -22,7 +22,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxreg.search import _knn, _octree
 
-__all__ = ["NeighborGrid", "build_grid", "validate_grid"]
+__all__ = ["NeighborGrid", "build_grid", "pad_grid", "validate_grid"]
 
 # Octant order of a node's children: bit 2 = x, bit 1 = y, bit 0 = z (as in _octree).
 _OCTANTS = np.array(list(itertools.product((0, 1), repeat=3)), dtype=np.int64)
@@ -353,6 +353,36 @@ def build_grid(
         )
     )
     return NeighborGrid(*arrays, k=k)
+
+
+def pad_grid(
+    grid: NeighborGrid, *, cells: int = 0, entries: int = 0, leaves: int = 0, capacity: int = 0
+) -> NeighborGrid:
+    """``grid`` with its tables padded to at least the given sizes (host): ``cells`` rows of
+    the cell table, ``entries`` of the leaf map, ``leaves`` rows and ``capacity`` columns of
+    the candidate table. The padding is what :func:`build_grid` pads with (cell and map rows
+    of zeros, candidate slots holding the sentinel ``num_points`` at ``inf``), so every query
+    answers exactly as before; grids of different targets padded to the same sizes share
+    their shapes, and a jitted function taking them compiles once.
+    """
+    if isinstance(grid.candidate_index, jax.core.Tracer):
+        raise ValueError("pad_grid runs on the host: pad the grid outside jit, pass it in")
+    index = np.asarray(grid.candidate_index)
+    coords = np.asarray(grid.candidate_points)
+    more_rows = max(0, leaves - index.shape[0])
+    more_slots = max(0, capacity - index.shape[1])
+    sentinel = int(grid.num_points)
+    padded = (
+        np.pad(np.asarray(grid.cells), ((0, max(0, cells - grid.cells.shape[0])), (0, 0))),
+        np.pad(np.asarray(grid.leaf_map), (0, max(0, entries - grid.leaf_map.shape[0]))),
+        np.pad(index, ((0, more_rows), (0, more_slots)), constant_values=sentinel),
+        np.pad(coords, ((0, 0), (0, more_rows), (0, more_slots)), constant_values=np.inf),
+    )
+    return eqx.tree_at(
+        lambda g: (g.cells, g.leaf_map, g.candidate_index, g.candidate_points),
+        grid,
+        jax.device_put(padded),
+    )
 
 
 def validate_grid(grid: NeighborGrid, target: ArrayLike, max_distance: ArrayLike) -> None:

@@ -88,6 +88,7 @@ from jaxreg.geometry._brute import (
 from jaxreg.search._grid import (
     NeighborGrid as NeighborGrid,
     build_grid as build_grid,
+    pad_grid as pad_grid,
     validate_grid as validate_grid,
 )
 
@@ -95,6 +96,7 @@ __all__ = [
     "NeighborGrid",
     "build_grid",
     "knn",
+    "pad_grid",
     "query_knn",
     "query_nearest",
     "query_radius",

@@ -30,6 +30,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from jaxreg.core._program_cache import persistent_jit
 from jaxreg.core._result import select_status
 from jaxreg.geometry._eig3 import eigh3
+from jaxreg.search._grid import _bucket
 from jaxreg.search._knn import knn_moments, self_knn
 from jaxreg.search.neighbors import knn, valid_rows
 
@@ -178,7 +179,8 @@ def _host_knn(
 def _host_pca(points: np.ndarray, mask, k: int, viewpoint) -> NormalEstimate:
     """:func:`estimate_normals_with_curvature` of a concrete float cloud: the exact kNN and
     each neighbourhood's covariance (float64) by compiled host loops, the eigenproblems in one
-    compiled program (kept by the program store: no JAX operation runs eagerly here)."""
+    compiled program (kept by the program store: no JAX operation runs eagerly here) on rows
+    padded to a power of two (invalid rows), so clouds of similar size share it."""
     ok = np.all(np.isfinite(points), axis=-1)
     if mask is not None:
         mask = np.asarray(mask)
@@ -194,7 +196,11 @@ def _host_pca(points: np.ndarray, mask, k: int, viewpoint) -> NormalEstimate:
         count = np.zeros(len(points), np.int32)
         cov[rows], count[rows] = knn_moments(np.ascontiguousarray(points[rows], np.float64), k)
     vp = np.zeros(3) if viewpoint is None else np.asarray(viewpoint)
-    return _finish(points, ok, cov.astype(dtype), count, vp.astype(dtype))
+    n, pad = len(points), _bucket(len(points)) - len(points)
+    arrays = (points, ok, cov.astype(dtype), count)
+    padded = [np.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1)) for a in arrays]
+    estimate = _finish(*padded, vp.astype(dtype))
+    return jax.tree.map(lambda a: jax.device_put(np.asarray(a)[:n]), estimate)
 
 
 def estimate_normals_with_curvature(
