@@ -41,7 +41,7 @@ __all__ = ["Calibration", "pose_budget"]
 # the residuals show (flying and laterally shifted pixels at the silhouette, the voxel model's
 # edges and curvature). Fitted on tuning frames (jaxreg.studies.calibration_study, seeds
 # 301-306); the study checks it on frames nothing tunes on.
-MISMATCH_SIGMA = 0.001
+MISMATCH_SIGMA = 0.002
 
 
 class Calibration:

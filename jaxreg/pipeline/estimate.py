@@ -489,7 +489,10 @@ def _register(
         np.concatenate([answers[ranked[0]][None], probed[0]]), np.int32(0),
         np.concatenate([[False], probed[1]]), padded_symmetry,
     )  # fmt: skip
-    view_free, view_reason, turned = _unfixed_turns(model, probed[1])
+    # a probe that stayed turned (not pulled back to the answer) and fits as well
+    turns = np.radians(np.abs(np.tile(PROBE_ANGLES_DEG, 3)))
+    stayed = np.linalg.norm(np.asarray(probe_tangents)[1:, 3:], axis=1) >= 0.5 * turns
+    view_free, view_reason, turned = _unfixed_turns(model, probed[1] & stayed)
     kept = probed[1] & ~turned
     others = equal & (np.arange(len(equal)) != ranked[0])
     ambiguous = (
