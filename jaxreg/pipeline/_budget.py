@@ -40,7 +40,7 @@ __all__ = ["Calibration", "pose_budget"]
 # sensor disagree on, shared by the points of a 12 mm patch: what neither the depth noise nor
 # the residuals show (flying and laterally shifted pixels at the silhouette, the voxel model's
 # edges and curvature). Fitted on tuning frames (jaxreg.studies.calibration_study, seeds
-# 301-306); the study checks it on frames nothing tunes on.
+# 301-308 of the four synthetic objects); the study checks it on frames nothing tunes on.
 MISMATCH_SIGMA = 0.002
 
 
