@@ -105,7 +105,7 @@ def segment_table(frame, model, settings: _Settings, key, rng, stages):
     if too_small:
         fail("every cluster is far smaller than the model (is it in view?)" + too_small)
     coarse, scored = _score(frame, seg.plane, model, s, [c for _, c, _ in candidates], rng)
-    _, chosen, coarse_fraction, _, _ = scored[0]
+    _, coarse_fraction, _, _, chosen = scored[0]
     group = candidates[chosen][0]
     coarse_poses = np.asarray(coarse.poses[chosen])  # object_T_base per start, best first
     # pieces of the object the clustering split off: clusters the coarse pose explains
@@ -117,7 +117,7 @@ def segment_table(frame, model, settings: _Settings, key, rng, stages):
     region = cluster_mask(seg, joined, frame.depth.shape)
     stages["segment"] = dataclasses.replace(
         diag,
-        candidates=[_candidate(list(candidates[i][0]), *rest) for *rest, i in _by_slot(scored)],
+        candidates=[_candidate(list(candidates[i][0]), *rest) for *rest, i in scored],
         chosen_clusters=list(joined),
         ms=_ms(start),
     )
@@ -151,7 +151,7 @@ def segment_mask(frame, model, settings: _Settings, mask, key, rng, stages):
     cloud = lift_pixels(frame, rows, cols)
     plane = None
     if seg.status in (SegmentStatus.success, SegmentStatus.no_clusters) and len(cloud):
-        height = np.asarray(seg.plane.height(cloud))
+        height = cloud @ np.asarray(seg.plane.normal) + float(seg.plane.offset)
         if np.percentile(height, 5) < 0.02:
             plane = seg.plane
             cloud = cloud[height > s.min_height]
@@ -187,15 +187,15 @@ def segment_mask(frame, model, settings: _Settings, mask, key, rng, stages):
         fail("the masked segment is far smaller than the model (a mask on another object?)" + hint)
     coarse, scored = _score(frame, plane, model, s, [cloud], rng)
     stages["segment"] = dataclasses.replace(
-        diag, candidates=[_candidate([], *rest) for *rest, _ in _by_slot(scored)], ms=_ms(start)
+        diag, candidates=[_candidate([], *rest) for *rest, _ in scored], ms=_ms(start)
     )
-    return plane, mask, np.asarray(coarse.poses[0]), scored[0][2]
+    return plane, mask, np.asarray(coarse.poses[0]), scored[0][1]
 
 
 def _score(frame, plane: TablePlane | None, model, settings: _Settings, clouds, rng):
     """Coarse registration of the candidate ``clouds`` (each ``(N, 3)``, base frame) in one
-    compiled call, and each one's evidence, best first: tuples ``(score, slot, explained,
-    contradicted, overhang)``; a candidate whose points reach beyond the model
+    compiled call, and each one's evidence, best first: tuples ``(score, explained,
+    contradicted, overhang, slot)``; a candidate whose points reach beyond the model
     (``max_overhang``: a larger object of a similar shape) ranks after those that do not."""
     s = settings
     padded = np.full((s.max_candidates, s.coarse_points, 3), np.nan, np.float32)
@@ -217,14 +217,9 @@ def _score(frame, plane: TablePlane | None, model, settings: _Settings, clouds, 
         confirmed, contradicted = _support(np.asarray(coarse.visibility[i, 0]))
         explained = float(coarse.explained[i, 0])
         reach = float(overhang(model, np.asarray(coarse.poses[i, 0]), cloud).max())
-        scored.append((explained * confirmed, i, explained, contradicted, reach))
-    scored.sort(key=lambda item: (item[4] > s.max_overhang, -item[0]))  # larger objects last
+        scored.append((explained * confirmed, explained, contradicted, reach, i))
+    scored.sort(key=lambda item: (item[3] > s.max_overhang, -item[0]))  # larger objects last
     return coarse, scored
-
-
-def _by_slot(scored):
-    """``scored`` rows as ``(score, explained, contradicted, overhang, slot)``."""
-    return [(score, f, c, r, i) for score, i, f, c, r in scored]
 
 
 def _candidate(clusters, score, explained, contradicted, reach) -> Candidate:
