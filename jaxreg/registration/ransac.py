@@ -28,14 +28,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxlie import SE3
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg.core._result import select_status
+from jaxreg.core._result import AbstractResult, select_status
 from jaxreg.geometry.alignment import _fit
-from jaxreg.registration._icp_core import RegistrationResult
 from jaxreg.search.features import match_features
 
-__all__ = ["RansacStatus", "ransac_iterations", "ransac_registration"]
+__all__ = ["RansacResult", "RansacStatus", "ransac_iterations", "ransac_registration"]
 
 SAMPLE_SIZE = 3
 _IDENTITY = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # wxyz_xyz
@@ -64,6 +63,38 @@ class RansacStatus(eqx.Enumeration):
         "(wrong object, features that do not repeat), or max_correspondence_distance is too "
         "small for the noise; the identity is returned"
     )
+
+
+class RansacResult(AbstractResult):
+    """Result of :func:`ransac_registration`, measured over the descriptor correspondences
+    (not, as ICP's :class:`~jaxreg.registration.icp.RegistrationResult`, over nearest
+    neighbours).
+
+    Attributes:
+        pose: ``SE3`` source -> target; the identity when no hypothesis was found (see
+            ``status``).
+        status: :class:`RansacStatus` member.
+        converged: ``()`` the confidence was reached with enough inliers (status
+            ``success``).
+        iterations: ``()`` hypotheses drawn.
+        inlier_rmse: ``()`` RMS distance of the inlier correspondences (metres; NaN
+            without a pose).
+        inlier_fraction: ``()`` inlier correspondences over the usable correspondences.
+        num_inliers: ``()`` correspondences within ``max_correspondence_distance``.
+        correspondences: ``(N,)`` each source point's matched target row if that match is an
+            inlier, else ``M``.
+        weights: ``(N,)`` 1 for those inliers, else 0.
+    """
+
+    pose: SE3
+    status: RansacStatus
+    converged: Bool[Array, ""]
+    iterations: Int[Array, ""]
+    inlier_rmse: Float[Array, ""]
+    inlier_fraction: Float[Array, ""]
+    num_inliers: Int[Array, ""]
+    correspondences: Int[Array, " N"]
+    weights: Float[Array, " N"]
 
 
 def _budget(inlier_ratio, sample_size: int, confidence, xp):
@@ -237,7 +268,7 @@ def ransac_registration(
     edge_length_ratio: float = 0.9,
     min_inliers: int = 6,
     batch_size: int = 256,
-) -> RegistrationResult:
+) -> RansacResult:
     """Pose of ``source`` in ``target`` from descriptor matches by RANSAC (see the module
     docstring for the algorithm).
 
@@ -260,15 +291,7 @@ def ransac_registration(
         batch_size: hypotheses fitted and scored per step (static; larger suits GPUs).
 
     Returns:
-        :class:`~jaxreg.registration.icp.RegistrationResult` with ``status`` a :class:`RansacStatus`
-        member and, unlike ICP's, fields measured over the descriptor correspondences:
-        ``pose`` source -> target (the identity when no hypothesis was found);
-        ``num_inliers`` correspondences within the distance; ``inlier_fraction`` those over
-        the usable correspondences; ``inlier_rmse`` their RMS distance; ``iterations`` the
-        hypotheses drawn; ``converged`` the confidence was reached (status ``success``);
-        ``rmse_history`` ``(1,)`` the final RMSE; ``correspondences`` ``(N,)`` each source
-        point's matched target row if that match is an inlier, else ``M``; ``weights``
-        ``(N,)`` 1 for those inliers, else 0.
+        :class:`RansacResult`.
 
     Raises:
         ValueError: mis-shaped inputs or a setting outside its range.
@@ -339,15 +362,14 @@ def ransac_registration(
     inlier = ok & valid & (r2 <= max_correspondence_distance**2)
     target_rows = jnp.where(inlier, matches.target_index[order], m)
     rmse = jnp.where(ok, best.rmse, jnp.nan)
-    return RegistrationResult(
+    return RansacResult(
         pose=pose,
+        status=status,
+        converged=ok & reached,
+        iterations=jnp.where(count >= SAMPLE_SIZE, best.drawn, 0),
         inlier_rmse=rmse,
         inlier_fraction=jnp.where(ok, best.count / jnp.maximum(count, 1), 0.0).astype(dtype),
         num_inliers=jnp.where(ok, best.count, 0),
-        iterations=jnp.where(count >= SAMPLE_SIZE, best.drawn, 0),
-        converged=ok & reached,
-        status=status,
-        rmse_history=rmse[None],
         correspondences=jnp.full(n, m, jnp.int32).at[order].set(target_rows),
         weights=jnp.zeros(n, dtype).at[order].set(inlier.astype(dtype)),
     )
