@@ -210,3 +210,18 @@ def test_the_result_is_ransacs_own_type_with_ransacs_status():
     assert result.status == RansacStatus.too_few_features
     assert result.status_message().startswith("fewer than 3 usable descriptors")
     assert not hasattr(result, "rmse_history")
+
+
+def test_chance_agreement_among_many_wrong_matches_is_no_consensus():
+    """3,000 correspondences, every one wrong, in a 5 cm cube: some hypothesis gathers well
+    over 6 chance inliers within 5 mm, which an absolute bar of 6 took for a pose; the default
+    bar scales with the correspondences (2%), and a given min_inliers still rules."""
+    rng = np.random.default_rng(7)
+    source = rng.uniform(0, 0.05, (3000, 3)).astype(np.float32)
+    target = rng.uniform(0, 0.05, (3000, 3)).astype(np.float32)
+    features = rng.random((3000, 33)).astype(np.float32)
+    result = solve(source, target, features, features, max_iterations=2048)
+    assert result.status == RansacStatus.no_consensus and not bool(result.converged)
+    np.testing.assert_array_equal(result.pose.wxyz_xyz, SE3.identity().wxyz_xyz)
+    lax = solve(source, target, features, features, max_iterations=2048, min_inliers=6)
+    assert int(lax.num_inliers) > 6 and lax.status != RansacStatus.no_consensus

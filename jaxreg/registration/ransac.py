@@ -18,7 +18,10 @@ them), or ``max_iterations``.
 
 A pose explained by fewer than ``min_inliers`` correspondences is never reported as a
 success: three sampled correspondences always explain themselves, so an all-outlier set
-still yields some hypothesis, and only inliers beyond the sample are evidence.
+still yields some hypothesis, and only inliers beyond the sample are evidence. Wrong
+matches also land near each other by chance, the more often the more of them there are, so
+the default bar rises with the number of correspondences (``MIN_INLIER_SHARE`` of them,
+at least ``MIN_INLIERS``).
 """
 
 from __future__ import annotations
@@ -37,6 +40,9 @@ from jaxreg.search.features import match_features
 __all__ = ["RansacResult", "RansacStatus", "ransac_iterations", "ransac_registration"]
 
 SAMPLE_SIZE = 3
+# The default min_inliers: this share of the usable correspondences, and at least this many.
+MIN_INLIER_SHARE = 0.02
+MIN_INLIERS = 6
 _IDENTITY = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # wxyz_xyz
 
 
@@ -266,7 +272,7 @@ def ransac_registration(
     mutual: bool = True,
     ratio: float | None = None,
     edge_length_ratio: float = 0.9,
-    min_inliers: int = 6,
+    min_inliers: int | None = None,
     batch_size: int = 256,
 ) -> RansacResult:
     """Pose of ``source`` in ``target`` from descriptor matches by RANSAC (see the module
@@ -287,7 +293,9 @@ def ransac_registration(
         edge_length_ratio: a sample runs only if each side of its source triangle is
             within this factor of the target side, both ways (Open3D's 0.9).
         min_inliers: fewest inlier correspondences (the 3 sampled included) for a pose to
-            count as found.
+            count as found; default ``max(6, ceil(0.02 * C))`` for ``C`` usable
+            correspondences (``MIN_INLIERS``, ``MIN_INLIER_SHARE``): among thousands of
+            wrong matches, a few agree with some pose by chance.
         batch_size: hypotheses fitted and scored per step (static; larger suits GPUs).
 
     Returns:
@@ -314,7 +322,9 @@ def ransac_registration(
         )
     if not 0 < confidence < 1:
         raise ValueError(f"confidence must lie in (0, 1), got {confidence}")
-    if max_iterations < 1 or min_inliers < SAMPLE_SIZE or batch_size < 1:
+    if max_iterations < 1 or (min_inliers is not None and min_inliers < SAMPLE_SIZE) or (
+        batch_size < 1
+    ):
         raise ValueError(
             "max_iterations and batch_size must be positive and min_inliers at least 3, got "
             f"{max_iterations}, {batch_size}, {min_inliers}"
@@ -346,6 +356,8 @@ def ransac_registration(
         jnp.asarray(max_iterations, jnp.int32), jnp.asarray(edge_length_ratio, dtype),
         batch_size,
     )  # fmt: skip
+    if min_inliers is None:
+        min_inliers = jnp.maximum(MIN_INLIERS, jnp.ceil(MIN_INLIER_SHARE * count))
     found = best.count >= min_inliers
     status = select_status(
         [
