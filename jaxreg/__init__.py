@@ -78,6 +78,7 @@ from jaxreg.registration.icp import (
     select_best as select_best,
 )
 from jaxreg.registration.ransac import (
+    RansacResult as RansacResult,
     RansacStatus as RansacStatus,
     ransac_iterations as ransac_iterations,
     ransac_registration as ransac_registration,

@@ -146,6 +146,27 @@ def test_status_names_what_happened():
     assert amb.status == AlignmentStatus.ambiguous_rotation and not bool(amb.converged)
 
 
+def test_kabsch_and_umeyama_give_nan_where_no_row_has_weight():
+    """No weighted row (all weights zero, or every row NaN) determines no pose: kabsch and
+    umeyama, which carry no status, say so with NaN (under jit too), the other problems of the
+    batch untouched; align keeps its status and identity."""
+    src, dst, r, t = random_problem(6, (3,), n=10, dtype=np.float32)
+    weights = np.ones((3, 10), np.float32)
+    weights[1] = 0.0
+    src[2] = np.nan
+    pose = jax.jit(kabsch)(src, dst, weights)
+    similarity, scale = jax.jit(umeyama)(src, dst, weights)
+    for q in (pose.wxyz_xyz, similarity.wxyz_xyz, scale):
+        q = np.asarray(q)
+        assert np.all(np.isnan(q[1:])) and np.all(np.isfinite(q[0]))
+    np.testing.assert_allclose(pose.rotation().as_matrix()[0], r[0], atol=2e-5)
+    flagged = align(src, dst, weights)
+    assert all(m.startswith("fewer than 3") for m in flagged.status_message()[1:])
+    np.testing.assert_array_equal(flagged.pose.wxyz_xyz[1:], [[1, 0, 0, 0, 0, 0, 0]] * 2)
+    g = jax.grad(lambda s: jnp.sum(kabsch(s, dst[0], weights[0]).log()))(src[0])
+    assert np.all(np.isfinite(g))
+
+
 def test_batched_result_indexes_to_one_problem():
     src, dst, _, _ = random_problem(4, (3,), n=10, dtype=np.float32)
     weights = np.ones((3, 10), np.float32)

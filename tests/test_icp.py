@@ -249,6 +249,34 @@ def test_points_without_a_unit_normal_are_neither_matched_nor_counted():
     assert "unit normals" in everything.status_message()
 
 
+def test_a_given_grid_that_indexes_points_without_a_normal_raises():
+    """Half the target's normals zero, and a grid built on every target point: a source
+    point whose nearest target point has no normal went unmatched, though a valid target
+    point lay within the distance (about half the points, where the same ICP without the
+    grid finds a match for every one). Such a grid is refused; one built without those rows
+    agrees with ICP's own."""
+    rng = np.random.default_rng(1)
+    half = np.array([0.03, 0.02, 0.015])
+    target = rng.uniform(-half, half, (2000, 3))
+    axis = rng.integers(0, 3, 2000)
+    target[np.arange(2000), axis] = np.sign(rng.normal(size=2000)) * half[axis]
+    normals = np.zeros_like(target)
+    normals[np.arange(2000), axis] = np.sign(target[np.arange(2000), axis])
+    normals[::2] = 0.0
+    target, normals = target.astype(np.float32), normals.astype(np.float32)
+    source = target + rng.normal(0, 0.002, target.shape).astype(np.float32)
+    options = dict(
+        method="point_to_plane", target_normals=normals, max_correspondence_distance=0.02
+    )
+    with pytest.raises(ValueError, match="1000 target points .* without a finite unit normal"):
+        icp(source, target, neighbors=build_grid(target, 0.02), **options)
+    usable = np.any(normals != 0, axis=1)
+    masked = icp(source, target, neighbors=build_grid(target, 0.02, mask=usable), **options)
+    alone = icp(source, target, **options)
+    assert float(masked.inlier_fraction) == float(alone.inlier_fraction) == 1.0
+    np.testing.assert_allclose(masked.pose.wxyz_xyz, alone.pose.wxyz_xyz, atol=1e-6)
+
+
 def test_a_grid_that_cannot_answer_for_this_target_raises():
     model, scene, _ = lesson_cube(5.0)
     with pytest.raises(ValueError, match="another target"):

@@ -11,7 +11,13 @@ import pytest
 from jaxlie import SE3, SO3
 
 from jaxreg.geometry.metrics import pose_error
-from jaxreg.registration.ransac import RansacStatus, ransac_iterations, ransac_registration
+from jaxreg.registration.icp import RegistrationResult
+from jaxreg.registration.ransac import (
+    RansacResult,
+    RansacStatus,
+    ransac_iterations,
+    ransac_registration,
+)
 
 HERE = Path(__file__).resolve().parent
 
@@ -191,3 +197,31 @@ def test_fpfh_ransac_icp_recovers_the_carton_in_the_kinect_scene_like_open3d(pcl
     t_o3d, r_o3d = (float(x) for x in pose_error(o3d_pose, truth))
     assert t_ours < max(2 * t_o3d, 0.0005) and r_ours < max(2 * r_o3d, np.deg2rad(0.05))
     assert t_ours < 0.001 and r_ours < np.deg2rad(0.1)
+
+
+def test_the_result_is_ransacs_own_type_with_ransacs_status():
+    """RANSAC's result declares RansacStatus (not ICP's status type holding a RANSAC member):
+    comparisons with RansacStatus and the message are RANSAC's, and ICP's history field, which
+    RANSAC has no use for, is gone."""
+    source, target, sf, tf = matched_clouds(n=120, outliers=0.0)
+    result = solve(source, target, np.zeros_like(sf), tf)
+    assert isinstance(result, RansacResult) and not isinstance(result, RegistrationResult)
+    assert RansacResult.__annotations__["status"] in (RansacStatus, "RansacStatus")
+    assert result.status == RansacStatus.too_few_features
+    assert result.status_message().startswith("fewer than 3 usable descriptors")
+    assert not hasattr(result, "rmse_history")
+
+
+def test_chance_agreement_among_many_wrong_matches_is_no_consensus():
+    """3,000 correspondences, every one wrong, in a 5 cm cube: some hypothesis gathers well
+    over 6 chance inliers within 5 mm, which an absolute bar of 6 took for a pose; the default
+    bar scales with the correspondences (2%), and a given min_inliers still rules."""
+    rng = np.random.default_rng(7)
+    source = rng.uniform(0, 0.05, (3000, 3)).astype(np.float32)
+    target = rng.uniform(0, 0.05, (3000, 3)).astype(np.float32)
+    features = rng.random((3000, 33)).astype(np.float32)
+    result = solve(source, target, features, features, max_iterations=2048)
+    assert result.status == RansacStatus.no_consensus and not bool(result.converged)
+    np.testing.assert_array_equal(result.pose.wxyz_xyz, SE3.identity().wxyz_xyz)
+    lax = solve(source, target, features, features, max_iterations=2048, min_inliers=6)
+    assert int(lax.num_inliers) > 6 and lax.status != RansacStatus.no_consensus

@@ -143,6 +143,57 @@ def test_a_list_of_frames_gives_the_same_correction(study, correction):
     np.testing.assert_allclose(again.disagreement_before, correction.disagreement_before, rtol=1e-5)
 
 
+def test_a_step_search_that_never_improves_is_no_improvement_not_agreement(study, monkeypatch):
+    """A Jacobian that does not describe the registrations (here: its sign flipped) makes every
+    Gauss-Newton step, halved 4 times, increase the disagreement: the correction stays at
+    zero, and the status says so instead of "the views agree"."""
+    from jaxreg.studies import _hand_eye
+
+    linearise = _hand_eye._linearise
+
+    def flipped(*args):
+        jac, *rest = linearise(*args)
+        return (-jac, *rest)
+
+    monkeypatch.setattr(_hand_eye, "_linearise", flipped)
+    result = study.correct_hand_eye()
+    assert float(result.disagreement_after) == float(result.disagreement_before)
+    assert result.status_message().startswith("no step reduced the views' disagreement")
+    assert not bool(result.converged) and int(result.iterations) == 0
+    np.testing.assert_array_equal(result.tangent, np.zeros(6))
+
+
+def test_a_frame_the_pipeline_fails_has_a_nan_pose_not_the_truth(monkeypatch):
+    """Where the estimator gives no pose, the study reports NaN and the reason, never the
+    truth: a stand-in for estimate_pose (its result's fields) fails the second frame."""
+    from types import SimpleNamespace
+
+    from jaxreg.pipeline import estimate
+
+    calls = []
+
+    def stand_in(frame, model_points, *, model_normals=None, symmetry=None):
+        calls.append(len(calls))
+        found = len(calls) != 2
+        return SimpleNamespace(
+            success=found,
+            pose=SE3.identity() if found else None,
+            mask=np.isfinite(np.asarray(frame.depth)),
+            reason="found" if found else "the model is not there: a stand-in's failure",
+        )
+
+    monkeypatch.setattr(estimate, "estimate_pose", stand_in)
+    study = repeatability(
+        0, frozen=3, replacements=2, draws_per_view=2, image_size=(160, 90), model_samples=256
+    )
+    found = np.asarray(study.found)
+    assert found.tolist() == [i != 1 for i in range(len(calls))]
+    poses = np.asarray(study.poses.wxyz_xyz)
+    assert np.all(np.isnan(poses[1])) and np.all(np.isfinite(poses[found]))
+    assert study.reasons[1] == "the model is not there: a stand-in's failure"
+    assert np.isnan(np.asarray(study.lateral_error)[1])
+
+
 def test_an_orbit_leaves_the_screw_about_its_axis_unobservable():
     """Cameras at one elevation and distance differ by turns about the vertical through the
     object: the correction's turn about that line and slide along it change no view, so the

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from jaxlie import SE3, SO3
 
-from jaxreg.geometry.alignment import kabsch
+from jaxreg.geometry.alignment import AlignmentStatus, align, kabsch
 from jaxreg.geometry.metrics import pose_error
 from jaxreg.registration.robust import RobustStatus, robust_kabsch
 
@@ -66,3 +66,17 @@ def test_all_outliers_and_padding_give_a_status_not_a_pose():
     assert masked.status == RobustStatus.success and not bool(masked.inliers[0])
     with pytest.raises(ValueError, match="noise_bound"):
         robust_kabsch(source, target, noise_bound=0.0)
+
+
+def test_a_reflected_set_reports_the_ambiguous_rotation_align_reports():
+    """A mirror image of a cloud with two equal spreads, every pair within a noise bound
+    wider than the cloud: no rotation fits better than a whole circle of others, so the
+    status is align's ambiguous_rotation, not success."""
+    axes = np.concatenate([np.eye(3), -np.eye(3)] * 2) * np.array([0.03, 0.01, 0.01])
+    mirrored = axes * np.array([-1.0, 1.0, 1.0])
+    source, target = axes.astype(np.float32), mirrored.astype(np.float32)
+    assert align(source, target).status == AlignmentStatus.ambiguous_rotation
+    result = robust_kabsch(source, target, noise_bound=0.1)
+    assert int(result.num_inliers) == 12
+    assert "not unique" in result.status_message() and not bool(result.converged)
+    assert result.status == RobustStatus.ambiguous_rotation

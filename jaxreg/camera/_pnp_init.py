@@ -34,7 +34,7 @@ from jaxlie import SE3, SO3
 from jaxtyping import Array, Float
 
 from jaxreg.geometry._eig3 import eigh3
-from jaxreg.geometry.alignment import kabsch
+from jaxreg.geometry.alignment import align
 
 __all__ = ["general_starts", "image_spread", "ippe_candidates", "weighted_pca"]
 
@@ -328,7 +328,9 @@ def _epnp(X: Array, m: Array, w: Array, object_pca) -> SE3:
         return jnp.where(jnp.sum(w * Xc[:, 2]) < 0, -Xc, Xc)  # in front of the camera
 
     Xc = jax.vmap(lambda b: camera_points(gauss_newton(b)))(inits)  # (3, N, 3)
-    return kabsch(jnp.broadcast_to(X, Xc.shape), Xc, jnp.broadcast_to(w, Xc.shape[:-1]))
+    # align's pose, not kabsch's: a problem without weight starts from the identity (the
+    # solver's status reports it), never from NaN.
+    return align(jnp.broadcast_to(X, Xc.shape), Xc, jnp.broadcast_to(w, Xc.shape[:-1])).pose
 
 
 def general_starts(

@@ -370,11 +370,23 @@ def kabsch(
         weights: optional ``(..., N)`` non-negative weights; zero rows are padding.
 
     Returns:
-        ``SE3`` with batch axes ``(...)`` mapping source into target coordinates. It is
-        always a proper rotation. Callers that need the status (collinear points, fewer than
-        3 weighted rows, non-unique rotation) use :func:`align`.
+        ``SE3`` with batch axes ``(...)`` mapping source into target coordinates, always a
+        proper rotation. A problem with no weighted row (every weight zero, or every row
+        non-finite) determines no pose: its pose is NaN, under ``jit`` too. Callers that need
+        the status (collinear points, fewer than 3 weighted rows, non-unique rotation) use
+        :func:`align`.
     """
-    return align(source, target, weights).pose
+    result = align(source, target, weights)
+    return _nan_without_weight(result.pose, result)
+
+
+def _nan_without_weight(x, result: Alignment):
+    """``x`` (an ``SE3`` or an array with the batch axes ``(...)``) with NaN in the problems
+    of ``result`` that have no weighted row: the flag of the entry points without a status."""
+    empty = result.weight_sum <= 0
+    if isinstance(x, SE3):
+        return SE3(jnp.where(empty[..., None], jnp.nan, x.wxyz_xyz))
+    return jnp.where(empty, jnp.nan, x)
 
 
 def umeyama(
@@ -387,6 +399,8 @@ def umeyama(
     Returns:
         ``(pose, scale)``: ``pose`` holds ``R`` and ``t`` (batch axes ``(...)``) and ``scale``
         is ``c`` with shape ``(...)``, so ``target ~ scale * pose.rotation() @ source + t``.
+        Both are NaN for a problem with no weighted row, as in :func:`kabsch`; the status is
+        :func:`align`'s (``with_scale=True``).
     """
     result = align(source, target, weights, with_scale=True)
-    return result.pose, result.scale
+    return _nan_without_weight(result.pose, result), _nan_without_weight(result.scale, result)

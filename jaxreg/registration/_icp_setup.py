@@ -130,6 +130,7 @@ def prepare(
     grid = s.neighbors
     if grid is not None:
         validate_grid(grid, user_target, distances)
+        _check_grid_rows(grid, target_ok[:m], s.method)
     elif _is_concrete(target) and _is_concrete(distances):
         points, ok = np.asarray(target), np.asarray(target_ok)
         if ok.any():  # else nothing to index: every query is invalid
@@ -147,6 +148,27 @@ def prepare(
         trim_fraction=None if s.trim_fraction is None else jnp.asarray(s.trim_fraction, dtype),
     )
     return problem, opts, (n, m)
+
+
+def _check_grid_rows(grid: NeighborGrid, target_ok, method: str) -> None:
+    """Raises when a given grid indexes target rows that can never be a match (non-finite,
+    or without a usable normal for point-to-plane): a query whose nearest point is such a
+    row finds no match, although a valid target point may lie within the distance."""
+    if not (_is_concrete(grid.candidate_index) and _is_concrete(target_ok)):
+        return
+    ok = np.asarray(target_ok)
+    index = np.asarray(grid.candidate_index)
+    rows = index[index < len(ok)]
+    bad = np.unique(rows[~ok[rows]])
+    if len(bad):
+        what = "non-finite or without a finite unit normal" if method == "point_to_plane" else (
+            "non-finite"
+        )
+        raise ValueError(
+            f"the neighbors grid indexes {len(bad)} target points that are {what}: their "
+            "answers would hide valid neighbours; build it with build_grid(target, distance, "
+            "mask=...) excluding them"
+        )
 
 
 @eqx.filter_jit

@@ -18,7 +18,10 @@ them), or ``max_iterations``.
 
 A pose explained by fewer than ``min_inliers`` correspondences is never reported as a
 success: three sampled correspondences always explain themselves, so an all-outlier set
-still yields some hypothesis, and only inliers beyond the sample are evidence.
+still yields some hypothesis, and only inliers beyond the sample are evidence. Wrong
+matches also land near each other by chance, the more often the more of them there are, so
+the default bar rises with the number of correspondences (``MIN_INLIER_SHARE`` of them,
+at least ``MIN_INLIERS``).
 """
 
 from __future__ import annotations
@@ -28,16 +31,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxlie import SE3
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg.core._result import select_status
+from jaxreg.core._result import AbstractResult, select_status
 from jaxreg.geometry.alignment import _fit
-from jaxreg.registration._icp_core import RegistrationResult
 from jaxreg.search.features import match_features
 
-__all__ = ["RansacStatus", "ransac_iterations", "ransac_registration"]
+__all__ = ["RansacResult", "RansacStatus", "ransac_iterations", "ransac_registration"]
 
 SAMPLE_SIZE = 3
+# The default min_inliers: this share of the usable correspondences, and at least this many.
+MIN_INLIER_SHARE = 0.02
+MIN_INLIERS = 6
 _IDENTITY = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # wxyz_xyz
 
 
@@ -64,6 +69,38 @@ class RansacStatus(eqx.Enumeration):
         "(wrong object, features that do not repeat), or max_correspondence_distance is too "
         "small for the noise; the identity is returned"
     )
+
+
+class RansacResult(AbstractResult):
+    """Result of :func:`ransac_registration`, measured over the descriptor correspondences
+    (not, as ICP's :class:`~jaxreg.registration.icp.RegistrationResult`, over nearest
+    neighbours).
+
+    Attributes:
+        pose: ``SE3`` source -> target; the identity when no hypothesis was found (see
+            ``status``).
+        status: :class:`RansacStatus` member.
+        converged: ``()`` the confidence was reached with enough inliers (status
+            ``success``).
+        iterations: ``()`` hypotheses drawn.
+        inlier_rmse: ``()`` RMS distance of the inlier correspondences (metres; NaN
+            without a pose).
+        inlier_fraction: ``()`` inlier correspondences over the usable correspondences.
+        num_inliers: ``()`` correspondences within ``max_correspondence_distance``.
+        correspondences: ``(N,)`` each source point's matched target row if that match is an
+            inlier, else ``M``.
+        weights: ``(N,)`` 1 for those inliers, else 0.
+    """
+
+    pose: SE3
+    status: RansacStatus
+    converged: Bool[Array, ""]
+    iterations: Int[Array, ""]
+    inlier_rmse: Float[Array, ""]
+    inlier_fraction: Float[Array, ""]
+    num_inliers: Int[Array, ""]
+    correspondences: Int[Array, " N"]
+    weights: Float[Array, " N"]
 
 
 def _budget(inlier_ratio, sample_size: int, confidence, xp):
@@ -235,9 +272,9 @@ def ransac_registration(
     mutual: bool = True,
     ratio: float | None = None,
     edge_length_ratio: float = 0.9,
-    min_inliers: int = 6,
+    min_inliers: int | None = None,
     batch_size: int = 256,
-) -> RegistrationResult:
+) -> RansacResult:
     """Pose of ``source`` in ``target`` from descriptor matches by RANSAC (see the module
     docstring for the algorithm).
 
@@ -256,19 +293,13 @@ def ransac_registration(
         edge_length_ratio: a sample runs only if each side of its source triangle is
             within this factor of the target side, both ways (Open3D's 0.9).
         min_inliers: fewest inlier correspondences (the 3 sampled included) for a pose to
-            count as found.
+            count as found; default ``max(6, ceil(0.02 * C))`` for ``C`` usable
+            correspondences (``MIN_INLIERS``, ``MIN_INLIER_SHARE``): among thousands of
+            wrong matches, a few agree with some pose by chance.
         batch_size: hypotheses fitted and scored per step (static; larger suits GPUs).
 
     Returns:
-        :class:`~jaxreg.registration.icp.RegistrationResult` with ``status`` a :class:`RansacStatus`
-        member and, unlike ICP's, fields measured over the descriptor correspondences:
-        ``pose`` source -> target (the identity when no hypothesis was found);
-        ``num_inliers`` correspondences within the distance; ``inlier_fraction`` those over
-        the usable correspondences; ``inlier_rmse`` their RMS distance; ``iterations`` the
-        hypotheses drawn; ``converged`` the confidence was reached (status ``success``);
-        ``rmse_history`` ``(1,)`` the final RMSE; ``correspondences`` ``(N,)`` each source
-        point's matched target row if that match is an inlier, else ``M``; ``weights``
-        ``(N,)`` 1 for those inliers, else 0.
+        :class:`RansacResult`.
 
     Raises:
         ValueError: mis-shaped inputs or a setting outside its range.
@@ -291,7 +322,9 @@ def ransac_registration(
         )
     if not 0 < confidence < 1:
         raise ValueError(f"confidence must lie in (0, 1), got {confidence}")
-    if max_iterations < 1 or min_inliers < SAMPLE_SIZE or batch_size < 1:
+    if max_iterations < 1 or (min_inliers is not None and min_inliers < SAMPLE_SIZE) or (
+        batch_size < 1
+    ):
         raise ValueError(
             "max_iterations and batch_size must be positive and min_inliers at least 3, got "
             f"{max_iterations}, {batch_size}, {min_inliers}"
@@ -323,6 +356,8 @@ def ransac_registration(
         jnp.asarray(max_iterations, jnp.int32), jnp.asarray(edge_length_ratio, dtype),
         batch_size,
     )  # fmt: skip
+    if min_inliers is None:
+        min_inliers = jnp.maximum(MIN_INLIERS, jnp.ceil(MIN_INLIER_SHARE * count))
     found = best.count >= min_inliers
     status = select_status(
         [
@@ -339,15 +374,14 @@ def ransac_registration(
     inlier = ok & valid & (r2 <= max_correspondence_distance**2)
     target_rows = jnp.where(inlier, matches.target_index[order], m)
     rmse = jnp.where(ok, best.rmse, jnp.nan)
-    return RegistrationResult(
+    return RansacResult(
         pose=pose,
+        status=status,
+        converged=ok & reached,
+        iterations=jnp.where(count >= SAMPLE_SIZE, best.drawn, 0),
         inlier_rmse=rmse,
         inlier_fraction=jnp.where(ok, best.count / jnp.maximum(count, 1), 0.0).astype(dtype),
         num_inliers=jnp.where(ok, best.count, 0),
-        iterations=jnp.where(count >= SAMPLE_SIZE, best.drawn, 0),
-        converged=ok & reached,
-        status=status,
-        rmse_history=rmse[None],
         correspondences=jnp.full(n, m, jnp.int32).at[order].set(target_rows),
         weights=jnp.zeros(n, dtype).at[order].set(inlier.astype(dtype)),
     )

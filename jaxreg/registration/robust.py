@@ -61,6 +61,11 @@ class RobustStatus(eqx.Enumeration):
     degenerate = (
         "the inliers are collinear or coincident: the rotation about their line is unobservable"
     )
+    ambiguous_rotation = (
+        "the optimal rotation of the inliers is not unique (a symmetric or reflected "
+        "configuration): the pose is one of a family that fits equally well; add "
+        "correspondences that break the symmetry"
+    )
     max_iterations = (
         "GNC's weights were still changing at max_iterations: the pose is the last estimate; "
         "raise max_iterations"
@@ -211,6 +216,7 @@ def robust_kabsch(
         [
             (count < min_inliers, RobustStatus.too_few_inliers),
             (fit.collinear, RobustStatus.degenerate),
+            (fit.degenerate, RobustStatus.ambiguous_rotation),
             (~settled, RobustStatus.max_iterations),
         ],
         RobustStatus.success,

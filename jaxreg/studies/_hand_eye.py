@@ -210,6 +210,12 @@ class HandEyeStatus(eqx.Enumeration):
         "`observable`); the others are left at zero: move the camera about two non-parallel axes"
     )
     max_steps = "the Gauss-Newton steps ran out before the correction settled: raise max_steps"
+    no_improvement = (
+        "no step reduced the views' disagreement (the first Gauss-Newton step, halved 4 "
+        "times, made it worse): the correction is left at zero. The views may already agree "
+        "to within the registrations' noise, or their registrations do not follow the "
+        "correction smoothly (a start in another basin): check the starts and masks"
+    )
     registration_failed = (
         "a frame's registration failed for want of pairs or a finite update (see "
         "`registration_status`): check its mask and start"
@@ -223,7 +229,9 @@ class HandEyeCorrection(AbstractResult):
         pose: ``SE3`` correction ``C``: the corrected hand-eye is ``base_T_camera @ C``.
         tangent: ``(6,)`` ``log C`` (right perturbation, camera frame, ``(v, w)``).
         status: :class:`HandEyeStatus`.
-        converged: the last step fell below ``tolerance`` (metres, radians).
+        converged: the last step fell below ``tolerance`` (metres, radians), or, after
+            steps that reduced the disagreement, no further step reduced it (the noise
+            floor); False when the first step could not reduce it (``no_improvement``).
         iterations: Gauss-Newton steps taken.
         covariance: ``(6, 6)`` standard-error covariance of ``tangent`` from the residual
             disagreement left after correction (frame-to-frame noise), restricted to the
@@ -363,7 +371,7 @@ def estimate_hand_eye_correction(
     poses_before, residual_before = poses, residual
     _, sigma, vt = np.linalg.svd(jac, full_matrices=False)
     basis = vt[sigma > rank_tolerance * sigma[0]]  # (r, 6) observable, scaled coordinates
-    converged, steps = False, 0
+    converged, stalled, steps = False, False, 0
     while steps < max_steps and not converged:
         coef, *_ = np.linalg.lstsq(jac @ basis.T, -residual, rcond=None)
         step = basis.T @ coef
@@ -372,8 +380,8 @@ def estimate_hand_eye_correction(
             if np.sum(trial[1] ** 2) <= np.sum(residual**2):
                 break
             step = step / 2
-        else:  # no step along the model reduces the disagreement: the noise floor
-            converged = True
+        else:  # no step reduces the disagreement: the noise floor, once a step has improved
+            converged, stalled = steps > 0, steps == 0
             break
         delta = delta + step * scale
         jac, residual, poses, status = trial
@@ -393,6 +401,8 @@ def estimate_hand_eye_correction(
     failed = ~np.isin(np.asarray(status._value), usable)
     if failed.any():
         code = HandEyeStatus.registration_failed
+    elif stalled:
+        code = HandEyeStatus.no_improvement
     elif not converged:
         code = HandEyeStatus.max_steps
     elif rank < 6:

@@ -99,12 +99,13 @@ class Repeatability(eqx.Module):
             synthetic truth shows.
         rotation_bias_deg: ``(3, 3)`` per tier, ``log(R_mean R_nominal^-1)`` (degrees).
         nominal: ``SE3`` the object's nominal ``base_T_object``.
-        poses: ``SE3`` batch ``(K,)`` estimated ``base_T_object`` (reported hand-eye; the
-            truth where ``found`` is False), on the symmetry branch nearest the truth.
+        poses: ``SE3`` batch ``(K,)`` estimated ``base_T_object`` (reported hand-eye), on
+            the symmetry branch nearest the truth; NaN where ``found`` is False (no pose).
         truth: ``SE3`` batch ``(K,)`` true ``base_T_object`` of each frame.
-        found: ``(K,)`` the estimator gave a pose (always, with ``"mask"``).
-        reasons: ``K`` strings: the pipeline's one-line reason per frame (empty with
-            ``"mask"``).
+        found: ``(K,)`` the estimator gave a pose: the pipeline succeeded, or (``"mask"``)
+            ICP ended converged or at its iteration bound (``status``).
+        reasons: ``K`` strings: why each frame has a pose or not: the pipeline's one-line
+            reason, or (``"mask"``) the ICP status's message.
         tier: ``(K,)`` 0, 1, 2 for frozen, re-placement, viewpoint.
         view: ``(K,)`` viewpoint label (0 in tiers 1 and 2).
         status: :class:`jaxreg.ICPStatus` batch ``(K,)`` with ``"mask"``; ``None`` with
@@ -228,6 +229,12 @@ def _register_masks(stacked, masks, model_points, model_normals, truth, tier, op
     return poses, status
 
 
+def _messages(status: ICPStatus) -> np.ndarray:
+    """The messages of a batch of ICP statuses."""
+    table = np.asarray(status._enumeration._index_to_message, dtype=object)
+    return table[np.asarray(status._value)]
+
+
 def _explained(frame: RGBDFrame, mask: np.ndarray, pose: SE3, tree, distance: float):
     """``mask`` less the pixels whose lifted point lies farther than ``distance`` from the
     model placed at ``pose`` (table and background that a segment holds)."""
@@ -239,9 +246,10 @@ def _explained(frame: RGBDFrame, mask: np.ndarray, pose: SE3, tree, distance: fl
 
 
 def _register_pipeline(frames, model_points, model_normals, symmetry, truth, inlier_distance):
-    """:func:`jaxreg.estimate_pose` on every frame: poses ``(K,)`` (the truth where it
-    failed), found ``(K,)``, masks ``(K, H, W)`` (the segment less the pixels its pose does not
-    put within ``inlier_distance`` of the model) and reasons."""
+    """:func:`jaxreg.estimate_pose` on every frame: poses ``(K,)`` (a placeholder, the truth,
+    where it failed: the caller keeps those out of every statistic and reports NaN), found
+    ``(K,)``, masks ``(K, H, W)`` (the segment less the pixels its pose does not put within
+    ``inlier_distance`` of the model) and reasons."""
     from scipy.spatial import cKDTree
 
     from jaxreg.pipeline.estimate import estimate_pose
@@ -401,18 +409,20 @@ def repeatability(
         poses, status = _register_masks(
             stacked, masks, model_points, model_normals, truth, tier, options, rng
         )
-        found, reasons = np.ones(len(plan), bool), ("",) * len(plan)
+        codes = np.asarray(status._value)
+        found = (codes == ICPStatus.success._value) | (codes == ICPStatus.max_iterations._value)
+        reasons = tuple(str(m) for m in np.atleast_1d(_messages(status)))
     else:
         poses, found, masks, reasons = _register_pipeline(
             frames, model_points, model_normals, base.symmetry, truth, inlier_distance
         )
         status, reasons = None, tuple(reasons)
-        for t in range(3):
-            if np.sum(found[tier == t]) < 2:
-                raise ValueError(
-                    f"the pipeline found the object in fewer than 2 frames of the {TIERS[t]} "
-                    f"tier: {sorted(set(np.asarray(reasons)[(tier == t) & ~found]))}"
-                )
+    for t in range(3):
+        if np.sum(found[tier == t]) < 2:
+            raise ValueError(
+                f"the {registration} registration found the object in fewer than 2 frames of "
+                f"the {TIERS[t]} tier: {sorted(set(np.asarray(reasons)[(tier == t) & ~found]))}"
+            )
     poses = canonicalise(poses, truth, base.symmetry)
 
     nominal_pose = se3_from_matrix(nominal.astype(np.float32))
@@ -454,7 +464,7 @@ def repeatability(
         translation_bias=jnp.asarray(t_bias),
         rotation_bias_deg=jnp.asarray(np.degrees(r_bias)),
         nominal=nominal_pose,
-        poses=poses,
+        poses=SE3(jnp.where(jnp.asarray(found)[:, None], poses.wxyz_xyz, jnp.nan)),
         truth=truth,
         found=jnp.asarray(found),
         reasons=reasons,
