@@ -482,6 +482,10 @@ def run_pose(args) -> int:
         options["pixel"] = tuple(args.pixel)
     if args.box is not None:
         options["box"] = tuple(args.box)
+    if args.hand_eye_sigma is not None:
+        metres, degrees = args.hand_eye_sigma[0] * 1e-3, np.radians(args.hand_eye_sigma[1])
+        options["hand_eye_covariance"] = np.diag([metres**2] * 3 + [degrees**2] * 3)
+    options["depth_scale_sigma"] = args.depth_scale_sigma
     progress = _progress(args.json)
     estimate = estimate_pose(frame, model, progress=progress, **options)
     progress(None)
@@ -534,6 +538,15 @@ def _add_pose(sub) -> None:
     pose.add_argument(
         "--depth-noise", type=float, nargs=3, metavar=("A", "B", "C"),
         help="the camera's depth sigma in metres, A + B z + C z^2 (default 0 0 0.0025)",
+    )  # fmt: skip
+    pose.add_argument(
+        "--hand-eye-sigma", type=float, nargs=2, metavar=("MM", "DEG"),
+        help="the hand-eye calibration's uncertainty: translation (mm) and rotation (degrees) "
+        "sigma per axis, propagated into the error budget",
+    )  # fmt: skip
+    pose.add_argument(
+        "--depth-scale-sigma", type=float, default=0.0, metavar="REL",
+        help="relative sigma of the depth scale (0.01 = 1%%), propagated into the budget",
     )  # fmt: skip
     _common(pose)
     pose.set_defaults(run=run_pose)
