@@ -541,7 +541,8 @@ def resting_contact(model: _Model, object_T_base: np.ndarray, plane, tolerance: 
     padded), and the height (metres) the model's lowest point had above the plane.
     """
     base_T_object = SE3(np.asarray(object_T_base, np.float64)).inverse()
-    placed = np.asarray(base_T_object @ model.points.astype(np.float64))
+    points = model.points[np.all(np.isfinite(model.points), axis=1)]  # less the padding rows
+    placed = np.asarray(base_T_object @ points.astype(np.float64))
     normal, offset = np.asarray(plane.normal, np.float64), float(plane.offset)
     height = placed @ normal + offset
     lowest = float(height.min())
