@@ -145,7 +145,7 @@ def _depth_base(jac, points, normals, object_T_base, noise, inverse, sensed) -> 
     return inverse @ (jac.T * variance) @ jac @ inverse
 
 
-def _calibration_term(calibration, jac, points, normals, object_T_base, frame, inverse):
+def _calibration_term(calibration, jac, points, normals, object_T_base, frame, inverse, weight):
     """Intrinsics and depth-scale uncertainty (base axes), through the lifting's derivative:
     a camera point ``z ((u - cx) / fx, (v - cy) / fy, 1)`` moves by ``-x / fx`` per unit of
     ``fx``, ``-z / fx`` per unit of ``cx`` (likewise in y), and by itself per unit of scale."""
@@ -168,7 +168,8 @@ def _calibration_term(calibration, jac, points, normals, object_T_base, frame, i
     for motion, sigma in moves:
         if sigma == 0:
             continue
-        dr = np.einsum("ij,ij->i", n_base, motion @ to_base.T)  # residual change per unit
+        # residual change per unit, weighted like the rows of jac
+        dr = np.einsum("ij,ij->i", n_base, motion @ to_base.T) * weight
         step = -inverse @ (jac.T @ dr)  # the pose's change per unit (base axes)
         total += sigma**2 * np.outer(step, step)
     return total
@@ -334,7 +335,7 @@ def pose_budget(
     moved = _tangents(object_T_base, np.asarray(poses)[np.asarray(ok)]) @ to_object.T
 
     calibration_base = _calibration_term(
-        calibration, jac, pairs_points, normals, object_T_base, frame, inverse
+        calibration, jac, pairs_points, normals, object_T_base, frame, inverse, weight[:, 0]
     )
     hand_eye = np.zeros((6, 6))
     if calibration.hand_eye is not None:
