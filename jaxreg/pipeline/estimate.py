@@ -14,8 +14,9 @@ diagnostics. The stages:
    so its points can lie farther from it than the model's radius); the
    ``max_candidates`` largest are kept, or a ``pixel`` / ``box`` prompt names the seed
    cluster. Every candidate is scored by registration in one compiled call (below, on its
-   grid points): the fraction of its points the model explains (6 mm) times the share of the
-   model's camera-facing surface that the depth image confirms (:func:`visibility`; seeing
+   grid points): the fraction of its points the model explains (within 1.5 voxels, 6 mm at
+   the default voxel) times the share of the model's camera-facing surface that the depth
+   image confirms (:func:`visibility`, within 1 cm or 4 sigma_z of the depth noise; seeing
    through the model, or the model below the table, counts against it). The best candidate
    wins, unless its points span beyond the model at its coarse pose (``max_overhang``: a
    larger object of a similar shape), and every cluster that its coarse pose explains (60%
@@ -92,12 +93,18 @@ from jaxreg.pipeline._register_stage import (
 )
 from jaxreg.pipeline.segment import SegmentStatus, choose_cluster, cluster_mask, segment_frame
 from jaxreg.registration._icp_setup import _bucket
+from jaxreg.registration.icp import ICPStatus
 from jaxreg.uncertainty import DepthNoise
 
 __all__ = ["PoseEstimate", "estimate_pose", "visibility"]
 
 STAGES = ("segment", "lift", "register")
-_TOLERANCE = np.float32(0.01)  # depth agreement (metres) of the image's judgement of a pose
+# depth agreement (metres) of the image's judgement of a pose; more where the depth noise's
+# NOISE_SIGMAS sigma_z(z) is more (see visibility)
+_TOLERANCE = np.float32(0.01)
+# Final ICP statuses that leave a pose to judge (the iteration bound leaves the last step's
+# pose); degenerate geometry passes too when a symmetry is given (its free directions).
+_USABLE = (ICPStatus.success, ICPStatus.max_iterations)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -172,6 +179,7 @@ class _Settings:
     max_inlier_rmse: float
     max_contradicted: float
     max_overhang: float
+    refined_starts: int
     coarse_distances: np.ndarray = dataclasses.field(
         default_factory=lambda: np.geomspace(0.04, 0.01, 20).astype(np.float32)
     )
@@ -237,6 +245,7 @@ def estimate_pose(
     max_inlier_rmse: float = 0.004,
     max_contradicted: float = 0.25,
     max_overhang: float = 0.003,
+    refined_starts: int = 4,
     progress: Callable[[str], object] | None = None,
 ) -> PoseEstimate:
     """Estimate ``base_T_object`` of a model in one depth frame (see the module docstring).
@@ -287,6 +296,8 @@ def estimate_pose(
             the model's principal axes at the fitted pose (between its 2% and 98%
             quantiles; depth noise): a larger object of a similar shape fits the model well
             by every other measure, but reaches beyond it.
+        refined_starts: distinct coarse poses of the winning candidate refined on the lifted
+            points (the best first; each differs from the others by 1 cm or 0.2 rad).
         progress: called with each stage's name as it starts (a command line's progress).
 
     Returns:
@@ -315,6 +326,11 @@ def estimate_pose(
         raise ValueError("model_points holds no finite point")
     if pixel is not None and box is not None:
         raise ValueError("give at most one prompt: pixel=(u, v) or box=(u0, v0, u1, v1)")
+    if not (isinstance(refined_starts, int) and 1 <= refined_starts <= coarse_keep):
+        raise ValueError(
+            f"refined_starts must be an integer from 1 to coarse_keep ({coarse_keep}), got "
+            f"{refined_starts!r}"
+        )
     key = jax.random.PRNGKey(0) if key is None else key
     progress = progress or (lambda stage: None)
     settings = _Settings(
@@ -322,7 +338,7 @@ def estimate_pose(
         cluster_distance, cluster_margin, max_candidates, num_starts, resting_yaws,
         coarse_points, coarse_screen, coarse_survivors, coarse_first, coarse_keep, max_points,
         min_segment_points, min_valid_fraction, min_consistent_neighbors, min_inlier_fraction,
-        max_inlier_rmse, max_contradicted, max_overhang,
+        max_inlier_rmse, max_contradicted, max_overhang, refined_starts,
     )  # fmt: skip
     model = _prepare_model(
         model_points, model_normals, voxel_size, float(settings.coarse_distances[0]),
@@ -334,7 +350,7 @@ def estimate_pose(
     try:
         progress("segment")
         seg, joined, coarse_poses, coarse_fraction = _segment(
-            frame, model, settings, key, rng, stages
+            frame, model, settings, key, rng, stages, noise
         )
         progress("lift")
         mask, points = _lift(frame, seg, joined, noise, settings, stages)
@@ -352,7 +368,7 @@ def estimate_pose(
         )  # fmt: skip
 
 
-def _segment(frame, model, settings: _Settings, key, rng, stages):
+def _segment(frame, model, settings: _Settings, key, rng, stages, noise: DepthNoise):
     """Plane, clusters, and the candidate clusters scored by registration: the segment, the
     winning clusters (with the pieces split off them), the winner's coarse poses
     (object_T_base ``(K, 7)``, best first) and the fraction of it they explain."""
@@ -425,8 +441,8 @@ def _segment(frame, model, settings: _Settings, key, rng, stages):
     coarse = jax.block_until_ready(
         _score_candidates(
             frame, seg.plane, problem, tuple(rounds), clouds, used, model.points, model.screen,
-            model.axes, _TOLERANCE, s.num_starts, s.resting_yaws, s.coarse_survivors,
-            s.coarse_keep,
+            model.axes, _TOLERANCE, noise.coefficients, s.fine_distances[-1], s.num_starts,
+            s.resting_yaws, s.coarse_survivors, s.coarse_keep,
         )
     )  # fmt: skip
     scored = []
@@ -437,7 +453,7 @@ def _segment(frame, model, settings: _Settings, key, rng, stages):
         score = explained * confirmed
         reach = float(overhang(model, np.asarray(coarse.poses[i, 0]), cloud).max())
         scored.append((score, group, i, explained, contradicted, reach))
-    scored.sort(key=lambda item: (item[5] > s.max_overhang, -item[0]))  # larger objects last
+    scored.sort(key=lambda item: (not item[5] <= s.max_overhang, -item[0]))  # larger (or NaN) last
     _, group, chosen, coarse_fraction, _, _ = scored[0]
     coarse_poses = np.asarray(coarse.poses[chosen])  # object_T_base per start, best first
     # pieces of the object the clustering split off: clusters the coarse pose explains
@@ -518,7 +534,7 @@ def _register(
     fine_distances = s.fine_distances
     start = time.perf_counter()
     source = _padded(points, s.max_points, rng)
-    picks = _distinct(coarse_poses, 4, 0.01)
+    picks = _distinct(coarse_poses, s.refined_starts, 0.01)
     inits = SE3(jax.device_put(coarse_poses[picks]))
     trim = np.float32(np.clip(coarse_fraction, 0.6, 0.95))  # an argument: one program for all
     results = _register_starts(
@@ -526,7 +542,11 @@ def _register(
     )
     fractions = np.asarray(results.inlier_fraction)
     rmses = np.nan_to_num(np.asarray(results.inlier_rmse), nan=np.inf)
-    seen = np.asarray(_judge(frame, seg.plane, results.pose.wxyz_xyz, model.points, _TOLERANCE))
+    seen = np.asarray(
+        _judge(
+            frame, seg.plane, results.pose.wxyz_xyz, model.points, _TOLERANCE, noise.coefficients
+        )
+    )
     scores = fractions * _confirmed_share(seen)
     ranked = np.lexsort((rmses, -np.round(scores, 2)))
     best = results[int(ranked[0])]
@@ -556,6 +576,12 @@ def _register(
         "model_contradicted": round(contradicted, 3),
         "overhang_mm": [round(float(r) * 1e3, 1) for r in reach],
     }
+    usable = _USABLE + ((ICPStatus.degenerate,) if symmetry is not None else ())
+    if not any(bool(best.status == status) for status in usable):
+        raise _Failed(
+            "register", f"the final registration failed: {best.status_message()}", mask=mask,
+            points=points,
+        )  # fmt: skip
     problems = []
     if fraction < s.min_inlier_fraction:
         problems.append(
@@ -571,7 +597,12 @@ def _register(
             f"the camera sees through {contradicted:.0%} of the model's surface facing it (at "
             f"most {s.max_contradicted:.0%})"
         )
-    if reach.max() > s.max_overhang:
+    if np.isnan(reach).any():
+        problems.append(
+            "the segment's span beyond the model could not be measured (NaN: a non-finite "
+            "pose or segment point)"
+        )
+    elif reach.max() > s.max_overhang:
         problems.append(
             f"the segment spans {reach.max() * 1e3:.0f} mm beyond the model along its "
             f"{('longest', 'middle', 'shortest')[int(reach.argmax())]} axis (at most "
