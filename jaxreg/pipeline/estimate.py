@@ -50,10 +50,12 @@ diagnostics. The stages:
 
 A stage fails on its own evidence, and the estimate then makes no pose claim (``pose`` is
 ``None``): no plane or nothing on it, or no cluster of the model's size (segment); too few
-pixels with depth in the footprint, or too few points left after filtering (lift); too small
-a fraction of the segment explained by the model, too large a residual, a model that the
-depth image contradicts (surface predicted where the camera sees through it), or a segment
-that spans beyond the model (register).
+pixels with depth in the footprint, or too few points left after filtering (lift); a final
+registration whose ICP failed (non-finite, too few pairs, or degenerate geometry without a
+``symmetry`` to explain it), too small a fraction of the segment explained by the model, too
+large a residual, a model that the depth image contradicts (surface predicted where the camera
+sees through it), or a segment that spans beyond the model, or whose span cannot be measured
+(register).
 
 Host-side entry point: bad arguments raise ``ValueError``. The compiled pieces have static
 shapes: the segment grid is fixed by the image size and stride, and the clouds given to ICP
