@@ -47,7 +47,7 @@ def main():
     )
     source = truth.inverse() @ jnp.asarray(view, jnp.float32)
     noise = DepthNoise((0.0, 0.0, 0.002), base_T_camera=truth.inverse())
-    grid = build_grid(model, 0.01)
+    grid = build_grid(model, 0.01, mask=np.linalg.norm(normals, axis=1) > 0.5)  # with a normal
     opts = dict(
         method="point_to_plane",
         target_normals=normals,

@@ -115,6 +115,81 @@ def test_nan_model_rows_count_nowhere_in_the_images_judgement(scene):
     )
 
 
+def test_a_failed_final_registration_fails_the_register_stage(scene, monkeypatch):
+    """The refinement's ICP ending non-finite (or degenerate without a symmetry) leaves no
+    pose to claim, however well its last finite pose fits: the register stage fails with
+    the ICP status's message."""
+    import equinox as eqx
+
+    from jaxreg.pipeline import estimate as stage
+    from jaxreg.registration.icp import ICPStatus
+
+    scene, model, symmetry = scene
+    refine = stage._register_starts
+
+    def ending(status, symmetric):
+        def starts(*args):
+            results = refine(*args)
+            code = np.full(results.status._value.shape, status._value, np.int32)
+            return eqx.tree_at(lambda r: r.status._value, results, jax.numpy.asarray(code))
+
+        monkeypatch.setattr(stage, "_register_starts", starts)
+        return estimate_pose(scene.frame, model, symmetry=symmetry if symmetric else None)
+
+    est = ending(ICPStatus.non_finite, True)
+    assert est.failed_stage == "register" and est.pose is None
+    assert "a non-finite update" in est.reason
+    assert est.stages["register"].icp_status.startswith("a non-finite update")
+    assert ending(ICPStatus.degenerate, False).reason.startswith(
+        "the final registration failed: degenerate geometry"
+    )
+    assert ending(ICPStatus.degenerate, True).success  # the symmetry's free directions
+
+
+def test_an_overhang_that_cannot_be_measured_refuses(scene, monkeypatch):
+    """A NaN overhang (a NaN comparison is False) must not pass the overhang test."""
+    from jaxreg.pipeline import estimate as stage
+
+    scene, model, symmetry = scene
+    monkeypatch.setattr(stage, "overhang", lambda *args: np.full(3, np.nan))
+    est = estimate_pose(scene.frame, model, symmetry=symmetry)
+    assert est.failed_stage == "register" and est.pose is None
+    assert "could not be measured (NaN" in est.reason
+
+
+def test_the_image_judges_a_pose_within_the_depth_noise_at_its_depth():
+    """A model patch 2 cm in front of a wall the camera sees 1 m away: beyond the 1 cm floor
+    of the depth agreement the wall contradicts it, but under a sensor whose sigma_z(1 m) is
+    1 cm (4 sigma = 4 cm) the wall confirms it; the default sensor (2.5 mm there) does not."""
+    from jaxlie import SE3
+
+    from jaxreg.camera import Intrinsics
+    from jaxreg.pipeline.estimate import visibility
+
+    frame = RGBDFrame(np.ones((48, 64), np.float32), Intrinsics(60.0, 60.0, 31.5, 23.5, 64, 48))
+    u, v = np.meshgrid(np.linspace(-0.1, 0.1, 5), np.linspace(-0.1, 0.1, 5))
+    patch = np.stack([u.ravel(), v.ravel(), np.full(25, 0.98)], -1).astype(np.float32)
+    floor = np.float32(0.01)
+
+    def counts(sigma_z=None):
+        coefficients = None if sigma_z is None else np.float32(sigma_z)
+        seen = visibility(frame, SE3.identity(), patch, floor, sigma_z=coefficients)
+        return np.asarray(seen)[:2].tolist()  # confirmed, contradicted
+
+    assert counts() == [0, 25]
+    assert counts([0.0, 0.0, 2.5e-3]) == [0, 25]
+    assert counts([0.0, 0.0, 1e-2]) == [25, 0]
+
+
+def test_the_refined_starts_are_a_setting(scene):
+    scene, model, symmetry = scene
+    est = estimate_pose(scene.frame, model, symmetry=symmetry, refined_starts=2)
+    assert est.success and est.stages["register"].refined_starts == 2
+    assert float(add_s(scene.model_points, est.pose, scene.truth)) < 0.005
+    with pytest.raises(ValueError, match="refined_starts"):
+        estimate_pose(scene.frame, model, refined_starts=0)
+
+
 def test_a_stray_table_slab_is_a_candidate_the_registration_rejects(scene):
     scene, model, symmetry = scene
     # a 2 cm board on the table beside the box, about its size in the image

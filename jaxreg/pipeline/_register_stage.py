@@ -41,6 +41,8 @@ from jaxreg.search.normals import estimate_normals
 
 __all__ = ["visibility"]
 
+NOISE_SIGMAS = 4  # a depth within this many sigma_z(z) of the model agrees (see visibility)
+
 # --------------------------------------------------------------------------------------------
 # The model, prepared once per distinct model array.
 
@@ -193,6 +195,8 @@ def visibility(
     tolerance: Float[Array, ""],
     plane: TablePlane | None = None,
     cell: int = 4,
+    *,
+    sigma_z: Float[Array, " C"] | None = None,
 ) -> Float[Array, " 5"]:
     """How the depth image judges the model at a pose: counts ``(confirmed, contradicted,
     occluded, unknown, self_hidden)`` of the model points (jittable).
@@ -208,6 +212,12 @@ def visibility(
     should be (contradicted, evidence against the pose or the object's presence); measured
     nearer, something else hides it (occluded); a hole or a pixel outside the image is
     unknown. NaN rows of ``model_points`` (a model padded to a bucketed size) count nowhere.
+
+    With ``sigma_z`` (ascending polynomial coefficients of the depth noise's standard
+    deviation in the camera depth ``z``, as :class:`~jaxreg.uncertainty.DepthNoise` holds
+    them) each point's tolerance is ``tolerance`` or ``NOISE_SIGMAS`` times ``sigma_z`` at
+    its depth, whichever is larger: the floor covers the model's own error (voxels,
+    samples), the noise term a far or noisy view.
     """
     camera_T_object = frame.base_T_camera.inverse() @ base_T_object
     cam = camera_T_object @ jnp.asarray(model_points, frame.depth.dtype)
@@ -216,6 +226,9 @@ def visibility(
     row = jnp.round(pix[:, 1]).astype(jnp.int32)
     h, w = frame.depth.shape
     inside = (cam[:, 2] > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    if sigma_z is not None:
+        powers = cam[:, 2:3] ** jnp.arange(sigma_z.shape[0], dtype=cam.dtype)
+        tolerance = jnp.maximum(tolerance, NOISE_SIGMAS * (powers @ sigma_z.astype(cam.dtype)))
     row, col = jnp.clip(row, 0, h - 1), jnp.clip(col, 0, w - 1)
     hc, wc = -(-h // cell), -(-w // cell)
     code = (row // cell) * wc + col // cell
@@ -393,7 +406,7 @@ def _spread_best(poses: Array, score: Array, count: int, min_distance: float) ->
 @persistent_jit
 def _score_candidates(
     frame, plane, problem, rounds, clouds, used, model_points, screen_points, model_axes,
-    tolerance, num_starts, yaws, survivors, keep,
+    tolerance, sigma_z, explained_distance, num_starts, yaws, survivors, keep,
 ):  # fmt: skip
     """Multi-start ICP of every candidate cloud ``(C, N, 3)`` (NaN padding) into the model,
     its ranked starts, and the evidence for each; slots where ``used`` ``(C,)`` is False are
@@ -410,7 +423,9 @@ def _score_candidates(
     ``(M1, 3)`` (the model voxelled at 3 voxels; :func:`visibility` on 16-pixel cells: the
     z-buffer's scatter dominates the scoring on a CPU); the ``keep`` best distinct ones
     take the third and are scored with ``model_points`` (4-pixel cells; the sparse
-    judgement is too coarse to rank near-equal candidates)."""
+    judgement is too coarse to rank near-equal candidates). The score is the share of the
+    cloud within ``explained_distance`` of the model times the confirmed share
+    (:func:`visibility` with ``tolerance`` and ``sigma_z``)."""
     screen_opts, first_opts, rest_opts = rounds
 
     def one(cloud):
@@ -437,8 +452,10 @@ def _score_candidates(
             return jnp.sum(near & ok) / jnp.maximum(ok.sum(), 1)
 
         def evidence(pose, points, cell):
-            seen = visibility(frame, pose.inverse(), points, tolerance, plane, cell)
-            return explains(pose, 0.006), seen
+            seen = visibility(
+                frame, pose.inverse(), points, tolerance, plane, cell, sigma_z=sigma_z
+            )
+            return explains(pose, explained_distance), seen
 
         icp = jax.vmap(run, in_axes=(None, None, 0))
         screened = icp(p, screen_opts, inits).pose
@@ -480,11 +497,13 @@ def _near_model(grid, object_T_base, points, distance):
 
 
 @persistent_jit
-def _judge(frame, plane, object_T_base, model_points, tolerance):
+def _judge(frame, plane, object_T_base, model_points, tolerance, sigma_z):
     """:func:`visibility` counts ``(S, 5)`` of a batch of object_T_base ``(S, 7)``."""
-    return jax.vmap(lambda q: visibility(frame, SE3(q).inverse(), model_points, tolerance, plane))(
-        object_T_base
-    )
+    return jax.vmap(
+        lambda q: visibility(
+            frame, SE3(q).inverse(), model_points, tolerance, plane, sigma_z=sigma_z
+        )
+    )(object_T_base)
 
 
 @persistent_jit

@@ -34,7 +34,7 @@ from jaxreg.pipeline.segment import (
 )
 
 
-def segment_table(frame, model, settings: _Settings, key, rng, stages):
+def segment_table(frame, model, settings: _Settings, key, rng, stages, noise):
     """Plane, clusters, and the candidate clusters scored by registration: the plane, the
     footprint ``(H, W)`` of the winning clusters (with the pieces split off them), the
     winner's coarse poses (object_T_base ``(K, 7)``, best first) and the fraction of it they
@@ -104,7 +104,9 @@ def segment_table(frame, model, settings: _Settings, key, rng, stages):
     too_small = _units_hint(model, 2 * max(float(radii[k]) for k in live))
     if too_small:
         fail("every cluster is far smaller than the model (is it in view?)" + too_small)
-    coarse, scored = _score(frame, seg.plane, model, s, [c for _, c, _ in candidates], rng)
+    coarse, scored = _score(
+        frame, seg.plane, model, s, [c for _, c, _ in candidates], rng, noise
+    )
     _, coarse_fraction, _, _, chosen = scored[0]
     group = candidates[chosen][0]
     coarse_poses = np.asarray(coarse.poses[chosen])  # object_T_base per start, best first
@@ -124,7 +126,7 @@ def segment_table(frame, model, settings: _Settings, key, rng, stages):
     return seg.plane, region, coarse_poses, coarse_fraction
 
 
-def segment_mask(frame, model, settings: _Settings, mask, key, rng, stages):
+def segment_mask(frame, model, settings: _Settings, mask, key, rng, stages, noise):
     """The caller's mask as the segment. The table plane is fitted to the pixels outside the
     mask (:func:`segment_frame` on the frame with the mask's depth removed: the program the
     table route compiled); it is used when the object stands on it (the lowest 5% of the
@@ -185,18 +187,20 @@ def segment_mask(frame, model, settings: _Settings, mask, key, rng, stages):
     hint = _units_hint(model, span)
     if hint:
         fail("the masked segment is far smaller than the model (a mask on another object?)" + hint)
-    coarse, scored = _score(frame, plane, model, s, [cloud], rng)
+    coarse, scored = _score(frame, plane, model, s, [cloud], rng, noise)
     stages["segment"] = dataclasses.replace(
         diag, candidates=[_candidate([], *rest) for *rest, _ in scored], ms=_ms(start)
     )
     return plane, mask, np.asarray(coarse.poses[0]), scored[0][1]
 
 
-def _score(frame, plane: TablePlane | None, model, settings: _Settings, clouds, rng):
+def _score(frame, plane: TablePlane | None, model, settings: _Settings, clouds, rng, noise):
     """Coarse registration of the candidate ``clouds`` (each ``(N, 3)``, base frame) in one
     compiled call, and each one's evidence, best first: tuples ``(score, explained,
     contradicted, overhang, slot)``; a candidate whose points reach beyond the model
-    (``max_overhang``: a larger object of a similar shape) ranks after those that do not."""
+    (``max_overhang``: a larger object of a similar shape, or a span that cannot be measured)
+    ranks after those that do not. ``noise``: the camera's ``DepthNoise`` (the image's
+    judgement allows 4 sigma_z at each depth)."""
     s = settings
     padded = np.full((s.max_candidates, s.coarse_points, 3), np.nan, np.float32)
     for i, cloud in enumerate(clouds):
@@ -208,8 +212,8 @@ def _score(frame, plane: TablePlane | None, model, settings: _Settings, clouds, 
     coarse = jax.block_until_ready(
         _score_candidates(
             frame, plane, problem, tuple(rounds), padded, used, model.points, model.screen,
-            model.axes, _TOLERANCE, s.num_starts, s.resting_yaws, s.coarse_survivors,
-            s.coarse_keep,
+            model.axes, _TOLERANCE, noise.coefficients, s.fine_distances[-1], s.num_starts,
+            s.resting_yaws, s.coarse_survivors, s.coarse_keep,
         )
     )  # fmt: skip
     scored = []
@@ -218,7 +222,8 @@ def _score(frame, plane: TablePlane | None, model, settings: _Settings, clouds, 
         explained = float(coarse.explained[i, 0])
         reach = float(overhang(model, np.asarray(coarse.poses[i, 0]), cloud).max())
         scored.append((explained * confirmed, explained, contradicted, reach, i))
-    scored.sort(key=lambda item: (item[3] > s.max_overhang, -item[0]))  # larger objects last
+    # larger objects (or an unmeasurable span) last
+    scored.sort(key=lambda item: (not item[3] <= s.max_overhang, -item[0]))
     return coarse, scored
 
 

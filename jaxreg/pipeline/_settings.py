@@ -10,7 +10,9 @@ import time
 
 import numpy as np
 
-_TOLERANCE = np.float32(0.01)  # depth agreement (metres) of the image's judgement of a pose
+# depth agreement (metres) of the image's judgement of a pose; more where the depth noise's
+# NOISE_SIGMAS sigma_z(z) is more (see visibility)
+_TOLERANCE = np.float32(0.01)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,6 +45,7 @@ class _Settings:
     max_contradicted: float
     max_overhang: float
     rest_tolerance: float = 0.015
+    refined_starts: int = 4
     coarse_distances: np.ndarray = dataclasses.field(
         default_factory=lambda: np.geomspace(0.04, 0.01, 20).astype(np.float32)
     )

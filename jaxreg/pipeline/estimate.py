@@ -14,8 +14,9 @@ diagnostics. The stages:
    so its points can lie farther from it than the model's radius); the
    ``max_candidates`` largest are kept, or a ``pixel`` / ``box`` prompt names the seed
    cluster. Every candidate is scored by registration in one compiled call (below, on its
-   grid points): the fraction of its points the model explains (6 mm) times the share of the
-   model's camera-facing surface that the depth image confirms (:func:`visibility`; seeing
+   grid points): the fraction of its points the model explains (within 1.5 voxels, 6 mm at
+   the default voxel) times the share of the model's camera-facing surface that the depth
+   image confirms (:func:`visibility`, within 1 cm or 4 sigma_z of the depth noise; seeing
    through the model, or the model below the table, counts against it). The best candidate
    wins, unless its points span beyond the model at its coarse pose (``max_overhang``: a
    larger object of a similar shape), and every cluster that its coarse pose explains (60%
@@ -68,8 +69,10 @@ points with depth, or segments far smaller or larger than the model (segment; th
 names the units when the model's scale cannot fit the frame's metres); too few
 pixels with depth in the footprint, or too few points left after filtering (lift); too small
 a fraction of the segment explained by the model, too large a residual, a model that the
-depth image contradicts (surface predicted where the camera sees through it), or a segment
-that spans beyond the model (register).
+depth image contradicts (surface predicted where the camera sees through it), a segment
+that spans beyond the model or whose span cannot be measured, or a final registration whose
+ICP failed (non-finite, too few pairs, or degenerate geometry without a ``symmetry`` to
+explain it) (register).
 
 Host-side entry point: bad arguments raise ``ValueError``. The compiled pieces have static
 shapes: the segment grid is fixed by the image size and stride, the clouds given to ICP
@@ -116,12 +119,16 @@ from jaxreg.pipeline._register_stage import (
 from jaxreg.pipeline._segment_stage import segment_mask, segment_table
 from jaxreg.pipeline._settings import _TOLERANCE, _Failed, _ms, _padded, _Settings
 from jaxreg.pipeline.segment import TablePlane
+from jaxreg.registration.icp import ICPStatus
 from jaxreg.uncertainty import DepthNoise
 from jaxreg.uncertainty.budget import PoseBudget
 
 __all__ = ["PoseEstimate", "estimate_pose", "visibility"]
 
 STAGES = ("segment", "lift", "register")
+# Final ICP statuses that leave a pose to judge (the iteration bound leaves the last step's
+# pose); degenerate geometry passes too when a symmetry is given (its free directions).
+_USABLE = (ICPStatus.success, ICPStatus.max_iterations)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -249,6 +256,7 @@ def estimate_pose(
     max_contradicted: float = 0.25,
     max_overhang: float = 0.003,
     rest_tolerance: float = 0.015,
+    refined_starts: int = 4,
     progress: Callable[[str], object] | None = None,
 ) -> PoseEstimate:
     """Estimate ``base_T_object`` of a model in one depth frame (see the module docstring).
@@ -312,6 +320,8 @@ def estimate_pose(
             of the table, facing it, rests there: it is moved onto the table and settled by
             ICP with contact points on the face (a partial view pins an object's height
             poorly; the table pins it). 0 turns this off.
+        refined_starts: distinct coarse poses of the winning candidate refined on the lifted
+            points (the best first; each differs from the others by 1 cm or 0.2 rad).
         progress: called with each stage's name as it starts (a command line's progress).
 
     Returns:
@@ -343,6 +353,11 @@ def estimate_pose(
     _check_units(frame, model_points)
     if pixel is not None and box is not None:
         raise ValueError("give at most one prompt: pixel=(u, v) or box=(u0, v0, u1, v1)")
+    if not (isinstance(refined_starts, int) and 1 <= refined_starts <= coarse_keep):
+        raise ValueError(
+            f"refined_starts must be an integer from 1 to coarse_keep ({coarse_keep}), got "
+            f"{refined_starts!r}"
+        )
     calibration = Calibration(hand_eye_covariance, intrinsics_sigma, depth_scale_sigma)
     if mask is not None:
         if pixel is not None or box is not None:
@@ -377,6 +392,7 @@ def estimate_pose(
         max_contradicted=max_contradicted,
         max_overhang=max_overhang,
         rest_tolerance=rest_tolerance,
+        refined_starts=refined_starts,
     )
     model = _prepare_model(
         model_points, model_normals, voxel_size, float(settings.coarse_distances[0]),
@@ -388,9 +404,9 @@ def estimate_pose(
     try:
         progress("segment")
         if mask is None:
-            found = segment_table(frame, model, settings, key, rng, stages)
+            found = segment_table(frame, model, settings, key, rng, stages, noise)
         else:
-            found = segment_mask(frame, model, settings, mask, key, rng, stages)
+            found = segment_mask(frame, model, settings, mask, key, rng, stages, noise)
         plane, region, coarse_poses, coarse_fraction = found
         progress("lift")
         lifted, points = _lift(frame, region, plane, noise, settings, stages)
@@ -463,7 +479,7 @@ def _register(
     fine_distances = s.fine_distances
     start = time.perf_counter()
     source = _padded(points, s.max_points, rng)
-    picks = _distinct(coarse_poses, 4, 0.01)
+    picks = _distinct(coarse_poses, s.refined_starts, 0.01)
     inits = SE3(jax.device_put(coarse_poses[picks]))
     trim = np.float32(np.clip(coarse_fraction, 0.6, 0.95))  # an argument: one program for all
     results = _register_starts(
@@ -471,7 +487,9 @@ def _register(
     )
     fractions = np.asarray(results.inlier_fraction)
     rmses = np.nan_to_num(np.asarray(results.inlier_rmse), nan=np.inf)
-    seen = np.asarray(_judge(frame, plane, results.pose.wxyz_xyz, model.points, _TOLERANCE))
+    seen = np.asarray(
+        _judge(frame, plane, results.pose.wxyz_xyz, model.points, _TOLERANCE, noise.coefficients)
+    )
     scores = fractions * _confirmed_share(seen)
     ranked = np.lexsort((rmses, -np.round(scores, 2)))
     best = results[int(ranked[0])]
@@ -483,7 +501,7 @@ def _register(
     padded_symmetry = _bucketed_symmetry(symmetry)
     wxyz_xyz, spread, tangents = _finish(answers, np.int32(ranked[0]), equal, padded_symmetry)
     probed = _probe(
-        frame, plane, model, source, answers[ranked[0]], scores[ranked[0]], rmse, trim, s
+        frame, plane, model, source, answers[ranked[0]], scores[ranked[0]], rmse, trim, noise, s
     )
     _, _, probe_tangents = _finish(
         np.concatenate([answers[ranked[0]][None], probed[0]]), np.int32(0),
@@ -522,6 +540,12 @@ def _register(
         resting_on_table=contact is not None,
         contact_shift_mm=None if lowest is None else round(-lowest * 1e3, 2),
     )
+    usable = _USABLE + ((ICPStatus.degenerate,) if symmetry is not None else ())
+    if not any(bool(best.status == status) for status in usable):
+        raise _Failed(
+            "register", f"the final registration failed: {best.status_message()}", mask=mask,
+            points=points,
+        )  # fmt: skip
     problems = []
     if fraction < s.min_inlier_fraction:
         problems.append(
@@ -541,7 +565,12 @@ def _register(
             f"the camera sees through {contradicted:.0%} of the model's surface facing it (at "
             f"most {s.max_contradicted:.0%})"
         )
-    if reach.max() > s.max_overhang:
+    if np.isnan(reach).any():
+        problems.append(
+            "the segment's span beyond the model could not be measured (NaN: a non-finite "
+            "pose or segment point)"
+        )
+    elif reach.max() > s.max_overhang:
         problems.append(
             f"the segment spans {reach.max() * 1e3:.0f} mm beyond the model along its "
             f"{('longest', 'middle', 'shortest')[int(reach.argmax())]} axis (at most "
@@ -570,7 +599,7 @@ def _register(
     )
 
 
-def _probe(frame, plane, model, source, answer, score, rmse, trim, settings: _Settings):
+def _probe(frame, plane, model, source, answer, score, rmse, trim, noise, settings: _Settings):
     """The answer turned about the model's axes (:func:`probe_starts`), refined and judged
     like the refined starts: their poses ``(P, 7)`` (object_T_base), which are as good as
     the answer ``(P,)`` (score within 0.02, residual within 10%) and their residuals
@@ -583,7 +612,7 @@ def _probe(frame, plane, model, source, answer, score, rmse, trim, settings: _Se
     poses = np.array(probed.pose.wxyz_xyz, np.float32)
     for i, pose in enumerate(poses):
         poses[i] = _onto_table(model, pose, plane, settings)[0]
-    seen = np.asarray(_judge(frame, plane, poses, model.points, _TOLERANCE))
+    seen = np.asarray(_judge(frame, plane, poses, model.points, _TOLERANCE, noise.coefficients))
     scores = np.asarray(probed.inlier_fraction) * _confirmed_share(seen)
     rmses = np.nan_to_num(np.asarray(probed.inlier_rmse), nan=np.inf)
     return poses, (scores >= score - 0.02) & (rmses <= rmse * 1.1 + 1e-4), rmses
