@@ -253,3 +253,23 @@ def test_perturbed_segments_erode_grow_and_drop_pieces(box):
     assert np.all(counts[:2] < len(points))  # eroded
     assert np.all(counts[2:4] > len(points))  # grown by the ring around the mask
     np.testing.assert_allclose(counts[4:], len(points) - int(0.15 * len(points)), atol=1)
+
+
+# --------------------------------------------------------------------------------------------
+# Coverage: frames of every object that nothing tunes on.
+
+
+def test_the_region_covers_the_truth_on_most_unseen_frames_of_every_object():
+    from jaxreg.studies import calibration_study
+
+    study = calibration_study(seeds=range(5000, 5002))  # two frames of each object
+    found = study.found()
+    assert len(found) == len(study.frames) == 8
+    assert not any(np.any(np.isnan(f.covariance)) for f in found)
+    assert study.coverage(0.95) >= 6 / 8  # 85-99% over many frames (benchmarks/)
+    assert study.coverage(0.95, translation=True) >= 6 / 8
+    for name in ("box", "mug", "cylinder", "container"):
+        assert study.coverage(0.99, name) >= 0.5, name
+    assert study.sharpness() <= 3  # bars that are not uselessly wide
+    text = study.table()
+    assert text.count("\n") == 2 + 4 + 1 - 1 and "| all | 8/8 |" in text
