@@ -115,7 +115,10 @@ def test_pose_on_a_depth_png_exits_0_found_and_1_not_there(tmp_path, capsys):
     common = ["pose", "--scene", str(tmp_path / "scene.png"), "--model",
               str(tmp_path / "model.pcd"), "--model-units", "mm", "--json"]  # fmt: skip
     options = ["--symmetry", "box", "--depth-noise", "0", "0", "0.0025"]
-    for extra in ([], ["--mask", str(tmp_path / "mask.png")]):
+    rows, cols = np.nonzero(scene.mask)
+    pixel = [str(np.median(cols)), str(np.median(rows))]
+    box = [str(v) for v in (cols.min(), rows.min(), cols.max(), rows.max())]
+    for extra in ([], ["--mask", str(tmp_path / "mask.png")], ["--pixel", *pixel], ["--box", *box]):
         assert main([*common, *options, *extra]) == 0, extra
         report = json.loads(capsys.readouterr().out)
         assert report["failed_stage"] is None

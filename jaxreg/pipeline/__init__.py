@@ -1,6 +1,7 @@
-"""Pixels to pose: segment (table plane, Euclidean clusters, prompts) -> lift (depth pixels to
-base-frame points, filters, downsampling) -> register (multi-start coarse search, refinement,
-the evidence that can refuse, covariance), behind ``estimate_pose``.
+"""Pixels to pose: segment (table plane, Euclidean clusters, prompts; or the caller's own
+mask) -> lift (depth pixels to base-frame points, filters, downsampling) -> register
+(multi-start coarse search, refinement, the evidence that can refuse, covariance), behind
+``estimate_pose``; each stage's evidence is a typed record (``PoseEstimate.stages``).
 
 May import every package above it: core, geometry, uncertainty, search, registration, camera.
 """

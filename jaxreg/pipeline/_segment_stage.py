@@ -130,7 +130,9 @@ def segment_mask(frame, model, settings: _Settings, mask, key, rng, stages, nois
     """The caller's mask as the segment. The table plane is fitted to the pixels outside the
     mask (:func:`segment_frame` on the frame with the mask's depth removed: the program the
     table route compiled); it is used when the object stands on it (the lowest 5% of the
-    mask's points within 2 cm of it): the band above it filters the segment, the resting
+    mask's points within 2 cm above it, and no more than 2% below it by more than
+    ``plane_distance``: a plane fitted to another object's face may cut through this one):
+    the band above it filters the segment, the resting
     starts stand the model on it, and the image's judgement counts a model below it as
     contradicted. Without a table (no plane, or the object not on it) there is no band, and
     the resting starts' share of the coarse search goes to the rotation grid. The mask's
@@ -154,7 +156,8 @@ def segment_mask(frame, model, settings: _Settings, mask, key, rng, stages, nois
     plane = None
     if seg.status in (SegmentStatus.success, SegmentStatus.no_clusters) and len(cloud):
         height = cloud @ np.asarray(seg.plane.normal) + float(seg.plane.offset)
-        if np.percentile(height, 5) < 0.02:
+        low, lowest = np.percentile(height, [5, 2])
+        if low < 0.02 and lowest > -s.plane_distance:
             plane = seg.plane
             cloud = cloud[height > s.min_height]
     diag = SegmentRecord(
