@@ -134,7 +134,8 @@ def _prepare_model(
     model_points, model_normals, voxel_size: float, grid_distance: float, fine_distance: float
 ):
     """The model voxelled, with normals and neighbour grids (cached per model array and
-    settings): ``grid`` exact to ``grid_distance``, ``fine_grid`` to ``fine_distance``."""
+    settings): ``grid`` exact to ``grid_distance``, ``fine_grid`` to ``fine_distance``; every
+    array a compiled program takes is padded to its size class (``_ROWS`` and the tables)."""
     arrays = [model_points] + ([] if model_normals is None else [model_normals])
     digest = hashlib.sha1(b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)).hexdigest()
     key = (digest, model_points.shape, voxel_size, grid_distance, fine_distance)
