@@ -77,24 +77,28 @@ def test_a_new_model_runs_the_programs_already_compiled(scene):
     assert float(add_s(box.model_points, est.pose, box.truth)) < 0.005
 
 
-def test_models_of_every_object_and_point_count_give_the_programs_one_shape(scene):
+def test_models_of_every_object_and_point_count_give_the_programs_a_few_shapes(scene):
     """Every array the compiled register stage takes from a model (points, normals, the
-    sparse screen, both grids' tables) has one shape for the four objects at 6k and 20k
-    points (padding: NaN points with zero normals after the model's own rows)."""
+    sparse screen, both grids' tables) is padded to a few size classes: the box at 6k, 10k
+    and 20k points shares one, and the four objects at 6k and 20k points fall in four (each
+    sampling had its own), padded with NaN points and zero normals after the model's rows."""
     from jaxreg.pipeline._register_stage import _prepare_model
     from jaxreg.synth import OBJECTS, object_mesh
 
     def shapes(prepared):
         arrays = (prepared.points, prepared.normals, prepared.screen, prepared.grid)
-        return [np.shape(a) for a in jax.tree.leaves((*arrays, prepared.fine_grid))]
+        return tuple(np.shape(a) for a in jax.tree.leaves((*arrays, prepared.fine_grid)))
 
-    reference = shapes(_prepare_model(scene[1], None, 0.004, 0.04, 0.015))
+    classes = {shapes(_prepare_model(scene[1], None, 0.004, 0.04, 0.015)): ["box 20k"]}
     for name in OBJECTS:
         mesh, _ = object_mesh(name)
-        for count in (6000, 20_000):
+        for count in (6000, 10_000, 20_000) if name == "box" else (6000, 20_000):
             points = trimesh.sample.sample_surface(mesh, count, seed=1)[0].astype(np.float32)
             prepared = _prepare_model(points, None, 0.004, 0.04, 0.015)
-            assert shapes(prepared) == reference, (name, count)
+            classes.setdefault(shapes(prepared), []).append(f"{name} {count}")
+    assert len(classes) <= 4, list(classes.values())
+    boxes = {"box 20k", "box 6000", "box 10000", "box 20000"}
+    assert any(boxes <= set(members) for members in classes.values())
     real = np.isfinite(prepared.points).all(1)
     assert 1000 < real.sum() < len(real) and not real[real.argmin() :].any()  # rows, then NaN
     assert not np.any(prepared.normals[~real])

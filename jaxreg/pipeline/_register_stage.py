@@ -66,16 +66,19 @@ class _Model:
 _MODELS: dict[tuple, _Model] = {}
 
 # A model's sizes are program shapes: every array the compiled programs take from a model is
-# padded to the first of a few sizes that holds it, so that a new model (another object,
-# another sampling) runs the programs compiled for the one before. The first sizes hold the
-# four synthetic objects sampled at 6k-20k points (up to 4.6k points at 4 mm); a larger model
-# doubles the size it outgrows. Rows: NaN points (normals zero), never matched or judged.
-_ROWS = 6144  # model points
+# padded to the first of a few sizes that holds it (doubling), so that a new model of a size
+# class already met (another sampling, another object of that class) runs the programs
+# compiled before. Rows: NaN points (normals zero), never matched or judged. Padding costs
+# time in every call (the coarse scan reads every candidate slot; the starts and the image's
+# judgement read every row): one class for all four synthetic objects (6144 rows, 128
+# slots) made the pipeline 1.6-2x slower on the box, so rows and slots double from the box's
+# needs. The four objects at 6k-20k points (2.2k-4.6k points at 4 mm) fall in four classes.
+_ROWS = 3072  # model points
 _SCREEN_ROWS = 512  # the coarse judgement's sparse points
 _SYMMETRY_ROWS = 8  # rotations of a Symmetry (a box's 4, a square tray's 8)
 # Grid tables (pad_grid's sizes). The coarse grid's leaf map is capped at its size: refining
 # a concave model (a mug's handle) deeper costs megabytes for a few candidates less per leaf.
-_COARSE_TABLES = {"cells": 1 << 9, "entries": 1 << 18, "leaves": 1 << 13, "capacity": 128}
+_COARSE_TABLES = {"cells": 1 << 9, "entries": 1 << 20, "leaves": 1 << 14, "capacity": 48}
 _FINE_TABLES = {"cells": 1 << 12, "entries": 1 << 17, "leaves": 1 << 14, "capacity": 16}
 
 
@@ -133,7 +136,8 @@ def _prepare_model(
     model_points, model_normals, voxel_size: float, grid_distance: float, fine_distance: float
 ):
     """The model voxelled, with normals and neighbour grids (cached per model array and
-    settings): ``grid`` exact to ``grid_distance``, ``fine_grid`` to ``fine_distance``."""
+    settings): ``grid`` exact to ``grid_distance``, ``fine_grid`` to ``fine_distance``; every
+    array a compiled program takes is padded to its size class (``_ROWS`` and the tables)."""
     arrays = [model_points] + ([] if model_normals is None else [model_normals])
     digest = hashlib.sha1(b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)).hexdigest()
     key = (digest, model_points.shape, voxel_size, grid_distance, fine_distance)
