@@ -136,7 +136,8 @@ def test_frame_lifts_pixels_to_camera_and_base():
     picked = np.asarray(frame.points_at(rows, cols))
     assert picked.shape == (2, 2, 3)
     assert np.isnan(picked[0, 1]).all() and np.isnan(picked[1, 1]).all()
-    np.testing.assert_array_equal(picked, base[rows, cols])
+    # one program for the picks, another for the image: XLA may round the last bit apart
+    np.testing.assert_allclose(picked, base[rows, cols], rtol=1e-6, atol=1e-7)
 
 
 def test_frame_points_are_differentiable_in_intrinsics_and_hand_eye():

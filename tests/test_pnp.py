@@ -542,8 +542,9 @@ def test_closed_form_covariance_equals_the_eigendecomposition(planar):
 def test_a_lane_refines_alike_alone_and_in_a_large_batch(planar):
     """The refinement steps the planar fixture's 2,260 starts 282 at a time, the first ones
     still running gathered afresh at every step; which lanes share a step changes neither a
-    lane's steps nor its pose: the slowest lanes solved as a batch of 8 (too few to gather)
-    agree."""
+    lane's pose nor, beyond one step, its step count (float32 rounding differs by batch size,
+    and a lane at the tolerance's edge may stop one step sooner or later): the slowest lanes
+    solved as a batch of 8 (too few to gather) agree."""
     c = planar["result"].candidates
     slow = np.argsort(-c.iterations[:N_VIEWS].max(axis=1))[:8]
     assert c.iterations[slow].max() > 10  # stepped in many different companies
@@ -551,9 +552,8 @@ def test_a_lane_refines_alike_alone_and_in_a_large_batch(planar):
         solve_pnp_planar(TAG_POINTS, planar["batch"][slow], K, sigma_px=0.2)
     ).candidates
     # Candidates that reach one minimum tie, and rounding may order them either way.
-    np.testing.assert_array_equal(
-        np.sort(small.iterations, axis=1), np.sort(c.iterations[slow], axis=1)
-    )
+    steps = np.sort(small.iterations, axis=1) - np.sort(c.iterations[slow], axis=1)
+    assert np.abs(steps).max() <= 1 and np.mean(steps == 0) >= 0.9, steps
     for b, lane in enumerate(slow):
         gaps = [
             np.abs(small.pose.wxyz_xyz[b] - c.pose.wxyz_xyz[lane][order]).max()

@@ -30,6 +30,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from jaxreg.core._program_cache import persistent_jit
+from jaxreg.pipeline._lift import lift_pixels
 from jaxreg.pipeline._register_stage import CONTACT_WEIGHT
 from jaxreg.registration.icp import icp
 from jaxreg.uncertainty.budget import combine
@@ -84,8 +85,8 @@ def _pairs(points, object_T_base, model_points, model_normals, distance, trim):
     normals ``(K, 3)`` (object frame), residuals ``(K,)`` and the rows of ``points`` kept
     ``(K,)``: those within ``distance`` of a model point with a usable normal, the ``trim``
     fraction with the smallest distances."""
-    pose = SE3(np.asarray(object_T_base, np.float64))
-    moved = np.asarray(pose @ points)
+    matrix = np.asarray(SE3(np.asarray(object_T_base, np.float64)).as_matrix(), np.float64)
+    moved = points @ matrix[:3, :3].T + matrix[:3, 3]  # host numpy: no program per count
     usable = np.linalg.norm(model_normals, axis=1) > 0.5
     tree = cKDTree(model_points[usable])
     gap, index = tree.query(moved, distance_upper_bound=distance)
@@ -140,7 +141,11 @@ def _depth_base(jac, points, normals, object_T_base, noise, inverse, sensed) -> 
     ``sensed`` ``(K,)`` rows (the others carry no depth noise)."""
     rotation = np.asarray(SE3(np.asarray(object_T_base, np.float64)).rotation().as_matrix())
     n_base = normals @ rotation
-    cov = np.asarray(noise.covariance(points.astype(np.float32)), np.float64)
+    # one program for every count: the rows padded to a fixed size (a power of two)
+    size = max(1024, 1 << (len(points) - 1).bit_length())
+    padded = np.zeros((size, 3), np.float32)
+    padded[: len(points)] = points
+    cov = np.asarray(noise.covariance(padded), np.float64)[: len(points)]
     variance = np.where(sensed, np.einsum("ki,kij,kj->k", n_base, cov, n_base), 0.0)
     return inverse @ (jac.T * variance) @ jac @ inverse
 
@@ -198,7 +203,7 @@ def perturbed_segments(frame, mask, points, plane, min_height, size, rng, count=
     rows, cols = _pixels(frame, points).T
     border = inside[rows, cols]
     ring_r, ring_c = np.nonzero((outside > 0) & (outside <= 3))
-    ring = np.asarray(frame.points_at(ring_r, ring_c), np.float64)
+    ring = np.asarray(lift_pixels(frame, ring_r, ring_c), np.float64)
     ring_ok = np.all(np.isfinite(ring), 1)
     if plane is not None:  # above the table band, as the lift keeps
         height = ring[ring_ok] @ np.asarray(plane.normal) + float(plane.offset)
@@ -332,7 +337,7 @@ def pose_budget(
         segments, weights, model.points, model.normals, model.fine_grid,
         np.asarray(object_T_base, np.float32), np.asarray(distances)[-15:], np.float32(trim),
     )  # fmt: skip
-    moved = _tangents(object_T_base, np.asarray(poses)[np.asarray(ok)]) @ to_object.T
+    moved = (_tangents(object_T_base, np.asarray(poses)) @ to_object.T)[np.asarray(ok)]
 
     calibration_base = _calibration_term(
         calibration, jac, pairs_points, normals, object_T_base, frame, inverse, weight[:, 0]

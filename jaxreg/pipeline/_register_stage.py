@@ -563,9 +563,9 @@ def resting_contact(model: _Model, object_T_base: np.ndarray, plane, tolerance: 
     the model's bottom is: ``(CONTACT_POINTS, 3)`` base-frame points (subsampled, or NaN
     padded), and the height (metres) the model's lowest point had above the plane.
     """
-    base_T_object = SE3(np.asarray(object_T_base, np.float64)).inverse()
+    matrix = np.asarray(SE3(np.asarray(object_T_base, np.float64)).inverse().as_matrix())
     points = model.points[np.all(np.isfinite(model.points), axis=1)]  # less the padding rows
-    placed = np.asarray(base_T_object @ points.astype(np.float64))
+    placed = points.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]  # host numpy
     normal, offset = np.asarray(plane.normal, np.float64), float(plane.offset)
     height = placed @ normal + offset
     lowest = float(height.min())
