@@ -8,7 +8,7 @@ translation, per object and overall): a calibrated covariance lies on the diagon
 the budget's terms per object (median translation sigma of each source). Right: the grasp
 chance predicted from the whole budget against the observed success rate of a parallel-jaw
 grasp across the model's narrowest axis, at margins of 1-5 mm per side.
-Run: python paper_figs/fig_calibration.py [--seeds N]  (N scenes per object, default 30)
+Run: python paper_figs/fig_calibration.py [--seeds N]  (N scenes per object, default 12)
 """
 
 import argparse
@@ -26,7 +26,7 @@ SEED0 = 5000  # scenes no test or default tunes on
 
 def main():
     parser = argparse.ArgumentParser()
-    parser.add_argument("--seeds", type=int, default=30)
+    parser.add_argument("--seeds", type=int, default=12)
     args = parser.parse_args()
     study = calibration_study(seeds=range(SEED0, SEED0 + args.seeds))
     objects = sorted({f.object for f in study.frames})
