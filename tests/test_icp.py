@@ -211,18 +211,25 @@ def test_a_kernel_that_weighs_every_pair_zero_is_named_not_called_degenerate():
     np.testing.assert_allclose(plain.pose.translation(), [0.006] * 3, atol=1e-5)
 
 
+def _box_faces(seed: int, count: int):
+    """``count`` points on the faces of a 6 x 4 x 3 cm box, their outward unit normals, and
+    the generator that drew them (for further draws)."""
+    rng = np.random.default_rng(seed)
+    half = np.array([0.03, 0.02, 0.015])
+    target = rng.uniform(-half, half, (count, 3))
+    axis = rng.integers(0, 3, count)
+    target[np.arange(count), axis] = np.sign(rng.normal(size=count)) * half[axis]
+    normals = np.zeros_like(target)
+    normals[np.arange(count), axis] = np.sign(target[np.arange(count), axis])
+    return target, normals, rng
+
+
 def test_points_without_a_unit_normal_are_neither_matched_nor_counted():
     """Point-to-plane against a box whose normals are zero (what estimate_normals returns where
     a normal is undefined), unnormalised or NaN on three rows in four: only the fourth row
     can be a match. With the source equal to the target and a distance below the point
     spacing, each source point can match only its own twin."""
-    rng = np.random.default_rng(0)
-    half = np.array([0.03, 0.02, 0.015])
-    target = rng.uniform(-half, half, (800, 3))
-    axis = rng.integers(0, 3, 800)
-    target[np.arange(800), axis] = np.sign(rng.normal(size=800)) * half[axis]
-    normals = np.zeros_like(target)
-    normals[np.arange(800), axis] = np.sign(target[np.arange(800), axis])
+    target, normals, rng = _box_faces(0, 800)
     normals[0::4] = 0.0
     normals[1::4] *= 2.0
     normals[2::4] = np.nan
@@ -255,13 +262,7 @@ def test_a_given_grid_that_indexes_points_without_a_normal_raises():
     point lay within the distance (about half the points, where the same ICP without the
     grid finds a match for every one). Such a grid is refused; one built without those rows
     agrees with ICP's own."""
-    rng = np.random.default_rng(1)
-    half = np.array([0.03, 0.02, 0.015])
-    target = rng.uniform(-half, half, (2000, 3))
-    axis = rng.integers(0, 3, 2000)
-    target[np.arange(2000), axis] = np.sign(rng.normal(size=2000)) * half[axis]
-    normals = np.zeros_like(target)
-    normals[np.arange(2000), axis] = np.sign(target[np.arange(2000), axis])
+    target, normals, rng = _box_faces(1, 2000)
     normals[::2] = 0.0
     target, normals = target.astype(np.float32), normals.astype(np.float32)
     source = target + rng.normal(0, 0.002, target.shape).astype(np.float32)
