@@ -122,9 +122,9 @@ def test_concrete_clouds_use_host_knn_with_the_same_result():
 
 def test_concrete_clouds_compile_one_program():
     """A command line process pays for every JAX program it compiles or loads: the host path
-    runs its eigenproblems as one program and no eager operation (the padded size, 4096
-    rows, is this test's own, so every program compiled here is new), and a cloud of another
-    size in the same power of two (a new model) runs that program."""
+    runs its eigenproblems as one program and no eager operation (at most one compilation:
+    none when another test of this process already padded a cloud to 4096 rows), and a
+    cloud of another size in the same power of two (a new model) runs that program."""
     compiled = []
 
     def listen(event, duration, **kwargs):
@@ -136,10 +136,12 @@ def test_concrete_clouds_compile_one_program():
     jax.monitoring.register_event_duration_secs_listener(listen)
     try:
         est = estimate_normals_with_curvature(points, 9, viewpoint=(0.0, 0.0, 5.0))
+        first = list(compiled)
         other = estimate_normals_with_curvature(points[:2500], 9, viewpoint=(0.0, 0.0, 5.0))
     finally:
         jax.monitoring.unregister_event_duration_listener(listen)
-    assert len(compiled) == 1, compiled
+    assert len(first) <= 1, first
+    assert compiled == first, compiled  # the second size compiled nothing
     assert other.normals.shape == (2500, 3) and bool(other.valid.all())
     assert est.normals.dtype == jnp.float32 and bool(est.valid.all())
     reference = estimate(points.astype(np.float32), 9, viewpoint=jnp.array([0.0, 0.0, 5.0]))
