@@ -124,15 +124,13 @@ def _fit_term(jac, residual, blocks, inverse, depth_base) -> np.ndarray:
     return (vectors * np.clip(values, 0.0, None)) @ vectors.T
 
 
-def _mismatch_term(jac, blocks, sensed, sigma: float) -> np.ndarray:
+def _mismatch_term(jac, blocks, sensed, inverse, sigma: float) -> np.ndarray:
     """The covariance (base axes) of an offset ``~N(0, sigma^2)`` along the normal shared by
     the measured points of each block: ``sigma^2 H^-1 (sum_b s_b s_b^T) H^-1`` with
-    ``s_b = sum_{i in b} J_i``."""
+    ``s_b = sum_{i in b} J_i`` and ``inverse`` the normal equations' ``H^-1``."""
     count = int(blocks.max()) + 1
     sums = np.zeros((count, 6))
     np.add.at(sums, blocks[sensed], jac[sensed])
-    hessian = jac.T @ jac
-    inverse = np.linalg.pinv(hessian, rcond=1e-9, hermitian=True)
     return sigma**2 * inverse @ (sums.T @ sums) @ inverse
 
 
@@ -324,7 +322,7 @@ def pose_budget(
     depth_base = _depth_base(jac, pairs_points, normals, object_T_base, noise, inverse, sensed)
     blocks = _blocks(pairs_points, 0.012)
     fit_base = _fit_term(jac, residual, blocks, inverse, depth_base)
-    mismatch_base = _mismatch_term(jac, blocks, sensed, MISMATCH_SIGMA)
+    mismatch_base = _mismatch_term(jac, blocks, sensed, inverse, MISMATCH_SIGMA)
 
     segments = perturbed_segments(frame, mask, points, plane, min_height, source_size, rng)
     weights = np.ones(source_size, np.float32)
