@@ -162,8 +162,7 @@ def test_equally_good_starts_that_disagree_widen_the_region(box):
 
 
 def test_only_a_contiguous_run_of_good_turns_around_the_answer_frees_an_axis():
-    from jaxreg.pipeline._register_stage import PROBE_ANGLES_DEG
-    from jaxreg.pipeline.estimate import _good_arc
+    from jaxreg.pipeline._answer import PROBE_ANGLES_DEG, _good_arc
 
     angles = np.asarray(PROBE_ANGLES_DEG)
     assert _good_arc(angles, angles == 180) == 0  # an isolated flip: ambiguity, not freedom

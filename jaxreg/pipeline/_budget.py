@@ -30,8 +30,8 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from jaxreg.core._program_cache import persistent_jit
+from jaxreg.pipeline._answer import CONTACT_WEIGHT
 from jaxreg.pipeline._lift import lift_pixels
-from jaxreg.pipeline._register_stage import CONTACT_WEIGHT
 from jaxreg.registration.icp import icp
 from jaxreg.uncertainty.budget import combine
 
@@ -134,6 +134,12 @@ def _mismatch_term(jac, blocks, sensed, inverse, sigma: float) -> np.ndarray:
     return sigma**2 * inverse @ (sums.T @ sums) @ inverse
 
 
+@persistent_jit
+def _point_covariance(noise, points):
+    """``noise.covariance(points)`` ``(N, 3, 3)`` as one stored program per padded size."""
+    return noise.covariance(points)
+
+
 def _depth_base(jac, points, normals, object_T_base, noise, inverse, sensed) -> np.ndarray:
     """The depth noise's covariance (base axes) by the same normal equations, over the
     ``sensed`` ``(K,)`` rows (the others carry no depth noise)."""
@@ -143,7 +149,7 @@ def _depth_base(jac, points, normals, object_T_base, noise, inverse, sensed) -> 
     size = max(1024, 1 << (len(points) - 1).bit_length())
     padded = np.zeros((size, 3), np.float32)
     padded[: len(points)] = points
-    cov = np.asarray(noise.covariance(padded), np.float64)[: len(points)]
+    cov = np.asarray(_point_covariance(noise, padded), np.float64)[: len(points)]
     variance = np.where(sensed, np.einsum("ki,kij,kj->k", n_base, cov, n_base), 0.0)
     return inverse @ (jac.T * variance) @ jac @ inverse
 

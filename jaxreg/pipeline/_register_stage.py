@@ -1,7 +1,7 @@
-"""The register stage's pieces for :mod:`jaxreg.pipeline`: the model prepared once (voxelled,
-normals, neighbour grid), multi-start registration of every candidate cluster in one compiled
-call, the depth image's evidence about a model pose (:func:`visibility`), and the final
-answer with its covariance (``_finish``).
+"""The register stage's pieces for :mod:`jaxreg.pipeline`: multi-start registration of every
+candidate cluster in one compiled call, the depth image's evidence about a model pose
+(:func:`visibility`), the refinement's starts and the final answer on its symmetry branch
+(``_finish``). The model comes prepared by :mod:`jaxreg.pipeline._model`.
 
 Conventions of :mod:`jaxreg.pipeline.estimate`: the segment (source, base frame) is registered into
 the model (target, object frame), so ICP's poses are ``object_T_base``; tangents are jaxlie's.
@@ -9,183 +9,30 @@ the model (target, object frame), so ICP's poses are ``object_T_base``; tangents
 
 from __future__ import annotations
 
-import dataclasses
-import hashlib
-import math
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxlie import SE3, SO3
 from jaxtyping import Array, Float
-from scipy.spatial import ConvexHull, QhullError
 from scipy.spatial.transform import Rotation
 
 from jaxreg.camera.model import RGBDFrame
 from jaxreg.core._program_cache import persistent_jit
 from jaxreg.geometry.lie import geodesic_angle
 from jaxreg.geometry.metrics import Symmetry, canonicalise
+from jaxreg.pipeline._model import _Model
 from jaxreg.pipeline.segment import TablePlane
 from jaxreg.registration._icp_core import run
 from jaxreg.registration._icp_setup import Settings, prepare
-from jaxreg.registration.icp import icp, multistart_icp, pca_inits, rotation_inits
+from jaxreg.registration.icp import multistart_icp, pca_inits, rotation_inits
 from jaxreg.search.neighbors import (
-    NeighborGrid,
-    build_grid,
-    pad_grid,
     query_nearest,
-    voxel_downsample,
 )
-from jaxreg.search.normals import estimate_normals
 
 __all__ = ["visibility"]
 
 NOISE_SIGMAS = 4  # a depth within this many sigma_z(z) of the model agrees (see visibility)
-
-# --------------------------------------------------------------------------------------------
-# The model, prepared once per distinct model array.
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class _Model:
-    points: np.ndarray  # (R, 3) object frame, voxelled; NaN rows pad it to a size of _ROWS
-    normals: np.ndarray  # (R, 3), zero on the padding rows
-    grid: NeighborGrid  # exact to the coarse registration's largest distance
-    fine_grid: NeighborGrid  # exact to the refinement's: shorter candidate lists, faster
-    radius: float  # largest distance from the centroid
-    diameter: float  # largest distance between two points
-    centroid: np.ndarray
-    axes: np.ndarray  # (3, 3) principal axes as columns, largest extent first
-    bounds: np.ndarray  # (2, 3) least and greatest coordinate along each axis (given points)
-    screen: np.ndarray  # (R1, 3) voxelled at 3 voxels: the coarse starts' first judgement
-    # _coarse_problem's, per schedule (not in the repr that keys stored programs)
-    coarse: dict = dataclasses.field(default_factory=dict, repr=False)
-
-
-_MODELS: dict[tuple, _Model] = {}
-
-# A model's sizes are program shapes: every array the compiled programs take from a model is
-# padded to the first of a few sizes that holds it (doubling), so that a new model of a size
-# class already met (another sampling, another object of that class) runs the programs
-# compiled before. Rows: NaN points (normals zero), never matched or judged. Padding costs
-# time in every call (the coarse scan reads every candidate slot; the starts and the image's
-# judgement read every row): one class for all four synthetic objects (6144 rows, 128
-# slots) made the pipeline 1.6-2x slower on the box, so rows and slots double from the box's
-# needs. The four objects at 6k-20k points (2.2k-4.6k points at 4 mm) fall in four classes.
-_ROWS = 3072  # model points
-_SCREEN_ROWS = 512  # the coarse judgement's sparse points
-_SYMMETRY_ROWS = 8  # rotations of a Symmetry (a box's 4, a square tray's 8)
-# Grid tables (pad_grid's sizes). The coarse grid's leaf map is capped at its size: refining
-# a concave model (a mug's handle) deeper costs megabytes for a few candidates less per leaf.
-_COARSE_TABLES = {"cells": 1 << 9, "entries": 1 << 20, "leaves": 1 << 14, "capacity": 48}
-_FINE_TABLES = {"cells": 1 << 12, "entries": 1 << 17, "leaves": 1 << 14, "capacity": 16}
-
-
-def _size(n: int, first: int) -> int:
-    """The first of ``first``, ``2 first``, ``4 first``, ... that is at least ``n``."""
-    return first << max(0, math.ceil(math.log2(max(n, 1) / first)))
-
-
-def _padded_rows(values: np.ndarray, first: int, fill: float) -> np.ndarray:
-    """``values`` ``(N, 3)`` float32 with rows of ``fill`` after them, to ``_size(N, first)``."""
-    out = np.full((_size(len(values), first), 3), fill, np.float32)
-    out[: len(values)] = values
-    return out
-
-
-def _padded_grid(grid: NeighborGrid, tables: dict) -> NeighborGrid:
-    """``grid``'s tables padded to the first sizes of ``tables`` that hold them (each doubled
-    as often as it needs)."""
-    built = {
-        "cells": grid.cells.shape[0],
-        "entries": grid.leaf_map.shape[0],
-        "leaves": grid.num_leaves,
-        "capacity": grid.capacity,
-    }
-    return pad_grid(grid, **{name: _size(built[name], first) for name, first in tables.items()})
-
-
-def _voxel_normals(points: np.ndarray, normals: np.ndarray, voxel: float):
-    """Voxel centroids of ``points`` and the normalised mean normal of each voxel (zero
-    where the normals cancel, as on the two faces of a thin wall)."""
-    key = np.floor((points - points.min(0)) / voxel).astype(np.int64)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-    sums = np.zeros((len(counts), 6))
-    np.add.at(sums, inverse, np.concatenate([points, normals], axis=1))
-    mean_normal = sums[:, 3:] / counts[:, None]
-    length = np.linalg.norm(mean_normal, axis=1, keepdims=True)
-    unit = np.where(length > 0.5, mean_normal / np.maximum(length, 1e-12), 0.0)
-    return sums[:, :3] / counts[:, None], unit
-
-
-def _diameter(points: np.ndarray) -> float:
-    """Largest distance between two of ``points`` ``(N, 3)`` (over their convex hull)."""
-    points = np.asarray(points, np.float64)
-    if len(points) > 8:
-        try:
-            points = points[ConvexHull(points).vertices]
-        except QhullError:  # flat or degenerate: every point is a candidate
-            pass
-    gaps = points[:, None, :] - points[None, :, :]
-    return float(np.sqrt(np.einsum("ijk,ijk->ij", gaps, gaps).max())) if len(points) else 0.0
-
-
-def _prepare_model(
-    model_points, model_normals, voxel_size: float, grid_distance: float, fine_distance: float
-):
-    """The model voxelled, with normals and neighbour grids (cached per model array and
-    settings): ``grid`` exact to ``grid_distance``, ``fine_grid`` to ``fine_distance``; every
-    array a compiled program takes is padded to its size class (``_ROWS`` and the tables)."""
-    arrays = [model_points] + ([] if model_normals is None else [model_normals])
-    digest = hashlib.sha1(b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)).hexdigest()
-    key = (digest, model_points.shape, voxel_size, grid_distance, fine_distance)
-    if key in _MODELS:
-        return _MODELS[key]
-    if model_normals is None:
-        points = voxel_downsample(model_points, voxel_size)
-    else:
-        points, normals = _voxel_normals(model_points, model_normals, voxel_size)
-    if len(points) < 10:
-        raise ValueError(
-            f"the model has {len(points)} points at a {voxel_size * 1e3:g} mm voxel: give at "
-            "least a few hundred points on its surface (metres)"
-        )
-    points = points.astype(np.float32)
-    centroid = points.mean(0)
-    if model_normals is None:
-        normals = np.asarray(estimate_normals(points, k=20, viewpoint=centroid))
-    rows = _padded_rows(points, _ROWS, np.nan)
-    row_normals = _padded_rows(normals, _ROWS, 0.0)
-    usable = np.linalg.norm(row_normals, axis=1) > 0.5
-    grid = build_grid(rows, grid_distance, mask=usable, max_map=_COARSE_TABLES["entries"])
-    # leaves of at most 16 candidates: queries ~2x faster than the default 48, built once;
-    # the default where the model's shape needs longer lists (exact either way)
-    fine_grid = build_grid(rows, fine_distance, capacity=16, mask=usable)
-    if bool(fine_grid.overflow):
-        fine_grid = build_grid(rows, fine_distance, mask=usable)
-    grid, fine_grid = _padded_grid(grid, _COARSE_TABLES), _padded_grid(fine_grid, _FINE_TABLES)
-    _, vectors = np.linalg.eigh(np.cov((points - centroid).T))
-    axes = vectors[:, ::-1]
-    given = (model_points - centroid) @ axes  # voxel centroids lie up to half a voxel inside
-    model = _Model(
-        points=rows,
-        normals=row_normals,
-        grid=grid,
-        fine_grid=fine_grid,
-        radius=float(np.linalg.norm(points - centroid, axis=1).max()),
-        diameter=_diameter(points),
-        centroid=centroid,
-        axes=axes,
-        bounds=np.stack([given.min(0), given.max(0)]),
-        screen=_padded_rows(voxel_downsample(points, 3 * voxel_size), _SCREEN_ROWS, np.nan),
-    )
-    if len(_MODELS) > 8:
-        _MODELS.clear()
-    _MODELS[key] = model
-    return model
-
 
 # --------------------------------------------------------------------------------------------
 # Visibility of the model in the depth image at a pose.
@@ -522,118 +369,34 @@ def _register_starts(source, points, normals, grid, inits, distances, trim, iter
     )  # fmt: skip
 
 
+def _canonical(pose: SE3, reference: SE3, symmetry) -> SE3:
+    """:func:`canonicalise` by a bucketed ``symmetry`` ``(rotations (K, 3, 3), axis (3,),
+    continuous)``: with the axis when ``continuous``, else the rotations alone."""
+    rotations, axis, continuous = symmetry
+    fixed = canonicalise(pose, reference, Symmetry(rotations))
+    turned = canonicalise(pose, reference, Symmetry(rotations, axis))
+    return SE3(jnp.where(continuous, turned.wxyz_xyz, fixed.wxyz_xyz))
+
+
 @persistent_jit
 def _finish(object_T_base, best, equal, symmetry):
-    """The answer from the refined starts ``object_T_base (S, 7)``, as one stored program:
-    ``base_T_object`` of start ``best`` (wxyz_xyz; with a ``symmetry``, the equivalent nearest
-    the base axes), the largest offset (metres) and angle (degrees) to the starts flagged
-    ``equal`` ``(S,)`` and their tangents ``(S, 6)``, all compared on the answer's symmetry
-    branch (right perturbations of the reported ``base_T_object``, object axes)."""
+    """The answer from the refined starts ``object_T_base (S, 7)``, as one stored program
+    for every model: ``base_T_object`` of start ``best`` (wxyz_xyz; the equivalent under the
+    bucketed ``symmetry`` (:func:`_bucketed_symmetry`) nearest the base axes), the largest
+    offset (metres) and angle (degrees) to the starts flagged ``equal`` ``(S,)`` and their
+    tangents ``(S, 6)``, all compared on the answer's symmetry branch (right perturbations
+    of the reported ``base_T_object``, object axes)."""
     found = SE3(object_T_base[best])
     pose = found.inverse()
-    others = SE3(object_T_base).inverse()
-    if symmetry is not None:
-        others = canonicalise(others, pose, symmetry)
+    others = _canonical(SE3(object_T_base).inverse(), pose, symmetry)
     offset = jnp.linalg.norm(others.translation() - pose.translation(), axis=-1)
     angle = jnp.degrees(geodesic_angle(others.rotation(), pose.rotation()))
     spread = jnp.stack([jnp.max(jnp.where(equal, offset, 0)), jnp.max(jnp.where(equal, angle, 0))])
-    if symmetry is not None:  # report one branch: the equivalent nearest the base axes
-        pose = canonicalise(pose, SE3.from_translation(pose.translation()), symmetry)
-        others = canonicalise(others, pose, symmetry)
+    # report one branch: the equivalent nearest the base axes
+    pose = _canonical(pose, SE3.from_translation(pose.translation()), symmetry)
+    others = _canonical(others, pose, symmetry)
     tangents = (pose.inverse() @ others).log()
     return pose.wxyz_xyz, spread, tangents
-
-
-# --------------------------------------------------------------------------------------------
-# Resting on the table: the plane pins the height and tilt of an object standing on it.
-
-CONTACT_POINTS = 128  # virtual contact points appended to the refined cloud (static)
-# Weight of a contact point against a measured one: the plane is fitted to thousands of table
-# points, so its height is known far better than one depth pixel's.
-CONTACT_WEIGHT = 8.0
-
-
-def resting_contact(model: _Model, object_T_base: np.ndarray, plane, tolerance: float, voxel):
-    """Virtual contact points of a model resting on the table, or ``None``.
-
-    At the refined ``object_T_base`` (wxyz_xyz), the model's lowest point must lie within
-    ``tolerance`` (metres) of the plane, and the model's points within one ``voxel`` of
-    that height must form a face (spanning a third of the model's width, not a corner or an
-    edge). The face's points, moved onto the plane along its normal, are where the table says
-    the model's bottom is: ``(CONTACT_POINTS, 3)`` base-frame points (subsampled, or NaN
-    padded), and the height (metres) the model's lowest point had above the plane.
-    """
-    matrix = np.asarray(SE3(np.asarray(object_T_base, np.float64)).inverse().as_matrix())
-    points = model.points[np.all(np.isfinite(model.points), axis=1)]  # less the padding rows
-    placed = points.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]  # host numpy
-    normal, offset = np.asarray(plane.normal, np.float64), float(plane.offset)
-    height = placed @ normal + offset
-    lowest = float(height.min())
-    if not np.isfinite(lowest) or abs(lowest) > tolerance:
-        return None
-    face = placed[height <= lowest + voxel]
-    flat = face - np.outer(face @ normal, normal)
-    spread = np.ptp(flat @ np.linalg.svd(flat - flat.mean(0))[2][:2].T, axis=0)
-    width = np.ptp(placed - np.outer(placed @ normal, normal), axis=0).max()
-    if len(face) < 3 or spread.min() < width / 3:
-        return None
-    contact = face - np.outer(face @ normal + offset, normal)  # onto the plane
-    out = np.full((CONTACT_POINTS, 3), np.nan, np.float32)
-    step = max(1, int(np.ceil(len(contact) / CONTACT_POINTS)))
-    picked = contact[::step][:CONTACT_POINTS]
-    out[: len(picked)] = picked
-    return out, lowest
-
-
-@persistent_jit
-def _settle(source, contact, points, normals, grid, init, distances, trim, iterations):
-    """Point-to-plane ICP of ``source`` ``(N, 3)`` with the ``contact`` points ``(C, 3)``
-    appended (weight ``CONTACT_WEIGHT``), from ``init`` (7,): the object settled on the
-    table."""
-    joined = jnp.concatenate([source, contact])
-    weights = jnp.concatenate(
-        [jnp.ones(source.shape[0], source.dtype), jnp.full(contact.shape[0], CONTACT_WEIGHT)]
-    ).astype(source.dtype)
-    weights = jnp.where(jnp.all(jnp.isfinite(joined), axis=1), weights, 0.0)
-    return icp(
-        joined, points, SE3(init), method="point_to_plane", target_normals=normals,
-        max_correspondence_distance=distances, max_iterations=iterations, trim_fraction=trim,
-        source_weights=weights, neighbors=grid, tolerance=1e-5,
-    )  # fmt: skip
-
-
-# --------------------------------------------------------------------------------------------
-# Ambiguity: is the answer the only pose the image supports?
-
-PROBE_ANGLES_DEG = (
-    -150.0, -120.0, -90.0, -60.0, -40.0, -25.0, -12.0, 12.0, 25.0, 40.0, 60.0, 90.0, 120.0,
-    150.0, 180.0,
-)
-
-
-def probe_starts(model: _Model, object_T_base: np.ndarray) -> np.ndarray:
-    """``(3 * len(PROBE_ANGLES_DEG), 7)`` object_T_base starts: the answer turned about each
-    of the model's principal axes through its centroid by each probe angle (a mug whose handle
-    is hidden turns about its body's axis and still fits)."""
-    answer = SE3(np.asarray(object_T_base, np.float64))
-    centre = SE3.from_translation(np.asarray(model.centroid, np.float64))
-    starts = []
-    for axis in np.asarray(model.axes, np.float64).T:
-        for angle in np.radians(PROBE_ANGLES_DEG):
-            turn = SE3.from_rotation(SO3.exp(axis * angle))
-            starts.append((centre @ turn @ centre.inverse() @ answer).wxyz_xyz)
-    return np.asarray(starts, np.float32)
-
-
-def _bucketed_symmetry(symmetry: Symmetry | None) -> Symmetry:
-    """``symmetry`` (``None``: the identity alone) with its rotations padded to a size of
-    ``_SYMMETRY_ROWS`` by copies of the identity, which select nothing new: objects of
-    different symmetry groups share :func:`_finish`'s program (one per kind of axis)."""
-    if symmetry is None:
-        symmetry = Symmetry(np.eye(3)[None])
-    rotations = np.asarray(symmetry.rotations)
-    extra = np.repeat(rotations[:1], _size(len(rotations), _SYMMETRY_ROWS) - len(rotations), 0)
-    return Symmetry(np.concatenate([rotations, extra]), symmetry.axis)
 
 
 def _distinct(poses: np.ndarray, count: int, min_distance: float) -> list[int]:

@@ -15,10 +15,10 @@ import numpy as np
 
 from jaxreg.camera.model import RGBDFrame
 from jaxreg.pipeline._lift import lift_pixels
+from jaxreg.pipeline._model import _diameter
 from jaxreg.pipeline._records import Candidate, SegmentRecord
 from jaxreg.pipeline._register_stage import (
     _coarse_problem,
-    _diameter,
     _near_model,
     _score_candidates,
     _support,

@@ -77,9 +77,10 @@ explain it) (register).
 Host-side entry point: bad arguments raise ``ValueError``. The compiled pieces have static
 shapes: the segment grid is fixed by the image size and stride, the clouds given to ICP
 are padded (or subsampled) to ``max_points``, and the prepared model's arrays are padded to
-a few fixed sizes, so a new model (another object, another sampling) runs the programs
-compiled for the one before; only a model that outgrows those sizes, or the first whose
-``symmetry`` has a continuous axis, compiles (once).
+a few fixed sizes and its symmetry to fixed-shape arrays (:mod:`jaxreg.pipeline._model`), so
+a new model (another object, another sampling, another symmetry group) runs the programs
+compiled for the one before; only a model that outgrows the first size compiles (once per
+size).
 """
 
 from __future__ import annotations
@@ -97,23 +98,24 @@ from jaxtyping import Array, Bool, Float
 
 from jaxreg.camera.model import RGBDFrame
 from jaxreg.geometry.metrics import Symmetry
+from jaxreg.pipeline._answer import (
+    PROBE_ANGLES_DEG,
+    _probe,
+    _rest,
+    _unfixed_turns,
+)
 from jaxreg.pipeline._budget import Calibration, pose_budget
 from jaxreg.pipeline._lift import lift_region
+from jaxreg.pipeline._model import _bucketed_symmetry, _prepare_model
 from jaxreg.pipeline._records import LiftRecord, RegisterRecord, SegmentRecord
 from jaxreg.pipeline._register_stage import (
-    PROBE_ANGLES_DEG,
-    _bucketed_symmetry,
     _confirmed_share,
     _distinct,
     _finish,
     _judge,
-    _prepare_model,
     _register_starts,
-    _settle,
     _support,
     overhang,
-    probe_starts,
-    resting_contact,
     visibility as visibility,
 )
 from jaxreg.pipeline._segment_stage import segment_mask, segment_table
@@ -597,103 +599,6 @@ def _register(
     return PoseEstimate(
         SE3(wxyz_xyz), rmse, fraction, budget.total, None, reason, stages, mask, points, budget
     )
-
-
-def _probe(frame, plane, model, source, answer, score, rmse, trim, noise, settings: _Settings):
-    """The answer turned about the model's axes (:func:`probe_starts`), refined and judged
-    like the refined starts: their poses ``(P, 7)`` (object_T_base), which are as good as
-    the answer ``(P,)`` (score within 0.02, residual within 10%) and their residuals
-    ``(P,)`` (metres)."""
-    starts = SE3(jax.device_put(probe_starts(model, answer)))
-    probed = _register_starts(
-        source, model.points, model.normals, model.fine_grid, starts, settings.fine_distances,
-        trim, 30,
-    )  # fmt: skip
-    poses = np.array(probed.pose.wxyz_xyz, np.float32)
-    for i, pose in enumerate(poses):
-        poses[i] = _onto_table(model, pose, plane, settings)[0]
-    seen = np.asarray(_judge(frame, plane, poses, model.points, _TOLERANCE, noise.coefficients))
-    scores = np.asarray(probed.inlier_fraction) * _confirmed_share(seen)
-    rmses = np.nan_to_num(np.asarray(probed.inlier_rmse), nan=np.inf)
-    return poses, (scores >= score - 0.02) & (rmses <= rmse * 1.1 + 1e-4), rmses
-
-
-def _unfixed_turns(model, equal: np.ndarray):
-    """Turns about a model axis that the view does not fix: where the probes as good as the
-    answer (``equal`` ``(3 * A,)``, axis-major) span 120 degrees or more about one of the
-    model's principal axes, and that axis is (within 25 degrees) one of the object frame's,
-    the rotation about it is free. Returns the free tangent axes ``(6,)``, why, and which
-    probes turned about a free axis ``(3 * A,)``."""
-    angles = np.asarray(PROBE_ANGLES_DEG)
-    free = np.zeros(6, bool)
-    turned = np.zeros(len(equal), bool)
-    reasons = []
-    for k, axis in enumerate(np.asarray(model.axes).T):
-        rows = slice(k * len(angles), (k + 1) * len(angles))
-        span = _good_arc(angles, equal[rows])
-        frame_axis = int(np.argmax(np.abs(axis)))
-        if span >= 120 and abs(axis[frame_axis]) > np.cos(np.radians(25)):
-            free[3 + frame_axis] = True
-            turned[rows] = True
-            reasons.append(
-                f"the view does not fix the rotation about the object's "
-                f"{'xyz'[frame_axis]} axis (equally good answers span {span:.0f} deg)"
-            )
-    return free, "; ".join(reasons) or None, turned
-
-
-def _good_arc(angles: np.ndarray, good: np.ndarray) -> float:
-    """Degrees spanned by the run of consecutive good turns around the circle that holds the
-    answer (turn 0): a contiguous range of equally good answers about it, unlike isolated
-    flips or a second basin elsewhere."""
-    turns = np.mod(np.append(angles, 0.0), 360.0)
-    flags = np.append(good, True)
-    order = np.argsort(turns, kind="stable")
-    turns, flags = turns[order], flags[order]
-    if flags.all():
-        return 360.0
-    n, here = len(turns), int(np.flatnonzero(turns == 0.0)[0])
-    right = here
-    while flags[(right + 1) % n]:
-        right += 1
-    left = here
-    while flags[(left - 1) % n]:
-        left -= 1
-    return float(turns[right % n] - turns[left % n]) % 360.0
-
-
-def _onto_table(model, answer, plane, settings: _Settings):
-    """``answer`` (object_T_base wxyz_xyz) moved onto the table when it rests there
-    (:func:`resting_contact`), and the contact (points, lowest height) or ``None``."""
-    if plane is None:
-        return answer, None
-    resting = resting_contact(model, answer, plane, settings.rest_tolerance, settings.voxel_size)
-    if resting is None:
-        return answer, None
-    normal = np.asarray(plane.normal, np.float64)
-    shifted = SE3(np.asarray(answer, np.float64)) @ SE3.from_translation(resting[1] * normal)
-    return np.asarray(shifted.wxyz_xyz, np.float32), resting
-
-
-def _rest(source, model, results, best: int, plane, trim, settings: _Settings):
-    """The refined answers ``(S, 7)`` (object_T_base) with each one that rests on the table
-    moved onto it, the best one settled there by ICP with the contact points; the contact
-    points ``(C, 3)`` of the best (``None`` when it does not rest) and its lowest point's
-    height above the table before (metres; ``None`` likewise)."""
-    answers = np.array(results.pose.wxyz_xyz, np.float32)
-    contact, lowest = None, None
-    for i, answer in enumerate(answers):
-        answers[i], resting = _onto_table(model, answer, plane, settings)
-        if resting is None or i != best:
-            continue
-        settled = _settle(
-            source, resting[0], model.points, model.normals, model.fine_grid, answers[i],
-            settings.fine_distances[-15:], trim, 15,
-        )  # fmt: skip
-        if bool(np.isfinite(np.asarray(settled.inlier_rmse))):
-            answers[i] = np.asarray(settled.pose.wxyz_xyz, np.float32)
-            contact, lowest = resting
-    return answers, contact, lowest
 
 
 def _noise(depth_noise: DepthNoise | None, frame: RGBDFrame) -> DepthNoise:

@@ -1,0 +1,197 @@
+"""The answer's last checks for :mod:`jaxreg.pipeline.estimate`: an answer resting on the table
+is moved onto it and settled there with virtual contact points, and the answer turned about
+the model's axes (probes) shows which other poses the image supports as well.
+
+Conventions: poses are ``object_T_base`` (wxyz_xyz) as ICP returns them (the segment, base
+frame, registered into the model, object frame); tangents are jaxlie's ``(v, w)``.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxlie import SE3, SO3
+
+from jaxreg.core._program_cache import persistent_jit
+from jaxreg.pipeline._model import _Model
+from jaxreg.pipeline._register_stage import _confirmed_share, _judge, _register_starts
+from jaxreg.pipeline._settings import _TOLERANCE, _Settings
+from jaxreg.registration.icp import icp
+
+# --------------------------------------------------------------------------------------------
+# Resting on the table: the plane pins the height and tilt of an object standing on it.
+
+CONTACT_POINTS = 128  # virtual contact points appended to the refined cloud (static)
+# Weight of a contact point against a measured one: the plane is fitted to thousands of table
+# points, so its height is known far better than one depth pixel's.
+CONTACT_WEIGHT = 8.0
+
+
+def resting_contact(model: _Model, object_T_base: np.ndarray, plane, tolerance: float, voxel):
+    """Virtual contact points of a model resting on the table, or ``None``.
+
+    At the refined ``object_T_base`` (wxyz_xyz), the model's lowest point must lie within
+    ``tolerance`` (metres) of the plane, and the model's points within one ``voxel`` of
+    that height must form a face (spanning a third of the model's width, not a corner or an
+    edge). The face's points, moved onto the plane along its normal, are where the table says
+    the model's bottom is: ``(CONTACT_POINTS, 3)`` base-frame points (subsampled, or NaN
+    padded), and the height (metres) the model's lowest point had above the plane.
+    """
+    matrix = np.asarray(SE3(np.asarray(object_T_base, np.float64)).inverse().as_matrix())
+    points = model.points[np.all(np.isfinite(model.points), axis=1)]  # less the padding rows
+    placed = points.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]  # host numpy
+    normal, offset = np.asarray(plane.normal, np.float64), float(plane.offset)
+    height = placed @ normal + offset
+    lowest = float(height.min())
+    if not np.isfinite(lowest) or abs(lowest) > tolerance:
+        return None
+    face = placed[height <= lowest + voxel]
+    flat = face - np.outer(face @ normal, normal)
+    spread = np.ptp(flat @ np.linalg.svd(flat - flat.mean(0))[2][:2].T, axis=0)
+    width = np.ptp(placed - np.outer(placed @ normal, normal), axis=0).max()
+    if len(face) < 3 or spread.min() < width / 3:
+        return None
+    contact = face - np.outer(face @ normal + offset, normal)  # onto the plane
+    out = np.full((CONTACT_POINTS, 3), np.nan, np.float32)
+    step = max(1, int(np.ceil(len(contact) / CONTACT_POINTS)))
+    picked = contact[::step][:CONTACT_POINTS]
+    out[: len(picked)] = picked
+    return out, lowest
+
+
+@persistent_jit
+def _settle(source, contact, points, normals, grid, init, distances, trim, iterations):
+    """Point-to-plane ICP of ``source`` ``(N, 3)`` with the ``contact`` points ``(C, 3)``
+    appended (weight ``CONTACT_WEIGHT``), from ``init`` (7,): the object settled on the
+    table."""
+    joined = jnp.concatenate([source, contact])
+    weights = jnp.concatenate(
+        [jnp.ones(source.shape[0], source.dtype), jnp.full(contact.shape[0], CONTACT_WEIGHT)]
+    ).astype(source.dtype)
+    weights = jnp.where(jnp.all(jnp.isfinite(joined), axis=1), weights, 0.0)
+    return icp(
+        joined, points, SE3(init), method="point_to_plane", target_normals=normals,
+        max_correspondence_distance=distances, max_iterations=iterations, trim_fraction=trim,
+        source_weights=weights, neighbors=grid, tolerance=1e-5,
+    )  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------
+# Ambiguity: is the answer the only pose the image supports?
+
+PROBE_ANGLES_DEG = (
+    -150.0, -120.0, -90.0, -60.0, -40.0, -25.0, -12.0, 12.0, 25.0, 40.0, 60.0, 90.0, 120.0,
+    150.0, 180.0,
+)
+
+
+def probe_starts(model: _Model, object_T_base: np.ndarray) -> np.ndarray:
+    """``(3 * len(PROBE_ANGLES_DEG), 7)`` object_T_base starts: the answer turned about each
+    of the model's principal axes through its centroid by each probe angle (a mug whose handle
+    is hidden turns about its body's axis and still fits)."""
+    answer = SE3(np.asarray(object_T_base, np.float64))
+    centre = SE3.from_translation(np.asarray(model.centroid, np.float64))
+    starts = []
+    for axis in np.asarray(model.axes, np.float64).T:
+        for angle in np.radians(PROBE_ANGLES_DEG):
+            turn = SE3.from_rotation(SO3.exp(axis * angle))
+            starts.append((centre @ turn @ centre.inverse() @ answer).wxyz_xyz)
+    return np.asarray(starts, np.float32)
+
+
+def _probe(frame, plane, model, source, answer, score, rmse, trim, noise, settings: _Settings):
+    """The answer turned about the model's axes (:func:`probe_starts`), refined and judged
+    like the refined starts: their poses ``(P, 7)`` (object_T_base), which are as good as
+    the answer ``(P,)`` (score within 0.02, residual within 10%) and their residuals
+    ``(P,)`` (metres)."""
+    starts = SE3(jax.device_put(probe_starts(model, answer)))
+    probed = _register_starts(
+        source, model.points, model.normals, model.fine_grid, starts, settings.fine_distances,
+        trim, 30,
+    )  # fmt: skip
+    poses = np.array(probed.pose.wxyz_xyz, np.float32)
+    for i, pose in enumerate(poses):
+        poses[i] = _onto_table(model, pose, plane, settings)[0]
+    seen = np.asarray(_judge(frame, plane, poses, model.points, _TOLERANCE, noise.coefficients))
+    scores = np.asarray(probed.inlier_fraction) * _confirmed_share(seen)
+    rmses = np.nan_to_num(np.asarray(probed.inlier_rmse), nan=np.inf)
+    return poses, (scores >= score - 0.02) & (rmses <= rmse * 1.1 + 1e-4), rmses
+
+
+def _unfixed_turns(model, equal: np.ndarray):
+    """Turns about a model axis that the view does not fix: where the probes as good as the
+    answer (``equal`` ``(3 * A,)``, axis-major) span 120 degrees or more about one of the
+    model's principal axes, and that axis is (within 25 degrees) one of the object frame's,
+    the rotation about it is free. Returns the free tangent axes ``(6,)``, why, and which
+    probes turned about a free axis ``(3 * A,)``."""
+    angles = np.asarray(PROBE_ANGLES_DEG)
+    free = np.zeros(6, bool)
+    turned = np.zeros(len(equal), bool)
+    reasons = []
+    for k, axis in enumerate(np.asarray(model.axes).T):
+        rows = slice(k * len(angles), (k + 1) * len(angles))
+        span = _good_arc(angles, equal[rows])
+        frame_axis = int(np.argmax(np.abs(axis)))
+        if span >= 120 and abs(axis[frame_axis]) > np.cos(np.radians(25)):
+            free[3 + frame_axis] = True
+            turned[rows] = True
+            reasons.append(
+                f"the view does not fix the rotation about the object's "
+                f"{'xyz'[frame_axis]} axis (equally good answers span {span:.0f} deg)"
+            )
+    return free, "; ".join(reasons) or None, turned
+
+
+def _good_arc(angles: np.ndarray, good: np.ndarray) -> float:
+    """Degrees spanned by the run of consecutive good turns around the circle that holds the
+    answer (turn 0): a contiguous range of equally good answers about it, unlike isolated
+    flips or a second basin elsewhere."""
+    turns = np.mod(np.append(angles, 0.0), 360.0)
+    flags = np.append(good, True)
+    order = np.argsort(turns, kind="stable")
+    turns, flags = turns[order], flags[order]
+    if flags.all():
+        return 360.0
+    n, here = len(turns), int(np.flatnonzero(turns == 0.0)[0])
+    right = here
+    while flags[(right + 1) % n]:
+        right += 1
+    left = here
+    while flags[(left - 1) % n]:
+        left -= 1
+    return float(turns[right % n] - turns[left % n]) % 360.0
+
+
+def _onto_table(model, answer, plane, settings: _Settings):
+    """``answer`` (object_T_base wxyz_xyz) moved onto the table when it rests there
+    (:func:`resting_contact`), and the contact (points, lowest height) or ``None``."""
+    if plane is None:
+        return answer, None
+    resting = resting_contact(model, answer, plane, settings.rest_tolerance, settings.voxel_size)
+    if resting is None:
+        return answer, None
+    normal = np.asarray(plane.normal, np.float64)
+    shifted = SE3(np.asarray(answer, np.float64)) @ SE3.from_translation(resting[1] * normal)
+    return np.asarray(shifted.wxyz_xyz, np.float32), resting
+
+
+def _rest(source, model, results, best: int, plane, trim, settings: _Settings):
+    """The refined answers ``(S, 7)`` (object_T_base) with each one that rests on the table
+    moved onto it, the best one settled there by ICP with the contact points; the contact
+    points ``(C, 3)`` of the best (``None`` when it does not rest) and its lowest point's
+    height above the table before (metres; ``None`` likewise)."""
+    answers = np.array(results.pose.wxyz_xyz, np.float32)
+    contact, lowest = None, None
+    for i, answer in enumerate(answers):
+        answers[i], resting = _onto_table(model, answer, plane, settings)
+        if resting is None or i != best:
+            continue
+        settled = _settle(
+            source, resting[0], model.points, model.normals, model.fine_grid, answers[i],
+            settings.fine_distances[-15:], trim, 15,
+        )  # fmt: skip
+        if bool(np.isfinite(np.asarray(settled.inlier_rmse))):
+            answers[i] = np.asarray(settled.pose.wxyz_xyz, np.float32)
+            contact, lowest = resting
+    return answers, contact, lowest
