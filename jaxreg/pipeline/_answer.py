@@ -48,7 +48,7 @@ def resting_contact(model: _Model, object_T_base: np.ndarray, plane, tolerance: 
         return None
     face = placed[height <= lowest + voxel]
     flat = face - np.outer(face @ normal, normal)
-    spread = np.ptp(flat @ np.linalg.svd(flat - flat.mean(0))[2][:2].T, axis=0)
+    spread = np.ptp(flat @ np.linalg.svd(flat - flat.mean(0), full_matrices=False)[2][:2].T, axis=0)
     width = np.ptp(placed - np.outer(placed @ normal, normal), axis=0).max()
     if len(face) < 3 or spread.min() < width / 3:
         return None
