@@ -44,7 +44,7 @@ def fixture() -> dict:
 
 
 def test_fixture_is_the_scripts_output(fixture):
-    """The fixture was written by the script beside it, as it is now, to the path read here."""
+    """The fixture is the output of the script beside it (same hash), at the path read here."""
     spec = importlib.util.spec_from_file_location("make_bop_metric_fixtures", SCRIPT)
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
