@@ -1,14 +1,20 @@
 """BOP scoring of a split: targets missed, duplicates resolved by score, results outside the
-targets ignored, a known error's recall, and the toolkit's greedy matching of several
-estimates to several instances."""
+targets ignored, a known error's recall, and the matching of several estimates to several
+instances against the BOP toolkit's own (the fixture of ``test_bop_metrics.py``)."""
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 import jaxreg as jr
 from jaxreg.geometry.bop_metrics import MSSD_THRESHOLDS, mspd, mssd
-from jaxreg.io.bop import BopResult
-from jaxreg.studies.bop_scores import _greedy_hits, bop_scores
+from jaxreg.io.bop import BopResult, _chosen_targets
+from jaxreg.studies.bop_scores import _greedy_hits, _kept, bop_scores
+
+FIXTURE = Path(__file__).parent / "fixtures" / "bop" / "bop_metric_fixtures.json"
 
 
 @pytest.fixture(scope="module")
@@ -87,3 +93,44 @@ def test_greedy_matching_is_the_toolkits():
     np.testing.assert_array_equal(
         _greedy_hits(np.array([[0.1, 0.1]]), [0.1, 0.2]), [[0, 1], [0, 0]]
     )
+
+
+def test_matching_and_recall_are_the_toolkits(tmp_path):
+    """24 images, up to 3 objects of up to 3 instances, BOP19 target counts, tied scores and
+    visibilities: the instances the reader makes targets, the estimates kept and the greedy
+    matching give the toolkit's matched instances and recall at every threshold."""
+    reference = json.loads(FIXTURE.read_text())["matching"]
+    images = {image["im_id"]: image for image in reference["images"]}
+    truth = {
+        1: {
+            im_id: [(g["obj_id"], np.eye(4), g["visib_fract"]) for g in image["gts"]]
+            for im_id, image in images.items()
+        }
+    }
+    targets_file = [
+        {"scene_id": 1, "im_id": im_id, **target}
+        for im_id, image in images.items()
+        for target in image["targets"]
+    ]
+    (tmp_path / "test_targets_bop19.json").write_text(json.dumps(targets_file))
+    chosen = _chosen_targets(tmp_path, truth, None)
+    thresholds = np.asarray(reference["thresholds"])
+    hits, keys = [], []
+    for (_, im_id), targets in sorted(chosen.items()):
+        image = images[im_id]
+        for obj_id in sorted({t.obj_id for t in targets}):
+            instances = [t for t in targets if t.obj_id == obj_id]
+            of_object = [g for g, gt in enumerate(image["gts"]) if gt["obj_id"] == obj_id]
+            columns = [of_object.index(t.gt_index) for t in instances]
+            estimates = [SimpleNamespace(**e) for e in image["estimates"].get(str(obj_id), [])]
+            kept = _kept(estimates, len(instances))
+            errors = np.array([[e.errors[c] for c in columns] for e in kept])
+            hits.append(_greedy_hits(errors.reshape(len(kept), len(instances)), thresholds))
+            keys += [(im_id, t.gt_index) for t in instances]
+    hits = np.concatenate(hits)
+    for c, matched in enumerate(reference["matched"]):
+        assert {k for k, hit in zip(keys, hits[:, c], strict=True) if hit} == {
+            tuple(m) for m in matched
+        }, f"threshold {thresholds[c]}"
+    np.testing.assert_allclose(hits.mean(axis=0), reference["recall"], rtol=1e-12)
+    assert 0 < hits.mean() < 1

@@ -135,6 +135,12 @@ def _pair_errors(split, model, instances, estimates):
     return vsd_e, mssd_e, mspd_e
 
 
+def _kept(estimates: Sequence, count: int) -> list:
+    """The `count` highest-scoring estimates (objects with a `score`), in decreasing score;
+    equal scores keep their given order."""
+    return sorted(estimates, key=lambda r: r.score, reverse=True)[:count]
+
+
 def _greedy_hits(errors: np.ndarray, thresholds: np.ndarray) -> np.ndarray:
     """`(K, C)`: whether each of `K` instances is matched at each of `C` thresholds, by the
     `E` estimates of `errors (E, K)` (rows in decreasing score), each taking the not yet
@@ -181,8 +187,7 @@ def bop_scores(split: BopSplit, results: Sequence[BopResult]) -> BopScores:
     for key, members in groups.items():
         instances = [targets[n] for n in members]
         model = split.models[key[2]]
-        ranked = sorted(by_key.get(key, []), key=lambda r: r.score, reverse=True)
-        kept = ranked[: len(instances)]
+        kept = _kept(by_key.get(key, []), len(instances))
         if not kept:
             for n in members:
                 errors[n] = TargetErrors(targets[n], False, np.ones(len(VSD_TAUS)), np.inf, np.inf)
