@@ -12,7 +12,7 @@ import pytest
 import jaxreg as jr
 from jaxreg.geometry.bop_metrics import MSSD_THRESHOLDS, mspd, mssd
 from jaxreg.io.bop import BopResult, _chosen_targets
-from jaxreg.studies.bop_scores import _greedy_hits, _kept, bop_scores
+from jaxreg.studies.bop_scores import _greedy_hits, _kept, _sphere_images_overlap, bop_scores
 
 FIXTURE = Path(__file__).parent / "fixtures" / "bop" / "bop_metric_fixtures.json"
 
@@ -134,3 +134,12 @@ def test_matching_and_recall_are_the_toolkits(tmp_path):
         }, f"threshold {thresholds[c]}"
     np.testing.assert_allclose(hits.mean(axis=0), reference["recall"], rtol=1e-12)
     assert 0 < hits.mean() < 1
+
+
+def test_sphere_overlap_is_the_toolkits():
+    cases = json.loads(FIXTURE.read_text())["sphere_overlaps"]
+    ours = [
+        _sphere_images_overlap(c["radius"], np.asarray(c["p1"]), np.asarray(c["p2"])) for c in cases
+    ]
+    assert ours == [c["overlap"] for c in cases]
+    assert 10 < sum(ours) < len(cases) - 10  # both answers are exercised
