@@ -68,21 +68,19 @@ def _progress_bar(label: str):
     return progress
 
 
-def _print_scores(scores, split) -> None:
+def _print_scores(scores) -> None:
+    """Recall per object and the AR (BOP19's VSD, MSSD and MSPD recalls and their mean)."""
     print(
         f"{'object':>6}  {'targets':>7}  {'AR_VSD':>6}  {'AR_MSSD':>7}  {'AR_MSPD':>7}  {'AR':>6}"
     )
-    counts = {}
-    for target in split.targets():
-        counts[target.obj_id] = counts.get(target.obj_id, 0) + 1
     for obj_id, row in sorted(scores.per_object.items()):
         print(
-            f"{obj_id:>6}  {counts.get(obj_id, 0):>7}  {row['ar_vsd']:6.3f}  "
+            f"{obj_id:>6}  {int(row['targets']):>7}  {row['ar_vsd']:6.3f}  "
             f"{row['ar_mssd']:7.3f}  {row['ar_mspd']:7.3f}  {row['ar']:6.3f}"
         )
     print(
         f"AR {scores.ar:.3f} (VSD {scores.ar_vsd:.3f}, MSSD {scores.ar_mssd:.3f}, "
-        f"MSPD {scores.ar_mspd:.3f}) over {len(split.targets())} targets"
+        f"MSPD {scores.ar_mspd:.3f}) over {len(scores.errors)} targets"
     )
 
 
@@ -95,6 +93,7 @@ def run_bop_command(args) -> int:
 
         from jaxreg.io.bop import read_bop, write_bop_results
         from jaxreg.studies.bop_run import gather_bop_results, run_bop
+        from jaxreg.studies.bop_scores import bop_scores
 
         split = read_bop(
             args.dataset,
@@ -125,9 +124,7 @@ def run_bop_command(args) -> int:
         out = args.out or Path(f"jaxreg_{args.dataset.resolve().name}-{args.split}.csv")
         write_bop_results(out, results)
         print(f"wrote {len(results)} estimates to {out}")
-        from jaxreg.studies import bop_scores
-
-        _print_scores(bop_scores(split, results), split)
+        _print_scores(bop_scores(split, results))
     except (ValueError, OSError) as err:
         print(f"jaxreg bop: {err}", file=sys.stderr)
         return 1

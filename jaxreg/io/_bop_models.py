@@ -11,12 +11,12 @@ axis through the offset point).
 from __future__ import annotations
 
 import dataclasses
-import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from jaxreg.geometry.bop_metrics import bop_symmetry_transforms
 from jaxreg.geometry.metrics import Symmetry
 from jaxreg.io._bop_files import load_json, numbers
 
@@ -26,10 +26,6 @@ if TYPE_CHECKING:
 __all__ = ["BopModel", "read_models"]
 
 MM = 1e-3  # metres per millimetre
-# BOP's discretisation of a continuous symmetry: the vertex farthest from the axis travels at
-# most this fraction of the diameter between steps (the toolkit's max_sym_disc_step), so
-# ceil(pi / 0.01) = 315 turns.
-SYMMETRY_STEP = 0.01
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -46,9 +42,10 @@ class BopModel:
             continuous axis if any (translations of the symmetries are dropped: `Symmetry`
             turns about the origin).
         symmetry_transforms: `(S, 4, 4)` float64 BOP's own discretised set (metres), the
-            identity first: each discrete transform composed with each of the 315 turns about
-            the continuous axis through its offset, as the toolkit's
-            `get_symmetry_transformations(info, max_sym_disc_step=0.01)` orders them.
+            identity first: the listed discrete transforms as the file gives them, each
+            composed with each of the 315 turns about the continuous axis through its offset
+            (`jaxreg.bop_symmetry_transforms`, the toolkit's
+            `get_symmetry_transformations(info, max_sym_disc_step=0.01)`).
     """
 
     obj_id: int
@@ -65,21 +62,11 @@ def _nearest_rotation(matrix: np.ndarray) -> np.ndarray:
     return u @ fix @ vt
 
 
-def _axis_rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    """`(3, 3)` rotation by `angle` radians about the unit `axis` (right hand)."""
-    x, y, z = axis
-    skew = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    return (
-        np.cos(angle) * np.eye(3)
-        + np.sin(angle) * skew
-        + (1 - np.cos(angle)) * np.outer(axis, axis)
-    )
-
-
 def _transforms(path: Path, where: str, info: dict):
-    """The discrete `(D, 4, 4)` (identity first) and continuous `[(axis, offset)]` symmetries
-    of one models_info entry, metres."""
-    discrete = [np.eye(4)]
+    """The discrete `(D, 4, 4)` (identity first; rotations made exactly orthonormal), the
+    same as listed in the file (`(D - 1, 4, 4)`, no identity) and the continuous
+    `[(axis, offset)]` symmetries of one models_info entry, metres."""
+    discrete, listed_transforms = [np.eye(4)], []
     listed = info.get("symmetries_discrete", [])
     if not isinstance(listed, list):
         raise ValueError(f"{path}: {where}: symmetries_discrete must be a list of 4x4 transforms")
@@ -95,6 +82,9 @@ def _transforms(path: Path, where: str, info: dict):
         transform[:3, :3] = _nearest_rotation(rotation)
         transform[:3, 3] = matrix[:3, 3] * MM
         discrete.append(transform)
+        as_listed = np.vstack([matrix[:3], [0.0, 0.0, 0.0, 1.0]])
+        as_listed[:3, 3] *= MM
+        listed_transforms.append(as_listed)
     continuous = []
     listed = info.get("symmetries_continuous", [])
     if not isinstance(listed, list):
@@ -107,23 +97,7 @@ def _transforms(path: Path, where: str, info: dict):
         if not np.linalg.norm(axis) > 0:
             raise ValueError(f"{path}: {where}: a continuous symmetry's axis is zero")
         continuous.append((axis / np.linalg.norm(axis), offset))
-    return np.stack(discrete), continuous
-
-
-def _bop_transforms(discrete: np.ndarray, continuous) -> np.ndarray:
-    """`(S, 4, 4)`: every discrete transform, each composed (discrete outer) with every turn
-    of every continuous symmetry, BOP's order."""
-    steps = math.ceil(np.pi / SYMMETRY_STEP)
-    turns = []
-    for axis, offset in continuous:
-        for i in range(steps):
-            turn = np.eye(4)
-            turn[:3, :3] = _axis_rotation(axis, i * 2 * np.pi / steps)
-            turn[:3, 3] = offset - turn[:3, :3] @ offset
-            turns.append(turn)
-    if not turns:
-        return discrete
-    return np.stack([turn @ transform for transform in discrete for turn in turns])
+    return np.stack(discrete), np.reshape(listed_transforms, (-1, 4, 4)), continuous
 
 
 def _symmetry(path: Path, where: str, discrete: np.ndarray, continuous) -> Symmetry:
@@ -180,7 +154,7 @@ def read_models(models_dir: Path, obj_ids) -> dict[int, BopModel]:
                 f"{info_path}: {where}: diameter must be a positive number of millimetres, got "
                 f"{diameter!r}"
             )
-        discrete, continuous = _transforms(info_path, where, info)
+        discrete, listed, continuous = _transforms(info_path, where, info)
         mesh = _read_mesh(models_dir / f"obj_{obj_id:06d}.ply")
         models[obj_id] = BopModel(
             obj_id=obj_id,
@@ -188,6 +162,6 @@ def read_models(models_dir: Path, obj_ids) -> dict[int, BopModel]:
             points=np.asarray(mesh.vertices, dtype=np.float64),
             diameter=float(diameter) * MM,
             symmetry=_symmetry(info_path, where, discrete, continuous),
-            symmetry_transforms=_bop_transforms(discrete, continuous),
+            symmetry_transforms=bop_symmetry_transforms(listed, continuous),
         )
     return models

@@ -1,7 +1,8 @@
 """Studies: sweeps of many registrations that each answer one question: the basin of
 attraction of ICP, the repeatability tiers with their error budget, the hand-eye correction
 that makes viewpoints agree, the calibration of the reported error bars against the real
-error, and the pipeline run on every target of a BOP dataset split.
+error, and the pipeline run on every target of a BOP dataset split with its estimates scored
+by BOP's metrics.
 
 May import every package but :mod:`jaxreg.cli`.
 """
@@ -23,6 +24,11 @@ from jaxreg.studies.basin import (
 from jaxreg.studies.bop_run import (
     gather_bop_results as gather_bop_results,
     run_bop as run_bop,
+)
+from jaxreg.studies.bop_scores import (
+    BopScores as BopScores,
+    TargetErrors as TargetErrors,
+    bop_scores as bop_scores,
 )
 from jaxreg.studies.calibration import (
     CalibrationStudy as CalibrationStudy,
