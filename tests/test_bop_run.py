@@ -1,4 +1,5 @@
-"""``jaxreg bop`` on a tiny synthetic BOP split (two images: a box and a mug): it writes BOP's
+"""``jaxreg bop`` on a tiny synthetic BOP split (two images of a box: one model, so the pipeline
+compiles once, and test_pipeline's box programs serve it on the same worker): it writes BOP's
 CSV with an estimate near the truth for each target and prints the recall per object and the
 AR; two processes joined by ``jax.distributed`` write the same rows (times excepted)."""
 
@@ -15,7 +16,7 @@ import pytest
 import jaxreg as jr
 from jaxreg.cli import main
 
-OBJECTS = ("box", "mug")
+OBJECTS = ("box",)
 
 
 @pytest.fixture(autouse=True)
@@ -55,15 +56,15 @@ def test_bop_command_writes_the_csv_and_prints_the_ar(split_root, one_process):
     assert "2/2 images" in stderr
     split = jr.io.read_bop(split_root)
     results = jr.io.read_bop_results(out)
-    assert [(r.scene_id, r.im_id, r.obj_id) for r in results] == [(1, 0, 1), (1, 1, 2)]
+    assert [(r.scene_id, r.im_id, r.obj_id) for r in results] == [(1, 0, 1), (1, 1, 1)]
     for result, target in zip(results, split.targets(), strict=True):
         error = np.linalg.norm(result.t - target.camera_T_object[:3, 3])
         assert error < 0.01, (target.obj_id, error)
         assert result.time > 0
     lines = stdout.splitlines()
     assert lines[0] == f"wrote 2 estimates to {out}"
-    per_object = [line.split() for line in lines[2:4]]
-    assert [row[:2] for row in per_object] == [["1", "1"], ["2", "1"]]
+    assert lines[1].split() == ["object", "targets", "AR_VSD", "AR_MSSD", "AR_MSPD", "AR"]
+    assert lines[2].split()[:2] == ["1", "2"]
     ar = float(lines[-1].split()[1])
     assert 0.5 < ar <= 1.0, stdout
 
