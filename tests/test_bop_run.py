@@ -76,6 +76,14 @@ def test_bad_dataset_is_one_clear_line(tmp_path, capsys):
     assert len(err.strip().splitlines()) == 1
 
 
+def test_runner_rejects_a_bad_share_or_object(split_root):
+    split = jr.io.read_bop(split_root)
+    with pytest.raises(ValueError, match="process_index must lie in 0 .. 1"):
+        jr.studies.run_bop(split, process_index=2, process_count=2)
+    with pytest.raises(ValueError, match=r"objects \[7\] have no targets"):
+        jr.studies.run_bop(split, objects=[7])
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

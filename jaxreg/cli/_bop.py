@@ -102,11 +102,17 @@ def run_bop_command(args) -> int:
             scenes=_ids(args.scenes, "scenes"),
         )
         index, count = jax.process_index(), jax.process_count()
-        route = "the table route" if args.no_masks else "mask_visib"
+        targets = split.targets()
+        if args.no_masks:
+            route = "the table route"
+        elif split.mask(targets[0]) is None:
+            route = "the table route (the split has no mask_visib)"
+        else:
+            route = "mask_visib"
         if index == 0:
             print(
                 f"jaxreg bop: {args.dataset}/{args.split}: {len(split.images)} images, "
-                f"{len(split.targets())} targets, objects {sorted(split.models)}, segmented "
+                f"{len(targets)} targets, objects {sorted(split.models)}, segmented "
                 f"by {route}, {count} process(es) (the first image compiles: ~1 min)",
                 file=sys.stderr,
             )

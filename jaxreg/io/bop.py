@@ -303,7 +303,7 @@ def _chosen_targets(root: Path, truth: dict, objects) -> dict[tuple[int, int], l
                 f"{path}: entry {n}: scene {scene_id} has no image {im_id} in scene_gt"
             )
         rows = truth[scene_id][im_id]
-        # the instance_count most visible instances of the object (BOP counts an instance as
+        # the inst_count most visible instances of the object (BOP counts an instance as
         # a target when at least 10% of it is visible)
         candidates = sorted(
             (k for k, row in enumerate(rows) if row[0] == obj_id), key=lambda k: -rows[k][2]
