@@ -69,6 +69,18 @@ def test_bop_command_writes_the_csv_and_prints_the_ar(split_root, one_process):
     assert 0.5 < ar <= 1.0, stdout
 
 
+def test_table_route_without_masks(split_root, one_process, tmp_path, capsys):
+    """After the mask route's compile, the table route (``--no-masks``) costs seconds."""
+    out = tmp_path / "table.csv"
+    assert main(["bop", str(split_root), "--no-masks", "--out", str(out)]) == 0
+    assert "segmented by the table route" in capsys.readouterr().err
+    split = jr.io.read_bop(split_root)
+    results = jr.io.read_bop_results(out)
+    assert [(r.im_id, r.obj_id) for r in results] == [(0, 1), (1, 1)]
+    for result, target in zip(results, split.targets(), strict=True):
+        assert np.linalg.norm(result.t - target.camera_T_object[:3, 3]) < 0.01
+
+
 def test_bad_dataset_is_one_clear_line(tmp_path, capsys):
     assert main(["bop", str(tmp_path)]) == 1
     err = capsys.readouterr().err
