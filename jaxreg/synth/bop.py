@@ -101,6 +101,52 @@ def _save_png(path: Path, image: np.ndarray) -> None:
     Image.fromarray(image).save(path)
 
 
+def _write_image(folder: Path, im_id: int, scene: TabletopScene, object_id: int):
+    """The image's depth, colour and masks as PNGs in `folder`; returns its scene_camera,
+    scene_gt and scene_gt_info entries (millimetres)."""
+    intrinsics = scene.frame.intrinsics
+    base_T_camera = np.asarray(scene.frame.base_T_camera.as_matrix(), np.float64)
+    base_T_object = np.asarray(scene.truth.as_matrix(), np.float64)
+    camera_T_base = np.linalg.inv(base_T_camera)
+    camera_T_object = camera_T_base @ base_T_object
+    # the object alone: its full silhouette (BOP's mask/ and px_count_all)
+    alone = render([scene.model.copy().apply_transform(base_T_object)], intrinsics, base_T_camera)
+    full = alone.labels == 0
+    depth = np.nan_to_num(np.asarray(scene.frame.depth, np.float64), nan=0.0)
+    counts = np.rint(depth * _MM_PER_M / DEPTH_SCALE).astype(np.uint16)
+    stem = f"{im_id:06d}"
+    _save_png(folder / "depth" / f"{stem}.png", counts)
+    _save_png(folder / "rgb" / f"{stem}.png", np.asarray(scene.frame.rgb, np.uint8))
+    _save_png(folder / "mask_visib" / f"{stem}_000000.png", scene.mask.astype(np.uint8) * 255)
+    _save_png(folder / "mask" / f"{stem}_000000.png", full.astype(np.uint8) * 255)
+
+    K = np.array(
+        [[intrinsics.fx, 0, intrinsics.cx], [0, intrinsics.fy, intrinsics.cy], [0, 0, 1]],
+        dtype=np.float64,
+    )
+    R_w2c, t_w2c = _flat_pose(camera_T_base[:3, :3], camera_T_base[:3, 3])
+    camera = {
+        "cam_K": K.reshape(-1).tolist(),
+        "depth_scale": DEPTH_SCALE,
+        "cam_R_w2c": R_w2c,
+        "cam_t_w2c": t_w2c,
+    }
+    R_m2c, t_m2c = _flat_pose(camera_T_object[:3, :3], camera_T_object[:3, 3])
+    gt = [{"obj_id": object_id, "cam_R_m2c": R_m2c, "cam_t_m2c": t_m2c}]
+    visible = int(scene.mask.sum())
+    info = [
+        {
+            "bbox_obj": _bbox(full),
+            "bbox_visib": _bbox(scene.mask),
+            "px_count_all": int(full.sum()),
+            "px_count_valid": int((scene.mask & (counts > 0)).sum()),
+            "px_count_visib": visible,
+            "visib_fract": visible / max(int(full.sum()), 1),
+        }
+    ]
+    return camera, gt, info
+
+
 def write_bop_split(
     root: str | Path,
     *,
@@ -149,48 +195,9 @@ def write_bop_split(
             name = objects[(s * images_per_scene + im_id) % len(objects)]
             scene = image_scene(seed, s * images_per_scene + im_id, objects, noise)
             intrinsics = scene.frame.intrinsics
-            base_T_camera = np.asarray(scene.frame.base_T_camera.as_matrix(), np.float64)
-            base_T_object = np.asarray(scene.truth.as_matrix(), np.float64)
-            camera_T_base = np.linalg.inv(base_T_camera)
-            camera_T_object = camera_T_base @ base_T_object
-            alone = render(
-                [scene.model.copy().apply_transform(base_T_object)], intrinsics, base_T_camera
+            cameras[str(im_id)], gts[str(im_id)], gt_infos[str(im_id)] = _write_image(
+                folder, im_id, scene, obj_id(name)
             )
-            full = alone.labels == 0
-            depth = np.nan_to_num(np.asarray(scene.frame.depth, np.float64), nan=0.0)
-            counts = np.rint(depth * _MM_PER_M / DEPTH_SCALE).astype(np.uint16)
-            stem = f"{im_id:06d}"
-            _save_png(folder / "depth" / f"{stem}.png", counts)
-            _save_png(folder / "rgb" / f"{stem}.png", np.asarray(scene.frame.rgb, np.uint8))
-            _save_png(
-                folder / "mask_visib" / f"{stem}_000000.png", scene.mask.astype(np.uint8) * 255
-            )
-            _save_png(folder / "mask" / f"{stem}_000000.png", full.astype(np.uint8) * 255)
-
-            K = np.array(
-                [[intrinsics.fx, 0, intrinsics.cx], [0, intrinsics.fy, intrinsics.cy], [0, 0, 1]],
-                dtype=np.float64,
-            )
-            R_w2c, t_w2c = _flat_pose(camera_T_base[:3, :3], camera_T_base[:3, 3])
-            cameras[str(im_id)] = {
-                "cam_K": K.reshape(-1).tolist(),
-                "depth_scale": DEPTH_SCALE,
-                "cam_R_w2c": R_w2c,
-                "cam_t_w2c": t_w2c,
-            }
-            R_m2c, t_m2c = _flat_pose(camera_T_object[:3, :3], camera_T_object[:3, 3])
-            gts[str(im_id)] = [{"obj_id": obj_id(name), "cam_R_m2c": R_m2c, "cam_t_m2c": t_m2c}]
-            visible = int(scene.mask.sum())
-            gt_infos[str(im_id)] = [
-                {
-                    "bbox_obj": _bbox(full),
-                    "bbox_visib": _bbox(scene.mask),
-                    "px_count_all": int(full.sum()),
-                    "px_count_valid": int((scene.mask & (counts > 0)).sum()),
-                    "px_count_visib": visible,
-                    "visib_fract": visible / max(int(full.sum()), 1),
-                }
-            ]
             targets.append(
                 {"im_id": im_id, "inst_count": 1, "obj_id": obj_id(name), "scene_id": scene_id}
             )
