@@ -136,6 +136,12 @@ BREAKS = {
         ),
         "models_info.json: object 1: diameter must be a positive number",
     ),
+    "visibility of another instance count": (
+        lambda root: _rewrite_json(
+            root / "test/000001/scene_gt_info.json", lambda c: c.update({"0": []})
+        ),
+        "scene_gt_info.json: image 0 lists 0 instances, scene_gt.json 1",
+    ),
     "missing split": (lambda root: shutil.rmtree(root / "test"), "no such split folder"),
 }
 

@@ -136,8 +136,9 @@ def _ground_truth(path: Path, info_path: Path):
             raise ValueError(f"{path}: image {im_id}: expected a list of object instances")
         info = infos.get(im_id, [{}] * len(instances))
         if not isinstance(info, list) or len(info) != len(instances):
+            listed = len(info) if isinstance(info, list) else "no list of"
             raise ValueError(
-                f"{info_path}: image {im_id} lists {len(info)} instances, scene_gt.json "
+                f"{info_path}: image {im_id} lists {listed} instances, scene_gt.json "
                 f"{len(instances)}: the two files must describe the same instances"
             )
         rows = []
@@ -148,6 +149,8 @@ def _ground_truth(path: Path, info_path: Path):
                 raise ValueError(f"{path}: {where} has no integer obj_id")
             pose = _pose(path, f"{where}: cam_*_m2c", gt.get("cam_R_m2c"), gt.get("cam_t_m2c"))
             visib = extra.get("visib_fract", 1.0) if isinstance(extra, dict) else 1.0
+            if isinstance(visib, bool) or not isinstance(visib, int | float) or not 0 <= visib <= 1:
+                raise ValueError(f"{info_path}: {where}: visib_fract must be a number in [0, 1]")
             rows.append((obj_id, pose, float(visib)))
         truth[im_id] = rows
     return truth
