@@ -36,6 +36,14 @@ from jaxreg.geometry.alignment import (
     kabsch as kabsch,
     umeyama as umeyama,
 )
+from jaxreg.geometry.bop_metrics import (
+    BopRecall as BopRecall,
+    average_recall as average_recall,
+    bop_symmetry_transforms as bop_symmetry_transforms,
+    mspd as mspd,
+    mssd as mssd,
+    vsd as vsd,
+)
 from jaxreg.geometry.kernels import (
     L2 as L2,
     Cauchy as Cauchy,

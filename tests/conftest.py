@@ -70,8 +70,12 @@ def data_root() -> Path | None:
 
 # Files whose tests compile the same JAX programs, mapped to the file they run beside (with
 # ``--dist loadfile`` each file is a unit of work): the demo command estimates the pose on
-# test_pipeline's scene (seed 4 box, 20,000 model samples), ~40 s of CPU compiled once.
-_SAME_WORKER = {"tests/test_cli.py": "tests/test_pipeline.py"}
+# test_pipeline's scene (seed 4 box, 20,000 model samples), ~40 s of CPU compiled once, and
+# ``jaxreg bop`` runs the same programs on its 848x480 synthetic BOP frames.
+_SAME_WORKER = {
+    "tests/test_cli.py": "tests/test_pipeline.py",
+    "tests/test_bop_run.py": "tests/test_pipeline.py",
+}
 
 
 @pytest.hookimpl(optionalhook=True)

@@ -1,4 +1,4 @@
-"""Command line: ``jaxreg demo | pose`` (``python -m jaxreg`` is the same).
+"""Command line: ``jaxreg demo | pose | basin | bop`` (``python -m jaxreg`` is the same).
 
 * ``jaxreg demo [--out DIR] [--json] [--seed N] [--object NAME]`` renders a synthetic tabletop
   frame (:func:`jaxreg.synth.tabletop_scene`), estimates the object's pose
@@ -27,9 +27,9 @@ set, else ``$XDG_CACHE_HOME/jaxreg/jax`` (``~/.cache/jaxreg/jax``), programs in 
 folder; set ``JAXREG_CACHE_DIR=""`` to turn both off. Deleting the folder is always safe.
 
 Subcommands are added by functions taking the subparsers object (``_add_demo``,
-``_add_pose``, and ``jaxreg basin``'s ``add_basin_parser`` from :mod:`jaxreg.cli._basin`); each
-sets ``run`` to a function of the parsed arguments returning the exit
-status.
+``_add_pose``, ``jaxreg basin``'s ``add_basin_parser`` from :mod:`jaxreg.cli._basin` and
+``jaxreg bop``'s ``add_bop_parser`` from :mod:`jaxreg.cli._bop`); each sets ``run`` to a
+function of the parsed arguments returning the exit status.
 """
 
 from __future__ import annotations
@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxreg.cli._basin import add_basin_parser, run_basin
+from jaxreg.cli._bop import add_bop_parser, run_bop_command
 from jaxreg.core._program_cache import persistent_jit
 
 GRIPPER_OPENING = 0.085  # metres: a Robotiq 2F-85-class parallel-jaw gripper
@@ -564,6 +565,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]
     _add_demo(sub)
     _add_pose(sub)
     add_basin_parser(sub).set_defaults(run=run_basin)
+    add_bop_parser(sub).set_defaults(run=run_bop_command)
     return parser, sub
 
 

@@ -1,7 +1,8 @@
 """Geometry core: SE(3)/SO(3) utilities on jaxlie's types (geodesic angles, means, sampling,
 adjoint transport, ``se3_exp``), weighted Kabsch/Umeyama and ``align``, robust kernels,
-closed-form small eigensolvers, brute-force nearest neighbours, and the pose metrics
-(pose error, ADD/ADD-S, ``Symmetry``, canonicalisation).
+closed-form small eigensolvers, brute-force nearest neighbours, the pose metrics
+(pose error, ADD/ADD-S, ``Symmetry``, canonicalisation) and the BOP benchmark's (VSD, MSSD,
+MSPD, Average Recall).
 
 Conventions: a pose maps source/model coordinates into target/scene coordinates; tangents are
 jaxlie's ``(vx, vy, vz, wx, wy, wz)``. May import :mod:`jaxreg.core` only.

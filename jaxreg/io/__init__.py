@@ -1,10 +1,20 @@
 """Files in and out: PCD (every variant PCL writes, LZF-compressed included), meshes and point
-files through trimesh, and RGB-D frames (organized PCD, or a depth PNG with intrinsics JSON).
+files through trimesh, RGB-D frames (organized PCD, or a depth PNG with intrinsics JSON), and
+BOP datasets in and BOP result CSVs out.
 
 Readers return metres and raise ``ValueError`` naming the file and what is wrong with it. May
 import :mod:`jaxreg.core`, :mod:`jaxreg.geometry` and :mod:`jaxreg.camera`.
 """
 
+from jaxreg.io.bop import (
+    BopModel as BopModel,
+    BopResult as BopResult,
+    BopSplit as BopSplit,
+    BopTarget as BopTarget,
+    read_bop as read_bop,
+    read_bop_results as read_bop_results,
+    write_bop_results as write_bop_results,
+)
 from jaxreg.io.clouds import (
     PointCloud as PointCloud,
     load_points as load_points,

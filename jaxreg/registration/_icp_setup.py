@@ -230,7 +230,7 @@ def run_starts(
     problem: Problem, opts: Options, sizes: tuple[int, int], inits
 ) -> RegistrationResult:
     """ICP from every start of ``inits`` (an ``SE3`` batch ``(S,)`` or ``(S, 4, 4)``) in one
-    compiled call, sharded over ``jax.devices()`` when there are several; every leaf of the
+    compiled call, sharded over ``jax.local_devices()`` when there are several; every leaf of the
     (unpadded) result has the leading axis ``S``."""
     starts = as_pose(inits, problem.source.dtype)
     if len(starts.get_batch_axes()) != 1:
@@ -245,9 +245,11 @@ def run_starts(
 
 
 def _shard_starts(starts: SE3) -> SE3:
-    """Splits the start axis over ``jax.devices()`` when there is more than one device,
-    padding it (with copies of the last start) to a multiple of the device count."""
-    devices = jax.devices()
+    """Splits the start axis over this process's devices when it has more than one, padding
+    it (with copies of the last start) to a multiple of the device count. Only the local
+    devices: in a ``jax.distributed`` run each process registers its own problem (a device of
+    another process would need that process to make the same call with the same data)."""
+    devices = jax.local_devices()
     if len(devices) < 2:
         return starts
     params = starts.wxyz_xyz

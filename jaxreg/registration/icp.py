@@ -182,9 +182,9 @@ def multistart_icp(
     ``inits`` has one batch axis ``(S,)`` (an ``SE3`` batch or ``(S, 4, 4)``); every leaf of
     the result gains a leading axis ``S`` and ``result[i]`` is start ``i``'s result. Each
     start has its own status; one failed start never fails the batch. The neighbour
-    structure is built once and shared. With more than one device in ``jax.devices()`` the
-    starts are sharded over them (the problem is replicated). The keyword arguments are
-    those of :func:`icp`. :func:`select_best` picks the best start.
+    structure is built once and shared. With more than one device in
+    ``jax.local_devices()`` the starts are sharded over them (the problem is replicated).
+    The keyword arguments are those of :func:`icp`. :func:`select_best` picks the best start.
     """
     settings = Settings(
         method, target_normals, max_correspondence_distance, max_iterations, tolerance,

@@ -1,7 +1,8 @@
 """Studies: sweeps of many registrations that each answer one question: the basin of
 attraction of ICP, the repeatability tiers with their error budget, the hand-eye correction
-that makes viewpoints agree, and the calibration of the reported error bars against the real
-error.
+that makes viewpoints agree, the calibration of the reported error bars against the real
+error, and the pipeline run on every target of a BOP dataset split with its estimates scored
+by BOP's metrics.
 
 May import every package but :mod:`jaxreg.cli`.
 """
@@ -19,6 +20,15 @@ from jaxreg.studies.basin import (
     basin_radius as basin_radius,
     basin_starts as basin_starts,
     basin_sweep as basin_sweep,
+)
+from jaxreg.studies.bop_run import (
+    gather_bop_results as gather_bop_results,
+    run_bop as run_bop,
+)
+from jaxreg.studies.bop_scores import (
+    BopScores as BopScores,
+    TargetErrors as TargetErrors,
+    bop_scores as bop_scores,
 )
 from jaxreg.studies.calibration import (
     CalibrationStudy as CalibrationStudy,

@@ -1,5 +1,6 @@
 """Synthetic tabletop RGB-D scenes: meshes of the test objects, an exact ray-cast rendering, a
-stereo depth sensor model, and scenes with their ground truth (pose, mask, symmetry).
+stereo depth sensor model, scenes with their ground truth (pose, mask, symmetry), and those
+scenes written as a BOP dataset split.
 
 Needs the ray caster (trimesh + Embree), so ``import jaxreg`` loads it on first use. May import
 core, geometry, uncertainty and camera.
@@ -7,6 +8,7 @@ core, geometry, uncertainty and camera.
 
 from jaxreg.synth._depth_noise import StereoSensor as StereoSensor
 from jaxreg.synth._meshes import OBJECTS as OBJECTS, object_mesh as object_mesh
+from jaxreg.synth.bop import write_bop_split as write_bop_split
 from jaxreg.synth.scenes import (
     Rendering as Rendering,
     TabletopScene as TabletopScene,

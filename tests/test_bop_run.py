@@ -1,0 +1,139 @@
+"""``jaxreg bop`` on a tiny synthetic BOP split (two images of a box: one model, so the pipeline
+compiles once, and test_pipeline's box programs serve it on the same worker): it writes BOP's
+CSV with an estimate near the truth for each target and prints the recall per object and the
+AR; two processes joined by ``jax.distributed`` write the same rows (times excepted)."""
+
+import contextlib
+import io
+import os
+import socket
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import jaxreg as jr
+from jaxreg.cli import main
+
+OBJECTS = ("box",)
+
+
+@pytest.fixture(autouse=True)
+def no_compilation_cache(monkeypatch):
+    # the commands enable JAX's persistent cache; tests leave the user's cache alone
+    monkeypatch.setenv("JAXREG_CACHE_DIR", "")
+
+
+@pytest.fixture(scope="module")
+def split_root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bop") / "tiny"
+    return jr.synth.write_bop_split(root, objects=OBJECTS, scenes=1, images_per_scene=2, seed=3)
+
+
+@pytest.fixture(scope="module")
+def one_process(split_root, tmp_path_factory):
+    """`jaxreg bop` in this process: (exit status, stdout, stderr, CSV path)."""
+    out = tmp_path_factory.mktemp("one") / "results.csv"
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("JAXREG_CACHE_DIR", "")  # the user's cache is left alone
+        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+            status = main(["bop", str(split_root), "--out", str(out)])
+    return status, stdout.getvalue(), stderr.getvalue(), out
+
+
+def _rows(path) -> list[list[str]]:
+    """The CSV's rows without their time field."""
+    lines = path.read_text().splitlines()
+    assert lines[0] == "scene_id,im_id,obj_id,score,R,t,time"
+    return [line.split(",")[:6] for line in lines[1:]]
+
+
+def test_bop_command_writes_the_csv_and_prints_the_ar(split_root, one_process):
+    status, stdout, stderr, out = one_process
+    assert status == 0, stderr
+    assert "2/2 images" in stderr
+    split = jr.io.read_bop(split_root)
+    results = jr.io.read_bop_results(out)
+    assert [(r.scene_id, r.im_id, r.obj_id) for r in results] == [(1, 0, 1), (1, 1, 1)]
+    for result, target in zip(results, split.targets(), strict=True):
+        error = np.linalg.norm(result.t - target.camera_T_object[:3, 3])
+        assert error < 0.01, (target.obj_id, error)
+        assert result.time > 0
+    lines = stdout.splitlines()
+    assert lines[0] == f"wrote 2 estimates to {out}"
+    assert lines[1].split() == ["object", "targets", "AR_VSD", "AR_MSSD", "AR_MSPD", "AR"]
+    assert lines[2].split()[:2] == ["1", "2"]
+    ar = float(lines[-1].split()[1])
+    assert 0.5 < ar <= 1.0, stdout
+
+
+def test_table_route_without_masks(split_root, one_process, tmp_path, capsys):
+    """After the mask route's compile, the table route (``--no-masks``) costs seconds."""
+    out = tmp_path / "table.csv"
+    assert main(["bop", str(split_root), "--no-masks", "--out", str(out)]) == 0
+    assert "segmented by the table route" in capsys.readouterr().err
+    split = jr.io.read_bop(split_root)
+    results = jr.io.read_bop_results(out)
+    assert [(r.im_id, r.obj_id) for r in results] == [(0, 1), (1, 1)]
+    for result, target in zip(results, split.targets(), strict=True):
+        assert np.linalg.norm(result.t - target.camera_T_object[:3, 3]) < 0.01
+
+
+def test_bad_dataset_is_one_clear_line(tmp_path, capsys):
+    assert main(["bop", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("jaxreg bop: ") and "no such split folder" in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_runner_rejects_a_bad_share_or_object(split_root):
+    split = jr.io.read_bop(split_root)
+    with pytest.raises(ValueError, match="process_index must lie in 0 .. 1"):
+        jr.studies.run_bop(split, process_index=2, process_count=2)
+    with pytest.raises(ValueError, match=r"objects \[7\] have no targets"):
+        jr.studies.run_bop(split, objects=[7])
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_two_processes_write_the_same_rows(split_root, one_process, tmp_path):
+    """Each process compiles the pipeline (a minute or two per process on 2 cores)."""
+    *_, expected = one_process
+    env = dict(os.environ, JAX_PLATFORMS="cpu", JAXREG_CACHE_DIR="")
+    env.pop("XLA_FLAGS", None)
+    address = f"127.0.0.1:{_free_port()}"
+    out = tmp_path / "two.csv"
+    command = [
+        sys.executable,
+        "-m",
+        "jaxreg",
+        "bop",
+        str(split_root),
+        "--out",
+        str(out),
+        "--coordinator",
+        address,
+        "--num-processes",
+        "2",
+    ]
+    runs = [
+        subprocess.Popen(
+            [*command, "--process-id", str(i)],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for i in range(2)
+    ]
+    for run in runs:
+        _, stderr = run.communicate(timeout=600)
+        assert run.returncode == 0, stderr[-3000:]
+    assert _rows(out) == _rows(expected)
