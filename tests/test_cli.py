@@ -1,4 +1,5 @@
 import json
+import urllib.request
 
 import jax.numpy as jnp
 import numpy as np
@@ -45,6 +46,33 @@ def test_demo_reports_stages_error_vs_truth_error_bars_grasp_and_pictures(capsys
     assert json.loads((tmp_path / "report.json").read_text())["pose"] == report["pose"]
     for name in ("depth.png", "segmentation.png", "model_overlay.png"):
         assert (tmp_path / name).stat().st_size > 1000
+
+
+def test_demo_view_serves_the_scene_after_the_report(capsys, monkeypatch):
+    from jaxreg.cli import _view
+
+    scenes, pages = [], []
+
+    def view_scene(*args, **kwargs):
+        scenes.append(_view_scene(*args, **kwargs))
+        return scenes[-1]
+
+    def visit(url):  # in place of waiting for Ctrl-C
+        with urllib.request.urlopen(url, timeout=30) as response:
+            pages.append(response.read())
+
+    _view_scene = _view.view_scene
+    monkeypatch.setattr(_view, "view_scene", view_scene)
+    monkeypatch.setattr(_view, "_until_interrupted", visit)
+    args = ["demo", "--json", "--seed", "4", "--object", "box", "--view", "--view-port", "0"]
+    assert main(args) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["failed_stage"] is None  # stdout is still the one JSON report
+    assert "3D view at http://127.0.0.1:" in err
+    assert pages and b"<title>Viser</title>" in pages[0]
+    (scene,) = scenes
+    assert scene.model is not None and scene.truth is not None and len(scene.jaws) == 2
+    assert len(scene.points["object"]) > 100 and len(scene.points["table"]) > 10_000
 
 
 def test_pose_finds_the_carton_and_makes_no_claim_where_it_is_not(pcl_dir, tmp_path, capsys):
