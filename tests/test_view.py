@@ -1,7 +1,7 @@
 """The 3D view (``--view``): what the scene holds, and that a browser draws it (headless
 Chromium's screenshot of the served page)."""
 
-import os
+import dataclasses
 import queue
 import shutil
 import signal
@@ -9,6 +9,7 @@ import subprocess
 import sys
 import threading
 import urllib.request
+import warnings
 
 import jax.numpy as jnp
 import numpy as np
@@ -17,6 +18,7 @@ from jaxlie import SE3, SO3
 from PIL import Image
 from scipy.stats import chi2
 
+from jaxreg.camera.model import RGBDFrame
 from jaxreg.cli import _view
 from jaxreg.cli.commands import build_report
 from jaxreg.pipeline.estimate import PoseEstimate
@@ -99,6 +101,17 @@ def test_a_free_axis_is_drawn_at_the_models_size_and_a_failure_draws_the_frame_a
     view = _view.view_scene(scene.frame, failed, scene.model_points, report)
     assert view.model is None and view.region is None and view.jaws == []
     assert len(view.points["object"]) > 0 and "register failed" in view.notes
+    # A frame without a single depth: nothing to draw, and still a viewpoint (no NaN).
+    blank = RGBDFrame(
+        np.full(scene.mask.shape, np.nan), scene.frame.intrinsics,
+        base_T_camera=scene.frame.base_T_camera,
+    )  # fmt: skip
+    nothing = dataclasses.replace(failed, mask=np.zeros_like(scene.mask), table=None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        view = _view.view_scene(blank, nothing, scene.model_points, report)
+    assert sum(len(p) for p in view.points.values()) == 0
+    assert np.isfinite([*view.eye, *view.look_at, view.point_size]).all()
 
 
 def _pixels_of(image: np.ndarray, color) -> int:
@@ -148,14 +161,18 @@ def test_headless_chromium_draws_the_served_scene(box, tmp_path):
 def test_serving_stops_at_ctrl_c(box):
     scene, estimate, report = box
     view = _view.view_scene(scene.frame, estimate, scene.model_points, report)
-    urls, pages = queue.Queue(), []
+    urls, pages, returned, stuck = queue.Queue(), [], threading.Event(), []
 
     def visit_then_interrupt():
         try:
             with urllib.request.urlopen(urls.get(timeout=60), timeout=30) as response:
                 pages.append(response.read())
         finally:
-            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C
+            # Ctrl-C landing on a thread other than the main one (the kernel's choice).
+            signal.pthread_kill(threading.get_ident(), signal.SIGINT)
+            if not returned.wait(5.0):  # not honoured: interrupt the main thread's wait itself
+                stuck.append(True)
+                signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
 
     class Log:
         def write(self, text):
@@ -168,8 +185,10 @@ def test_serving_stops_at_ctrl_c(box):
     visitor = threading.Thread(target=visit_then_interrupt)
     visitor.start()
     _view.serve(view, port=0, log=Log())  # returns at the interrupt instead of raising it
+    returned.set()
     visitor.join()
     assert pages and b"<title>Viser</title>" in pages[0]
+    assert not stuck, "serving went on for 5 s after Ctrl-C"
 
 
 def test_import_jaxreg_and_the_command_line_do_not_import_viser():

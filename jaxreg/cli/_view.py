@@ -31,7 +31,7 @@ from scipy.stats import chi2
 
 __all__ = ["COLORS", "REGION_LEVEL", "TABLE_DISTANCE", "ViewScene", "serve", "view_scene"]
 
-# RGB of each layer; the points are drawn flat, so their pixels carry these colours exactly.
+# RGB of each layer; the points are drawn flat (unshaded): their pixels show these colours.
 COLORS = {
     "table": (150, 150, 150),
     "object": (40, 190, 70),
@@ -45,7 +45,7 @@ SEGMENTS = ("table", "object", "rest")
 TABLE_DISTANCE = 0.008  # metres from the table plane drawn as table (estimate_pose's default)
 REGION_LEVEL = 0.95
 PAD = (0.008, 0.022, 0.022)  # metres: a jaw pad's thickness (along the jaw axis) and its sides
-MAX_MODEL_POINTS = 20_000
+MAX_MODEL_POINTS = 5_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,6 +64,7 @@ class ViewScene:
             ``[]`` without a grasp.
         up: ``(3,)`` the scene's up (the table's normal, else the camera's up).
         eye, look_at: ``(3,)`` the initial viewpoint and the point it looks at.
+        fov: the initial vertical field of view (radians): the camera's own.
         notes: markdown shown beside the scene: the legend and the numbers drawn.
     """
 
@@ -76,6 +77,7 @@ class ViewScene:
     up: np.ndarray
     eye: np.ndarray
     look_at: np.ndarray
+    fov: float
     notes: str
 
 
@@ -172,7 +174,8 @@ def view_scene(
     model_points = np.asarray(model_points, np.float64)
     model_points = model_points[:: max(1, len(model_points) // MAX_MODEL_POINTS)]
     clouds, depth = _segments(frame, estimate, stride)
-    point_size = 1.5 * stride * float(np.median(depth)) / float(frame.intrinsics.fx)
+    typical_depth = float(np.median(depth)) if len(depth) else 1.0  # metres
+    point_size = 1.5 * stride * typical_depth / float(frame.intrinsics.fx)
     base_T_camera = np.asarray(frame.base_T_camera.as_matrix(), np.float64)
     if estimate.table is not None:
         up = np.asarray(estimate.table.normal, np.float64)
@@ -188,18 +191,23 @@ def view_scene(
         if report.get("grasp") is not None:
             jaws = _jaws(pose, model_points, report["grasp"], up)
         look_at = pose[:3, :3] @ model_points.mean(0) + pose[:3, 3]
-    else:
-        look_at = np.median(np.concatenate(list(clouds.values())), axis=0)
+    else:  # the frame's middle point, or straight ahead of the camera at a typical depth
+        look_at = base_T_camera[:3, :3] @ np.array([0.0, 0.0, typical_depth])
+        look_at = look_at + base_T_camera[:3, 3]
+        seen = np.concatenate(list(clouds.values()))
+        look_at = np.median(seen, axis=0) if len(seen) else look_at
     if truth is not None:
         matrix = np.asarray(truth.as_matrix(), np.float64)
         truth_points = (model_points @ matrix[:3, :3].T + matrix[:3, 3]).astype(np.float32)
     # From the camera's side, nearer and a little higher, so the depth's relief shows.
     sight = base_T_camera[:3, 3] - look_at
-    eye = look_at + 0.45 * sight + 0.2 * np.linalg.norm(sight) * up
+    eye = look_at + 0.3 * sight + 0.2 * np.linalg.norm(sight) * up
+    height = np.asarray(frame.depth).shape[0]
+    fov = 2.0 * np.arctan(0.5 * height / float(frame.intrinsics.fy))
     return ViewScene(
         points=clouds, point_size=point_size, model=model, truth=truth_points,
         region=None if region is None else region[:3], jaws=jaws, up=up, eye=eye,
-        look_at=look_at, notes=_notes(report, region),
+        look_at=look_at, fov=float(fov), notes=_notes(report, region),
     )  # fmt: skip
 
 
@@ -213,7 +221,7 @@ def _draw(server, scene: ViewScene) -> None:
     server.scene.set_up_direction(tuple(scene.up))
     # The object's segment is drawn finer than the other points so that the model, which lies
     # on the same surface, shows between them.
-    sizes = {"object": 0.5, "truth": 0.6, "model": 0.8}
+    sizes = {"object": 0.6, "truth": 0.5, "model": 0.6}
     layers = {f"frame/{name}": (name, points) for name, points in scene.points.items()}
     layers.update(truth=("truth", scene.truth), model=("model", scene.model))
     for node, (name, points) in layers.items():
@@ -235,6 +243,7 @@ def _draw(server, scene: ViewScene) -> None:
     server.initial_camera.position = scene.eye
     server.initial_camera.look_at = scene.look_at
     server.initial_camera.up = scene.up
+    server.initial_camera.fov = scene.fov
     server.gui.add_markdown(scene.notes)
 
 
@@ -246,9 +255,11 @@ def _quiet():
 
 
 def _until_interrupted(url: str) -> None:
+    """Returns at Ctrl-C. Short sleeps: the signal may land on one of viser's threads, and the
+    main thread only runs Python's handler between sleeps."""
     try:
         while True:
-            time.sleep(3600)
+            time.sleep(0.2)
     except KeyboardInterrupt:
         pass
 
