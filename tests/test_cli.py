@@ -48,22 +48,29 @@ def test_demo_reports_stages_error_vs_truth_error_bars_grasp_and_pictures(capsys
         assert (tmp_path / name).stat().st_size > 1000
 
 
-def test_demo_view_serves_the_scene_after_the_report(capsys, monkeypatch):
+def _patch_view(monkeypatch):
+    """The 3D view's scenes and served pages, recorded; serving ends once the page is fetched
+    instead of at Ctrl-C."""
     from jaxreg.cli import _view
 
     scenes, pages = [], []
+    view_scene = _view.view_scene
 
-    def view_scene(*args, **kwargs):
-        scenes.append(_view_scene(*args, **kwargs))
+    def record(*args, **kwargs):
+        scenes.append(view_scene(*args, **kwargs))
         return scenes[-1]
 
-    def visit(url):  # in place of waiting for Ctrl-C
+    def visit(url):
         with urllib.request.urlopen(url, timeout=30) as response:
             pages.append(response.read())
 
-    _view_scene = _view.view_scene
-    monkeypatch.setattr(_view, "view_scene", view_scene)
+    monkeypatch.setattr(_view, "view_scene", record)
     monkeypatch.setattr(_view, "_until_interrupted", visit)
+    return scenes, pages
+
+
+def test_demo_view_serves_the_scene_after_the_report(capsys, monkeypatch):
+    scenes, pages = _patch_view(monkeypatch)
     args = ["demo", "--json", "--seed", "4", "--object", "box", "--view", "--view-port", "0"]
     assert main(args) == 0
     out, err = capsys.readouterr()
@@ -123,7 +130,7 @@ def test_bad_command_line_is_one_clear_error(capsys):
     assert "invalid choice" in capsys.readouterr().err
 
 
-def test_pose_on_a_depth_png_exits_0_found_and_1_not_there(tmp_path, capsys):
+def test_pose_on_a_depth_png_exits_0_found_and_1_not_there(tmp_path, capsys, monkeypatch):
     """A depth PNG + intrinsics JSON frame (written from the demo's scene), a model in
     millimetres, and the options estimate_pose takes; a mask on a distractor exits 1 with the
     report still printed."""
@@ -156,3 +163,9 @@ def test_pose_on_a_depth_png_exits_0_found_and_1_not_there(tmp_path, capsys):
     report = json.loads(capsys.readouterr().out)
     assert report["pose"] is None and report["failed_stage"] is not None and report["reason"]
     assert set(report["stages"]["segment"]) >= {"ms", "mask_pixels", "mask_grid_points"}
+    # --view serves the frame of a refused estimate too, and the exit status stays 1.
+    scenes, pages = _patch_view(monkeypatch)
+    assert main([*common, "--mask", str(tmp_path / "other.png"), "--view", "--view-port", "0"]) == 1
+    assert json.loads(capsys.readouterr().out)["pose"] is None
+    (view,) = scenes
+    assert pages and view.model is None and view.jaws == [] and view.truth is None
