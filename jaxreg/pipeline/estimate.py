@@ -601,7 +601,7 @@ def _register(
     return PoseEstimate(
         SE3(wxyz_xyz), rmse, fraction, budget.total, None, reason, stages, mask, points, budget,
         plane,
-    )
+    )  # fmt: skip
 
 
 def _probe(frame, plane, model, source, answer, score, rmse, trim, noise, settings: _Settings):
