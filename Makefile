@@ -16,13 +16,18 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev,peers,figs]'
 	@touch $@
 
-# Open3D (a peer in the tests) loads libusb-1.0; install it when missing and we can.
+# Open3D (a peer in the tests) loads libusb-1.0, and tests/test_view.py screenshots the 3D
+# view with headless Chromium: install what is missing when we can (one apt-get update).
 system-libs:
-	@if ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then :; \
+	@missing=""; \
+	ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || missing=" libusb-1.0-0"; \
+	command -v chromium >/dev/null || missing="$$missing chromium"; \
+	if [ -z "$$missing" ]; then :; \
 	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
-		echo "installing libusb-1.0-0 for Open3D"; \
-		apt-get update -qq && apt-get install -y -qq libusb-1.0-0 >/dev/null; \
-	else echo "libusb-1.0-0 is missing and cannot be installed here: Open3D cross-checks will skip"; fi
+		echo "installing$$missing (libusb for Open3D, chromium for the 3D view's browser test)"; \
+		apt-get update -qq && apt-get install -y -qq $$missing >/dev/null; \
+	else echo "not root or no apt-get, so not installed:$$missing; Open3D's cross-checks" \
+		"(libusb) and the 3D view's browser test (chromium) will skip"; fi
 
 demo: $(STAMP)
 	$(PY) -m jaxreg demo

@@ -1,4 +1,5 @@
 import json
+import urllib.request
 
 import jax.numpy as jnp
 import numpy as np
@@ -45,6 +46,40 @@ def test_demo_reports_stages_error_vs_truth_error_bars_grasp_and_pictures(capsys
     assert json.loads((tmp_path / "report.json").read_text())["pose"] == report["pose"]
     for name in ("depth.png", "segmentation.png", "model_overlay.png"):
         assert (tmp_path / name).stat().st_size > 1000
+
+
+def _patch_view(monkeypatch):
+    """The 3D view's scenes and served pages, recorded; serving ends once the page is fetched
+    instead of at Ctrl-C."""
+    from jaxreg.cli import _view
+
+    scenes, pages = [], []
+    view_scene = _view.view_scene
+
+    def record(*args, **kwargs):
+        scenes.append(view_scene(*args, **kwargs))
+        return scenes[-1]
+
+    def visit(url):
+        with urllib.request.urlopen(url, timeout=30) as response:
+            pages.append(response.read())
+
+    monkeypatch.setattr(_view, "view_scene", record)
+    monkeypatch.setattr(_view, "_until_interrupted", visit)
+    return scenes, pages
+
+
+def test_demo_view_serves_the_scene_after_the_report(capsys, monkeypatch):
+    scenes, pages = _patch_view(monkeypatch)
+    args = ["demo", "--json", "--seed", "4", "--object", "box", "--view", "--view-port", "0"]
+    assert main(args) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["failed_stage"] is None  # stdout is still the one JSON report
+    assert "3D view at http://127.0.0.1:" in err
+    assert pages and b"<title>Viser</title>" in pages[0]
+    (scene,) = scenes
+    assert scene.model is not None and scene.truth is not None and len(scene.jaws) == 2
+    assert len(scene.points["object"]) > 100 and len(scene.points["table"]) > 10_000
 
 
 def test_pose_finds_the_carton_and_makes_no_claim_where_it_is_not(pcl_dir, tmp_path, capsys):
@@ -95,7 +130,7 @@ def test_bad_command_line_is_one_clear_error(capsys):
     assert "invalid choice" in capsys.readouterr().err
 
 
-def test_pose_on_a_depth_png_exits_0_found_and_1_not_there(tmp_path, capsys):
+def test_pose_on_a_depth_png_exits_0_found_and_1_not_there(tmp_path, capsys, monkeypatch):
     """A depth PNG + intrinsics JSON frame (written from the demo's scene), a model in
     millimetres, and the options estimate_pose takes; a mask on a distractor exits 1 with the
     report still printed."""
@@ -128,3 +163,9 @@ def test_pose_on_a_depth_png_exits_0_found_and_1_not_there(tmp_path, capsys):
     report = json.loads(capsys.readouterr().out)
     assert report["pose"] is None and report["failed_stage"] is not None and report["reason"]
     assert set(report["stages"]["segment"]) >= {"ms", "mask_pixels", "mask_grid_points"}
+    # --view serves the frame of a refused estimate too, and the exit status stays 1.
+    scenes, pages = _patch_view(monkeypatch)
+    assert main([*common, "--mask", str(tmp_path / "other.png"), "--view", "--view-port", "0"]) == 1
+    assert json.loads(capsys.readouterr().out)["pose"] is None
+    (view,) = scenes
+    assert pages and view.model is None and view.jaws == [] and view.truth is None

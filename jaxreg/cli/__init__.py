@@ -1,5 +1,5 @@
-"""The command line: ``jaxreg demo | pose | basin``, its reports and pictures. May import every
-other package.
+"""The command line: ``jaxreg demo | pose | basin``, its reports, pictures and 3D view. May
+import every other package.
 """
 
 from jaxreg.cli.commands import main as main

@@ -14,7 +14,8 @@
 With ``--json`` stdout is one JSON object (the fields of the design's command line section);
 ``--out DIR`` also writes ``report.json`` and the pictures ``depth.png``,
 ``segmentation.png`` (the lifted segment over the image) and ``model_overlay.png`` (the model
-drawn at the estimated pose) to DIR.
+drawn at the estimated pose) to DIR. ``--view`` then serves the scene in 3D to a browser
+(:mod:`jaxreg.cli._view`) at ``--view-port`` until Ctrl-C.
 
 Exit status: 0 when a pose is found; 1 when the evidence says the object is not there (the
 report, or the JSON, is still printed, with the failed stage and its reason); 2 on bad input
@@ -353,7 +354,7 @@ def _progress(quiet: bool):
     return report
 
 
-def _emit(args, report: dict, title: str, frame, estimate, model_points) -> int:
+def _emit(args, report: dict, title: str, frame, estimate, model_points, truth=None) -> int:
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         report["pictures"] = write_pictures(args.out, frame, estimate, model_points)
@@ -364,6 +365,12 @@ def _emit(args, report: dict, title: str, frame, estimate, model_points) -> int:
         print_report(report, estimate.stages, title)
         if args.out is not None:
             print(f"  wrote report.json and {', '.join(report['pictures'])} to {args.out}")
+    if args.view:
+        from jaxreg.cli import _view
+
+        sys.stdout.flush()
+        scene = _view.view_scene(frame, estimate, model_points, report, truth=truth)
+        _view.serve(scene, host=args.view_host, port=args.view_port)
     return 0 if estimate.pose is not None else 1
 
 
@@ -418,7 +425,7 @@ def run_demo(args) -> int:
             report["grasp"].update(measured_grasp(report["grasp"], offset))
     report["scene"] = {"seed": args.seed, "object": args.object, "distractors": 2}
     title = f"jaxreg demo: a {args.object} (seed {args.seed})"
-    return _emit(args, report, title, scene.frame, estimate, model)
+    return _emit(args, report, title, scene.frame, estimate, model, truth=scene.truth)
 
 
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per model unit
@@ -505,6 +512,11 @@ def _common(parser: argparse.ArgumentParser) -> None:
         "--gripper-opening", type=float, default=GRIPPER_OPENING, metavar="M",
         help=f"parallel gripper opening in metres (default {GRIPPER_OPENING})",
     )  # fmt: skip
+    parser.add_argument("--view", action="store_true", help="serve a 3D view until Ctrl-C")
+    parser.add_argument("--view-port", type=int, default=8080, help="its port (default 8080)")
+    parser.add_argument(
+        "--view-host", default="127.0.0.1", help="its address (default 127.0.0.1; 0.0.0.0: all)"
+    )
 
 
 def _add_demo(sub) -> None:

@@ -159,6 +159,8 @@ class PoseEstimate:
         budget: the :class:`~jaxreg.uncertainty.budget.PoseBudget` (one covariance per
             source of error: depth, fit, segmentation, calibration, ambiguity; the free
             axes), or ``None`` without a pose.
+        table: the :class:`~jaxreg.pipeline.segment.TablePlane` the segment stage found
+            (base frame), or ``None`` (no table, or the segment stage failed).
     """
 
     pose: SE3 | None
@@ -171,6 +173,7 @@ class PoseEstimate:
     mask: np.ndarray
     points: np.ndarray
     budget: PoseBudget | None = None
+    table: TablePlane | None = None
 
     @property
     def success(self) -> bool:
@@ -403,6 +406,7 @@ def estimate_pose(
     noise = _noise(depth_noise, frame)
     stages: dict[str, Any] = {}
     rng = np.random.default_rng(0)  # the coarse clouds' and the source's subsamples
+    plane = None
     try:
         progress("segment")
         if mask is None:
@@ -423,7 +427,7 @@ def estimate_pose(
             failure.reason, stages,
             np.zeros(frame.depth.shape, bool) if failure.mask is None else failure.mask,
             np.zeros((0, 3), np.float32) if failure.points is None else failure.points,
-            None,
+            None, plane,
         )  # fmt: skip
 
 
@@ -597,8 +601,9 @@ def _register(
     )  # fmt: skip
     stages["register"] = dataclasses.replace(stages["register"], ms=_ms(start))
     return PoseEstimate(
-        SE3(wxyz_xyz), rmse, fraction, budget.total, None, reason, stages, mask, points, budget
-    )
+        SE3(wxyz_xyz), rmse, fraction, budget.total, None, reason, stages, mask, points, budget,
+        plane,
+    )  # fmt: skip
 
 
 def _noise(depth_noise: DepthNoise | None, frame: RGBDFrame) -> DepthNoise:
