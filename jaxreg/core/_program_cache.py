@@ -16,8 +16,9 @@ An executable that XLA itself loaded from its persistent cache cannot be seriali
 kernels' code is not kept: it loads, then fails when run), nor can one whose custom calls need a
 host library that only lowering sets up (other than LAPACK's, prepared here): such a program is
 stored as a :mod:`jax.export` program instead (traced once; lowered and looked up in XLA's cache
-in each process). The folder is off until :func:`set_folder` is called: the command line does
-it, a library import never does. A program's file name is a digest of everything that can change
+in each process). The folder is off until :func:`set_folder` is called
+(:func:`jaxreg.enable_compilation_cache` does it; the command line calls that), a library import
+never does. A program's file name is a digest of everything that can change
 it: the function's qualified name, the source of every jaxreg module, the jax and jaxlib
 versions, the backend and its platform version, the host CPU (model and feature flags: an
 executable is machine code), ``jax_enable_x64``, the input tree with its static leaves (their
@@ -32,7 +33,8 @@ so a long-running process that meets new shapes keeps a bounded footprint.
 
 Falls back to the plain compiled call (``equinox.filter_jit``, whose cache is not bounded),
 with nothing written, when the call is traced (inside ``jit``, ``vmap`` or ``grad``: stored
-programs are not differentiated here), when the output holds something that cannot be
+programs are not differentiated here), when an input is sharded over several devices (a
+stored program runs on one), when the output holds something that cannot be
 pickled, or when compiling or storing fails.
 """
 
@@ -319,6 +321,8 @@ def persistent_jit(fn: Callable) -> Callable:
         arrays, in_tree = jax.tree.flatten(dynamic)
         if any(isinstance(a, jax.core.Tracer) for a in arrays):
             return jitted(*args)
+        if any(len(a.sharding.device_set) > 1 for a in arrays if isinstance(a, jax.Array)):
+            return jitted(*args)  # stored programs run on one device
         arrays = [a if isinstance(a, jax.Array) else jax.device_put(a) for a in arrays]
         key = _key(fn, arrays, static, in_tree)
         program = _program(fn, arrays, static, in_tree, key)

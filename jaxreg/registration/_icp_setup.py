@@ -16,6 +16,7 @@ import numpy as np
 from jaxlie import SE3
 from jaxtyping import ArrayLike, Float
 
+from jaxreg.core._program_cache import persistent_jit
 from jaxreg.geometry.kernels import L2, AbstractRobustKernel
 from jaxreg.geometry.lie import se3_from_matrix
 from jaxreg.registration._icp_core import Options, Problem, RegistrationResult, run_many
@@ -171,7 +172,7 @@ def _check_grid_rows(grid: NeighborGrid, target_ok, method: str) -> None:
         )
 
 
-@eqx.filter_jit
+@persistent_jit
 def _clean(source, source_weights, target, target_normals, n_pad: int, m_pad: int):
     """Masks unusable rows and pads both clouds to bucketed sizes, in one compiled call.
 
