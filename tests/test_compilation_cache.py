@@ -38,8 +38,9 @@ CONFIG = textwrap.dedent(
     """
 )
 
-# One ICP in a fresh process with the cache enabled: whether its loop was traced, whether a
-# stored program was loaded, and the pose.
+# One ICP in a fresh process with the cache enabled: whether anything was traced (the first
+# process traces the solver; a second one loads every program ICP runs), whether a stored
+# program was loaded, and the pose.
 ICP = textwrap.dedent(
     """
     import json, sys
@@ -55,6 +56,7 @@ ICP = textwrap.dedent(
     result = jr.icp(points, moved, max_correspondence_distance=0.02, max_iterations=10)
     print(json.dumps({"folder": folder, "pose": np.asarray(result.pose.wxyz_xyz).tolist(),
                       "loaded": "executable_load_duration" in seen,
+                      "traced": "jaxpr_trace_duration" in seen,
                       "programs": sorted(p.name.split("-")[0]
                                          for p in (jr.core._program_cache._FOLDER).iterdir()),
                       "status": result.status_message()}))
@@ -84,7 +86,8 @@ def test_a_second_process_loads_icp_from_the_cache(tmp_path):
     second = _run(ICP, str(tmp_path))
     assert first["folder"] == second["folder"] == str(tmp_path)
     assert "run" in first["programs"], first["programs"]  # the ICP loop was stored
-    assert not first["loaded"] and second["loaded"]
+    assert first["traced"] and not first["loaded"]
+    assert second["loaded"] and not second["traced"]
     assert second["pose"] == first["pose"]
     assert second["status"] == first["status"]
 
