@@ -65,7 +65,7 @@ ICP = textwrap.dedent(
 
 
 def _run(script: str, *args: str, **env) -> dict:
-    environ = dict(os.environ, PYTHONPATH=str(ROOT), **env)
+    environ = dict(os.environ, **{"PYTHONPATH": str(ROOT), **env})
     environ.pop("JAX_COMPILATION_CACHE_DIR", None)
     out = subprocess.run(
         [sys.executable, "-c", script, *args], env=environ, capture_output=True, text=True
@@ -90,6 +90,45 @@ def test_a_second_process_loads_icp_from_the_cache(tmp_path):
     assert second["loaded"] and not second["traced"]
     assert second["pose"] == first["pose"]
     assert second["status"] == first["status"]
+
+
+# A user's robust kernel in its own file, used by ICP in a fresh process with the cache on.
+USER_KERNEL = textwrap.dedent(
+    """
+    import jax.numpy as jnp
+    import jaxreg as jr
+
+    class Flat(jr.geometry.kernels.AbstractRobustKernel):
+        def rho(self, s):
+            return s
+
+        def weight(self, s):
+            return jnp.full_like(s, WEIGHT)
+    """
+)
+WITH_USER_KERNEL = textwrap.dedent(
+    """
+    import json, sys
+    import numpy as np
+    import jaxreg as jr
+    jr.enable_compilation_cache(sys.argv[1])
+    import userkernel
+    points = np.random.default_rng(0).uniform(-0.05, 0.05, (300, 3)).astype(np.float32)
+    result = jr.icp(points, points + np.float32(0.004), max_correspondence_distance=0.02,
+                    max_iterations=10, kernel=userkernel.Flat())
+    print(json.dumps({"status": result.status_message()}))
+    """
+)
+
+
+def test_editing_a_user_kernel_changes_the_stored_program(tmp_path):
+    (tmp_path / "userkernel.py").write_text(USER_KERNEL.replace("WEIGHT", "1.0"))
+    path = f"{ROOT}{os.pathsep}{tmp_path}"
+    weighted = _run(WITH_USER_KERNEL, str(tmp_path / "cache"), PYTHONPATH=path)
+    (tmp_path / "userkernel.py").write_text(USER_KERNEL.replace("WEIGHT", "0.0"))
+    unweighted = _run(WITH_USER_KERNEL, str(tmp_path / "cache"), PYTHONPATH=path)
+    assert weighted["status"].startswith("converged")
+    assert unweighted["status"].startswith("fewer than 3 correspondences have a positive weight")
 
 
 def test_empty_cache_variable_turns_caching_off(monkeypatch):

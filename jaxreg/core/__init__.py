@@ -4,3 +4,9 @@ opt-in switch (``enable_compilation_cache``) that keeps compiled programs betwee
 
 Imports nothing from the rest of jaxreg.
 """
+
+from jaxreg.core._lazy import submodule as _submodule
+
+
+def __getattr__(name: str):  # jaxreg.core.<module> without importing it first
+    return _submodule(__name__, name)
