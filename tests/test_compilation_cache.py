@@ -81,6 +81,30 @@ def test_import_leaves_jax_config_alone_and_loads_lazily():
     assert found["heavy_after_import"] == []
 
 
+SUBMODULES = textwrap.dedent(
+    """
+    import json
+    import jaxreg as jr
+    found = [jr.geometry.kernels.Huber.__name__, jr.search.neighbors.query_nearest.__name__,
+             jr.registration.ransac.__name__, jr.core._program_cache.__name__]
+    try:
+        jr.geometry.no_such_module
+        found.append("no error")
+    except AttributeError as err:
+        found.append(str(err))
+    print(json.dumps(found))
+    """
+)
+
+
+def test_modules_resolve_as_attributes_without_an_import():
+    found = _run(SUBMODULES)
+    assert found[:4] == [
+        "Huber", "query_nearest", "jaxreg.registration.ransac", "jaxreg.core._program_cache"
+    ]  # fmt: skip
+    assert "has no attribute 'no_such_module'" in found[4]
+
+
 def test_a_second_process_loads_icp_from_the_cache(tmp_path):
     first = _run(ICP, str(tmp_path))
     second = _run(ICP, str(tmp_path))
