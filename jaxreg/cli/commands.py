@@ -21,11 +21,12 @@ Exit status: 0 when a pose is found; 1 when the evidence says the object is not 
 report, or the JSON, is still printed, with the failed stage and its reason); 2 on bad input
 or any other error (one line on stderr, no traceback).
 
-Compilation cache: the commands (never ``import jaxreg``) enable JAX's persistent compilation
-cache, and keep the pipeline's compiled programs beside it (:mod:`jaxreg.core._program_cache`), so a
-second run neither traces, lowers nor compiles them again. It lives in ``$JAXREG_CACHE_DIR`` if
-set, else ``$XDG_CACHE_HOME/jaxreg/jax`` (``~/.cache/jaxreg/jax``), programs in its ``programs``
-folder; set ``JAXREG_CACHE_DIR=""`` to turn both off. Deleting the folder is always safe.
+Compilation cache: the commands (never ``import jaxreg``) call
+:func:`jaxreg.enable_compilation_cache`: JAX's persistent compilation cache, and the compiled
+programs beside it (:mod:`jaxreg.core._program_cache`), so a second run neither traces, lowers
+nor compiles them again. It lives in ``$JAXREG_CACHE_DIR`` if set, else
+``$XDG_CACHE_HOME/jaxreg/jax`` (``~/.cache/jaxreg/jax``), programs in its ``programs`` folder;
+set ``JAXREG_CACHE_DIR=""`` to turn both off. Deleting the folder is always safe.
 
 Subcommands are added by functions taking the subparsers object (``_add_demo``,
 ``_add_pose``, ``jaxreg basin``'s ``add_basin_parser`` from :mod:`jaxreg.cli._basin` and
@@ -38,7 +39,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -48,31 +48,11 @@ import numpy as np
 from jaxreg.cli._basin import add_basin_parser, run_basin
 from jaxreg.cli._bop import add_bop_parser, run_bop_command
 from jaxreg.core._program_cache import persistent_jit
+from jaxreg.core.compilation import enable_compilation_cache
 
 GRIPPER_OPENING = 0.085  # metres: a Robotiq 2F-85-class parallel-jaw gripper
 MODEL_SAMPLES = 20_000  # points sampled on a mesh model
 _TANGENT_AXES = ("vx", "vy", "vz", "wx", "wy", "wz")
-
-
-def enable_compilation_cache() -> str | None:
-    """Turns on JAX's persistent compilation cache and jaxreg's program store for this process
-    (see the module docstring for where); returns the folder, or None when disabled."""
-    import jax
-
-    from jaxreg.core import _program_cache
-
-    folder = os.environ.get("JAXREG_CACHE_DIR")
-    if folder is None:
-        base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-        folder = str(Path(base) / "jaxreg" / "jax")
-    if not folder:
-        return None
-    Path(folder).mkdir(parents=True, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", folder)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    _program_cache.set_folder(Path(folder) / "programs")
-    return folder
 
 
 # --------------------------------------------------------------------------------------------

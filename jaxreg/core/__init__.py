@@ -1,5 +1,12 @@
 """Building blocks every other package uses: the result base class and its status selection,
-scalar leaves for configuration Modules, and the on-disk store of compiled programs.
+scalar leaves for configuration Modules, the on-disk store of compiled programs, and the
+opt-in switch (``enable_compilation_cache``) that keeps compiled programs between processes.
 
 Imports nothing from the rest of jaxreg.
 """
+
+from jaxreg.core._lazy import submodule as _submodule
+
+
+def __getattr__(name: str):  # jaxreg.core.<module> without importing it first
+    return _submodule(__name__, name)

@@ -16,14 +16,17 @@ An executable that XLA itself loaded from its persistent cache cannot be seriali
 kernels' code is not kept: it loads, then fails when run), nor can one whose custom calls need a
 host library that only lowering sets up (other than LAPACK's, prepared here): such a program is
 stored as a :mod:`jax.export` program instead (traced once; lowered and looked up in XLA's cache
-in each process). The folder is off until :func:`set_folder` is called: the command line does
-it, a library import never does. A program's file name is a digest of everything that can change
-it: the function's qualified name, the source of every jaxreg module, the jax and jaxlib
-versions, the backend and its platform version, the host CPU (model and feature flags: an
-executable is machine code), ``jax_enable_x64``, the input tree with its static leaves (their
-repr; for an object holding arrays, such as a prepared model closed into the program as
-constants, also a digest of the arrays' bytes, since a repr shortens them), and each array's
-shape and dtype. Deleting the folder is always safe.
+in each process). The folder is off until :func:`set_folder` is called
+(:func:`jaxreg.enable_compilation_cache` does it; the command line calls that), a library import
+never does. A program's file name is a digest of everything that can change
+it: the function's qualified name, the source of every jaxreg module, the jax, jaxlib, equinox
+and jaxlie versions, the backend and its platform version, the host CPU (model and feature
+flags: an executable is machine code), ``jax_enable_x64``, the input tree with its static leaves
+(their repr; for an object holding arrays, such as a prepared model closed into the program as
+constants, also a digest of the arrays' bytes, since a repr shortens them), the source of any
+other module defining a type in the inputs (a user's robust kernel class: editing it changes
+the key; a type with no source file, as in a notebook, is compiled the ordinary way instead),
+and each array's shape and dtype. Deleting the folder is always safe.
 
 In memory, with or without a folder, the process keeps the ``_MAX_PROGRAMS`` executables it
 used most recently and drops the others (compiled or loaded again when next called): each
@@ -32,7 +35,8 @@ so a long-running process that meets new shapes keeps a bounded footprint.
 
 Falls back to the plain compiled call (``equinox.filter_jit``, whose cache is not bounded),
 with nothing written, when the call is traced (inside ``jit``, ``vmap`` or ``grad``: stored
-programs are not differentiated here), when the output holds something that cannot be
+programs are not differentiated here), when an input is sharded over several devices (a
+stored program runs on one), when the output holds something that cannot be
 pickled, or when compiling or storing fails.
 """
 
@@ -43,10 +47,12 @@ import copyreg
 import dataclasses
 import functools
 import hashlib
+import importlib.metadata
 import io
 import os
 import pickle
 import re
+import sys
 import tempfile
 import threading
 import time
@@ -67,6 +73,11 @@ _MAX_PROGRAMS = 32  # executables kept in memory, least recently used dropped fi
 _LOADED: OrderedDict[str, tuple[Callable, object] | None] = OrderedDict()
 _DIGESTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # static leaf -> key text
 _HITS = threading.local()  # .count: XLA persistent-cache hits seen by this thread
+# Code a key covers without reading it: jaxreg's sources are digested and these libraries'
+# versions recorded (jax's, jaxlib's, equinox's, jaxlie's) or fixed with the interpreter.
+_KEYED_CODE = frozenset(
+    {"jaxreg", "jax", "jaxlib", "jaxlie", "equinox", "numpy", "builtins", "collections", "typing"}
+)
 
 
 def set_folder(folder: str | os.PathLike | None) -> None:
@@ -85,8 +96,39 @@ def _source_digest() -> str:
     for path in sorted(package.rglob("*.py")):
         digest.update(path.relative_to(package).as_posix().encode())
         digest.update(path.read_bytes())
-    digest.update(f"{jax.__version__} {jax.lib.__version__}".encode())
+    digest.update(f"{jax.__version__} {jax.lib.__version__} {eqx.__version__}".encode())
+    digest.update(importlib.metadata.version("jaxlie").encode())
     return digest.hexdigest()
+
+
+def _node_types(treedef):
+    """The type of every node of a pytree structure (leaves excluded)."""
+    data = treedef.node_data()
+    if data is not None:
+        yield data[0]
+    for child in treedef.children():
+        yield from _node_types(child)
+
+
+@functools.cache
+def _module_source(name: str) -> str | None:
+    """Digest of a loaded module's source file; None when it has none (a notebook cell)."""
+    path = getattr(sys.modules.get(name), "__file__", None)
+    if path is not None:
+        with contextlib.suppress(OSError):
+            return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    return None
+
+
+def _foreign_sources(in_tree, static) -> list[tuple[str, str | None]]:
+    """``(module, source digest)`` of every module outside ``_KEYED_CODE`` that defines a
+    type in the call's trees or a static leaf (a user's robust kernel class, say): its code
+    is traced into the program, so editing it must change the key."""
+    types = {*_node_types(in_tree), *_node_types(jax.tree.structure(static))}
+    types |= {type(leaf) for leaf in jax.tree.leaves(static)}
+    modules = {t.__module__ for t in types}
+    foreign = sorted(m for m in modules if m.split(".")[0] not in _KEYED_CODE)
+    return [(m, _module_source(m)) for m in foreign]
 
 
 @functools.cache
@@ -168,7 +210,12 @@ def _static_text(leaf) -> str:
     return text
 
 
-def _key(fn: Callable, arrays: list, static, in_tree) -> str:
+def _key(fn: Callable, arrays: list, static, in_tree) -> str | None:
+    """The program's name, or None when some of its code cannot be keyed (a type defined
+    where there is no source file to digest)."""
+    foreign = _foreign_sources(in_tree, static)
+    if any(digest is None for _, digest in foreign):
+        return None
     avals = [(a.shape, str(a.dtype), bool(getattr(a, "weak_type", False))) for a in arrays]
     text = repr(
         (
@@ -181,6 +228,7 @@ def _key(fn: Callable, arrays: list, static, in_tree) -> str:
             str(jax.tree.structure(static)),
             [_static_text(leaf) for leaf in jax.tree.leaves(static)],
             avals,
+            foreign,
         )
     )
     return hashlib.sha256(text.encode()).hexdigest()[:32]
@@ -319,9 +367,11 @@ def persistent_jit(fn: Callable) -> Callable:
         arrays, in_tree = jax.tree.flatten(dynamic)
         if any(isinstance(a, jax.core.Tracer) for a in arrays):
             return jitted(*args)
+        if any(len(a.sharding.device_set) > 1 for a in arrays if isinstance(a, jax.Array)):
+            return jitted(*args)  # stored programs run on one device
         arrays = [a if isinstance(a, jax.Array) else jax.device_put(a) for a in arrays]
         key = _key(fn, arrays, static, in_tree)
-        program = _program(fn, arrays, static, in_tree, key)
+        program = None if key is None else _program(fn, arrays, static, in_tree, key)
         if program is None:
             return jitted(*args)
         run, out_tree = program

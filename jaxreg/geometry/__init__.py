@@ -7,3 +7,9 @@ MSPD, Average Recall).
 Conventions: a pose maps source/model coordinates into target/scene coordinates; tangents are
 jaxlie's ``(vx, vy, vz, wx, wy, wz)``. May import :mod:`jaxreg.core` only.
 """
+
+from jaxreg.core._lazy import submodule as _submodule
+
+
+def __getattr__(name: str):  # jaxreg.geometry.<module> without importing it first
+    return _submodule(__name__, name)

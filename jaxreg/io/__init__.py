@@ -6,6 +6,7 @@ Readers return metres and raise ``ValueError`` naming the file and what is wrong
 import :mod:`jaxreg.core`, :mod:`jaxreg.geometry` and :mod:`jaxreg.camera`.
 """
 
+from jaxreg.core._lazy import submodule as _submodule
 from jaxreg.io.bop import (
     BopModel as BopModel,
     BopResult as BopResult,
@@ -23,3 +24,7 @@ from jaxreg.io.clouds import (
     write_ply as write_ply,
 )
 from jaxreg.io.frames import read_frame as read_frame, write_frame as write_frame
+
+
+def __getattr__(name: str):  # jaxreg.io.<module> without importing it first
+    return _submodule(__name__, name)

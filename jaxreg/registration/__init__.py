@@ -5,3 +5,9 @@ robust (GNC) alignment of given correspondences.
 Every solver returns a result with a per-lane ``status``. May import :mod:`jaxreg.core`,
 :mod:`jaxreg.geometry`, :mod:`jaxreg.uncertainty` and :mod:`jaxreg.search`.
 """
+
+from jaxreg.core._lazy import submodule as _submodule
+
+
+def __getattr__(name: str):  # jaxreg.registration.<module> without importing it first
+    return _submodule(__name__, name)

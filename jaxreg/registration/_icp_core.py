@@ -17,6 +17,7 @@ import jax.numpy as jnp
 from jaxlie import SE3, SO3
 from jaxtyping import Array, Bool, Float, Int
 
+from jaxreg.core._program_cache import persistent_jit
 from jaxreg.core._result import AbstractResult
 from jaxreg.geometry._eig4 import jacobi_eigh
 from jaxreg.geometry.alignment import _fit
@@ -354,10 +355,12 @@ def run(problem: Problem, opts: Options, init: SE3) -> RegistrationResult:
     )
 
 
-run_one = eqx.filter_jit(run)
+# Compiled calls whose programs a fresh process loads from jaxreg.enable_compilation_cache's
+# folder, when the caller has enabled it (jaxreg.core._program_cache).
+run_one = persistent_jit(run)
 
 
-@eqx.filter_jit
+@persistent_jit
 def run_many(problem: Problem, opts: Options, inits: SE3) -> RegistrationResult:
     """:func:`run` from every start of the batch ``inits`` ``(S,)``, in one compiled call."""
     return jax.vmap(run, in_axes=(None, None, 0))(problem, opts, inits)

@@ -16,6 +16,7 @@ import numpy as np
 from jaxlie import SE3
 from jaxtyping import ArrayLike, Float
 
+from jaxreg.core._program_cache import persistent_jit
 from jaxreg.geometry.kernels import L2, AbstractRobustKernel
 from jaxreg.geometry.lie import se3_from_matrix
 from jaxreg.registration._icp_core import Options, Problem, RegistrationResult, run_many
@@ -49,7 +50,7 @@ DEFAULT = Settings()
 def as_pose(init, dtype) -> SE3:
     """``init`` (``None`` for the identity, an ``SE3``, or ``(..., 4, 4)``) as an ``SE3``."""
     if init is None:
-        return SE3(jnp.array([1, 0, 0, 0, 0, 0, 0], dtype))
+        return SE3(np.array([1, 0, 0, 0, 0, 0, 0], dtype))
     if isinstance(init, SE3):
         return SE3(jnp.asarray(init.wxyz_xyz, dtype))
     m = jnp.asarray(init, dtype)
@@ -60,6 +61,15 @@ def as_pose(init, dtype) -> SE3:
 
 def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
+
+
+def _as_array(x, dtype=None):
+    """``x`` as an array of ``dtype``: a numpy array for host input (Python numbers, numpy
+    arrays), so that preparing it compiles no device program (each costs a fresh process tens
+    of milliseconds); JAX arrays and tracers stay JAX arrays."""
+    if isinstance(x, jax.Array | jax.core.Tracer):
+        return jnp.asarray(x, dtype)
+    return np.asarray(x, dtype)
 
 
 def prepare(
@@ -88,10 +98,10 @@ def prepare(
     if s.method not in ("point_to_point", "point_to_plane"):
         raise ValueError(f"method must be 'point_to_point' or 'point_to_plane', got {s.method!r}")
     user_target = target
-    source = jnp.asarray(source)
+    source = _as_array(source)
     dtype = jnp.result_type(source.dtype, float)
-    source = source.astype(dtype)
-    target = jnp.asarray(target, dtype)
+    source = _as_array(source, dtype)
+    target = _as_array(target, dtype)
     for name, cloud in (("source", source), ("target", target)):
         if cloud.ndim != 2 or cloud.shape[-1] != 3:
             raise ValueError(f"{name} must have shape (N, 3), got {cloud.shape}")
@@ -106,18 +116,19 @@ def prepare(
             raise ValueError(
                 "point_to_plane needs target_normals (M, 3): see jaxreg.estimate_normals"
             )
-        target_normals = jnp.asarray(s.target_normals, dtype)
+        target_normals = _as_array(s.target_normals, dtype)
         if target_normals.shape != target.shape:
             raise ValueError(
                 f"target_normals must match target {target.shape}, got {target_normals.shape}"
             )
-    weights = jnp.ones(n, dtype) if s.source_weights is None else s.source_weights
-    weights = jnp.asarray(weights, dtype)
+    weights = np.ones(n, dtype) if s.source_weights is None else s.source_weights
+    weights = _as_array(weights, dtype)
     if weights.shape != (n,):
         raise ValueError(f"source_weights must have shape ({n},), got {weights.shape}")
-    distances = jnp.asarray(s.max_correspondence_distance, dtype)
+    distances = _as_array(s.max_correspondence_distance, dtype)
     if distances.ndim == 0:
-        distances = jnp.full((s.max_iterations,), distances, dtype)
+        full = np.full if isinstance(distances, np.ndarray) else jnp.full
+        distances = full((s.max_iterations,), distances, dtype)
     elif distances.shape != (s.max_iterations,):
         raise ValueError(
             "max_correspondence_distance is a scalar or a schedule with one distance per "
@@ -130,7 +141,7 @@ def prepare(
     grid = s.neighbors
     if grid is not None:
         validate_grid(grid, user_target, distances)
-        _check_grid_rows(grid, target_ok[:m], s.method)
+        _check_grid_rows(grid, target_ok, m, s.method)
     elif _is_concrete(target) and _is_concrete(distances):
         points, ok = np.asarray(target), np.asarray(target_ok)
         if ok.any():  # else nothing to index: every query is invalid
@@ -143,20 +154,22 @@ def prepare(
         method=s.method,
         max_iterations=int(s.max_iterations),
         distances=distances,
-        tolerance=jnp.asarray(s.tolerance, dtype),
+        tolerance=_as_array(s.tolerance, dtype),
         kernel=L2() if s.kernel is None else s.kernel,
-        trim_fraction=None if s.trim_fraction is None else jnp.asarray(s.trim_fraction, dtype),
+        trim_fraction=None if s.trim_fraction is None else _as_array(s.trim_fraction, dtype),
     )
     return problem, opts, (n, m)
 
 
-def _check_grid_rows(grid: NeighborGrid, target_ok, method: str) -> None:
+def _check_grid_rows(grid: NeighborGrid, target_ok, m: int, method: str) -> None:
     """Raises when a given grid indexes target rows that can never be a match (non-finite,
     or without a usable normal for point-to-plane): a query whose nearest point is such a
-    row finds no match, although a valid target point may lie within the distance."""
+    row finds no match, although a valid target point may lie within the distance.
+    ``target_ok`` is the padded target's validity, of which the first ``m`` rows are the
+    caller's."""
     if not (_is_concrete(grid.candidate_index) and _is_concrete(target_ok)):
         return
-    ok = np.asarray(target_ok)
+    ok = np.asarray(target_ok)[:m]
     index = np.asarray(grid.candidate_index)
     rows = index[index < len(ok)]
     bad = np.unique(rows[~ok[rows]])
@@ -171,7 +184,7 @@ def _check_grid_rows(grid: NeighborGrid, target_ok, method: str) -> None:
         )
 
 
-@eqx.filter_jit
+@persistent_jit
 def _clean(source, source_weights, target, target_normals, n_pad: int, m_pad: int):
     """Masks unusable rows and pads both clouds to bucketed sizes, in one compiled call.
 
@@ -215,9 +228,11 @@ def _bucket(rows: int) -> int:
     return -(-rows // step) * step
 
 
+@persistent_jit
 def unpad(result: RegistrationResult, n: int, m: int) -> RegistrationResult:
     """Drops the padding rows of :func:`prepare` from a (possibly batched) result; the
-    no-match sentinel becomes ``m``, the caller's target size."""
+    no-match sentinel becomes ``m``, the caller's target size. One compiled program (``n``
+    and ``m`` static), kept with the solver's when the compilation cache is on."""
     index = result.correspondences[..., :n]
     return eqx.tree_at(
         lambda r: (r.correspondences, r.weights),

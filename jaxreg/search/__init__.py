@@ -5,3 +5,9 @@ their matching.
 Capacities are chosen on the host and overflow is reported, never silently dropped. May import
 :mod:`jaxreg.core` and :mod:`jaxreg.geometry`.
 """
+
+from jaxreg.core._lazy import submodule as _submodule
+
+
+def __getattr__(name: str):  # jaxreg.search.<module> without importing it first
+    return _submodule(__name__, name)

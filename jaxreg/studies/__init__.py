@@ -7,6 +7,7 @@ by BOP's metrics.
 May import every package but :mod:`jaxreg.cli`.
 """
 
+from jaxreg.core._lazy import submodule as _submodule
 from jaxreg.studies._hand_eye import (
     HandEyeCorrection as HandEyeCorrection,
     estimate_hand_eye_correction as estimate_hand_eye_correction,
@@ -35,3 +36,7 @@ from jaxreg.studies.calibration import (
     FrameOutcome as FrameOutcome,
     calibration_study as calibration_study,
 )
+
+
+def __getattr__(name: str):  # jaxreg.studies.<module> without importing it first
+    return _submodule(__name__, name)

@@ -6,6 +6,7 @@ Needs the ray caster (trimesh + Embree), so ``import jaxreg`` loads it on first 
 core, geometry, uncertainty and camera.
 """
 
+from jaxreg.core._lazy import submodule as _submodule
 from jaxreg.synth._depth_noise import StereoSensor as StereoSensor
 from jaxreg.synth._meshes import OBJECTS as OBJECTS, object_mesh as object_mesh
 from jaxreg.synth.bop import write_bop_split as write_bop_split
@@ -16,3 +17,7 @@ from jaxreg.synth.scenes import (
     render as render,
     tabletop_scene as tabletop_scene,
 )
+
+
+def __getattr__(name: str):  # jaxreg.synth.<module> without importing it first
+    return _submodule(__name__, name)

@@ -5,6 +5,7 @@ Covariances are of the right perturbation ``T_true = T_est @ exp(delta)``, tange
 ``(v, w)``. May import :mod:`jaxreg.core` and :mod:`jaxreg.geometry`.
 """
 
+from jaxreg.core._lazy import submodule as _submodule
 from jaxreg.uncertainty._pose_statistics import (
     GroupStatistics as GroupStatistics,
     PoseStatistics as PoseStatistics,
@@ -20,3 +21,7 @@ from jaxreg.uncertainty.noise import (
     grasp_margin as grasp_margin,
     grasp_success_probability as grasp_success_probability,
 )
+
+
+def __getattr__(name: str):  # jaxreg.uncertainty.<module> without importing it first
+    return _submodule(__name__, name)

@@ -18,7 +18,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.stats import chi2
 
 __all__ = ["SOURCES", "PoseBudget", "free_axes", "grasp_axis", "mahalanobis", "region_contains"]
 
@@ -71,6 +70,8 @@ def region_contains(
 ) -> bool:
     """Whether ``delta`` lies inside the ``level`` (e.g. 0.95) region of ``N(0, covariance)``
     over the finite axes (chi-square quantile of their count)."""
+    from scipy.stats import chi2  # scipy.stats takes ~0.5 s to import: loaded when used
+
     d2, dof = mahalanobis(delta, covariance, translation_only)
     return bool(dof > 0 and d2 <= chi2.ppf(level, dof))
 
