@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxreg.cli._processes import add_process_options, join
+
 KERNELS = ("huber", "tukey", "cauchy", "geman_mcclure", "welsch")
 
 
@@ -53,9 +55,7 @@ def add_basin_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--chunk-size", type=int, help="starts per compiled call (progress)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--out", type=Path, help="also write DIR/basin.json")
-    p.add_argument("--coordinator", help="HOST:PORT of process 0 (multi-process runs)")
-    p.add_argument("--num-processes", type=int, default=1)
-    p.add_argument("--process-id", type=int, default=0)
+    add_process_options(p)
     return p
 
 
@@ -114,21 +114,6 @@ def _problem(args):
     return source, target.astype(np.float32), truth, f"{args.source.name} (moved, noisy copy)"
 
 
-def _join(args) -> None:
-    """``jax.distributed.initialize`` for a multi-process run (gloo collectives on CPU)."""
-    if args.coordinator is None:
-        if args.num_processes != 1:
-            raise ValueError("--num-processes needs --coordinator HOST:PORT")
-        return
-    if not 0 <= args.process_id < args.num_processes:
-        raise ValueError(f"--process-id must lie in 0 .. {args.num_processes - 1}")
-    import jax
-
-    if jax.config.jax_platforms in (None, "", "cpu") or "cpu" in str(jax.config.jax_platforms):
-        jax.config.update("jax_cpu_collectives_implementation", "gloo")
-    jax.distributed.initialize(args.coordinator, args.num_processes, args.process_id)
-
-
 def _report(sweep, description: str, seconds: float, args) -> dict:
     import jax
 
@@ -178,7 +163,7 @@ def run_basin(args) -> int:
     """Runs ``jaxreg basin`` with parsed ``args``; returns the exit status. Bad input gives
     one line on stderr and status 1, never a traceback."""
     try:
-        _join(args)
+        join(args)
         import jax
 
         from jaxreg.geometry import kernels

@@ -20,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from jaxreg.cli._basin import _join
+from jaxreg.cli._processes import add_process_options, join
 
 
 def add_bop_parser(subparsers) -> argparse.ArgumentParser:
@@ -38,9 +38,7 @@ def add_bop_parser(subparsers) -> argparse.ArgumentParser:
         "--out", type=Path, help="the results CSV (default jaxreg_<dataset>-<split>.csv)"
     )
     p.add_argument("--no-masks", action="store_true", help="segment by the table route")
-    p.add_argument("--coordinator", help="HOST:PORT of process 0 (multi-process runs)")
-    p.add_argument("--num-processes", type=int, default=1)
-    p.add_argument("--process-id", type=int, default=0)
+    add_process_options(p)
     return p
 
 
@@ -88,7 +86,7 @@ def run_bop_command(args) -> int:
     """Runs ``jaxreg bop`` with parsed ``args``; returns the exit status. Bad input gives one
     line on stderr and status 1, never a traceback."""
     try:
-        _join(args)
+        join(args)
         import jax
 
         from jaxreg.io.bop import read_bop, write_bop_results
