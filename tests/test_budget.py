@@ -204,10 +204,7 @@ def test_the_depth_term_is_icp_covariance_of_the_same_pairs():
     )
     jac = _budget._jacobian(pairs, pair_normals, np.asarray(object_T_base.wxyz_xyz))
     inverse = np.linalg.inv(jac.T @ jac)
-    host = _budget._depth_base(
-        jac, pairs, pair_normals, np.asarray(object_T_base.wxyz_xyz), noise, inverse,
-        np.ones(len(kept), bool),
-    )  # fmt: skip
+    host = _budget._depth_base(jac, pairs, noise, inverse, np.ones(len(kept), bool))
     reference = np.asarray(
         jr.icp_covariance(
             segment.astype(np.float32), model.astype(np.float32), object_T_base,

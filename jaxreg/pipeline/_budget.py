@@ -140,11 +140,10 @@ def _point_covariance(noise, points):
     return noise.covariance(points)
 
 
-def _depth_base(jac, points, normals, object_T_base, noise, inverse, sensed) -> np.ndarray:
+def _depth_base(jac, points, noise, inverse, sensed) -> np.ndarray:
     """The depth noise's covariance (base axes) by the same normal equations, over the
-    ``sensed`` ``(K,)`` rows (the others carry no depth noise)."""
-    rotation = np.asarray(SE3(np.asarray(object_T_base, np.float64)).rotation().as_matrix())
-    n_base = normals @ rotation
+    ``sensed`` ``(K,)`` rows (weight 1; the others carry no depth noise)."""
+    n_base = jac[:, :3]  # R^T n_i on the sensed rows
     # one program for every count: the rows padded to a fixed size (a power of two)
     size = max(1024, 1 << (len(points) - 1).bit_length())
     padded = np.zeros((size, 3), np.float32)
@@ -154,7 +153,7 @@ def _depth_base(jac, points, normals, object_T_base, noise, inverse, sensed) -> 
     return inverse @ (jac.T * variance) @ jac @ inverse
 
 
-def _calibration_term(calibration, jac, points, normals, object_T_base, frame, inverse, weight):
+def _calibration_term(calibration, jac, points, frame, inverse):
     """Intrinsics and depth-scale uncertainty (base axes), through the lifting's derivative:
     a camera point ``z ((u - cx) / fx, (v - cy) / fy, 1)`` moves by ``-x / fx`` per unit of
     ``fx``, ``-z / fx`` per unit of ``cx`` (likewise in y), and by itself per unit of scale."""
@@ -171,14 +170,13 @@ def _calibration_term(calibration, jac, points, normals, object_T_base, frame, i
         (np.stack([zero, -z / fy, zero], 1), calibration.intrinsics_sigma[3]),
         (cam, calibration.depth_scale_sigma),
     ]
-    rotation = np.asarray(SE3(np.asarray(object_T_base, np.float64)).rotation().as_matrix())
-    n_base = normals @ rotation
+    n_base = jac[:, :3]  # R^T n_i, weighted like the rows of jac
     total = np.zeros((6, 6))
     for motion, sigma in moves:
         if sigma == 0:
             continue
         # residual change per unit, weighted like the rows of jac
-        dr = np.einsum("ij,ij->i", n_base, motion @ to_base.T) * weight
+        dr = np.einsum("ij,ij->i", n_base, motion @ to_base.T)
         step = -inverse @ (jac.T @ dr)  # the pose's change per unit (base axes)
         total += sigma**2 * np.outer(step, step)
     return total
@@ -325,7 +323,7 @@ def pose_budget(
     residual = residual * weight[:, 0]
     hessian = jac.T @ jac
     inverse = np.linalg.pinv(hessian, rcond=1e-9, hermitian=True)
-    depth_base = _depth_base(jac, pairs_points, normals, object_T_base, noise, inverse, sensed)
+    depth_base = _depth_base(jac, pairs_points, noise, inverse, sensed)
     blocks = _blocks(pairs_points, 0.012)
     fit_base = _fit_term(jac, residual, blocks, inverse, depth_base)
     mismatch_base = _mismatch_term(jac, blocks, sensed, inverse, MISMATCH_SIGMA)
@@ -343,9 +341,7 @@ def pose_budget(
     )  # fmt: skip
     moved = (_tangents(object_T_base, np.asarray(poses)) @ to_object.T)[np.asarray(ok)]
 
-    calibration_base = _calibration_term(
-        calibration, jac, pairs_points, normals, object_T_base, frame, inverse, weight[:, 0]
-    )
+    calibration_base = _calibration_term(calibration, jac, pairs_points, frame, inverse)
     hand_eye = np.zeros((6, 6))
     if calibration.hand_eye is not None:
         # every lifted point moves with the camera: base_T_object' = base_T_camera exp(e)
