@@ -278,6 +278,30 @@ def test_a_given_grid_that_indexes_points_without_a_normal_raises():
     np.testing.assert_allclose(masked.pose.wxyz_xyz, alone.pose.wxyz_xyz, atol=1e-6)
 
 
+def test_a_grid_checked_once_is_checked_again_for_other_inputs():
+    """A given grid's checks are remembered for the inputs they passed on, not for the grid:
+    the same grid then raises for another target (also one edited in place), a larger
+    distance, or a point-to-plane call whose normals leave indexed rows unusable."""
+    model, scene, _ = lesson_cube(5.0)
+    grid = build_grid(scene, 0.02)
+    assert icp(model, scene, neighbors=grid).status == ICPStatus.success
+    assert icp(model, scene, neighbors=grid).status == ICPStatus.success
+    with pytest.raises(ValueError, match="another target"):
+        icp(model, scene + np.float32(0.001), neighbors=grid)
+    edited = scene.copy()
+    assert icp(model, edited, neighbors=grid).status == ICPStatus.success
+    edited[0] += 0.001
+    with pytest.raises(ValueError, match="another target"):
+        icp(model, edited, neighbors=grid)
+    with pytest.raises(ValueError, match="queries reach 0.03"):
+        icp(model, scene, max_correspondence_distance=0.03, neighbors=grid)
+    normals = np.zeros_like(scene)
+    normals[:, 2] = 1.0
+    normals[::2] = 0.0
+    with pytest.raises(ValueError, match="without a finite unit normal"):
+        icp(model, scene, method="point_to_plane", target_normals=normals, neighbors=grid)
+
+
 def test_a_grid_that_cannot_answer_for_this_target_raises():
     model, scene, _ = lesson_cube(5.0)
     with pytest.raises(ValueError, match="another target"):

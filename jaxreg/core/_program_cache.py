@@ -210,6 +210,27 @@ def _static_text(leaf) -> str:
     return text
 
 
+def _signature(arrays: list, static, in_tree) -> tuple | None:
+    """What :func:`_key` reads from a call, as a hashable tuple (the static leaves with their
+    types, so that ``1``, ``1.0`` and ``True`` differ), or None when a static leaf is not
+    hashable: a call with the same signature has the same key, found without hashing text."""
+    leaves, static_tree = jax.tree.flatten(static)
+    avals = tuple((a.shape, a.dtype, bool(getattr(a, "weak_type", False))) for a in arrays)
+    signature = (
+        in_tree,
+        static_tree,
+        tuple((type(leaf), leaf) for leaf in leaves),
+        avals,
+        bool(jax.config.jax_enable_x64),
+        jax.default_backend(),
+    )
+    try:
+        hash(signature)
+    except TypeError:
+        return None
+    return signature
+
+
 def _key(fn: Callable, arrays: list, static, in_tree) -> str | None:
     """The program's name, or None when some of its code cannot be keyed (a type defined
     where there is no source file to digest)."""
@@ -360,6 +381,7 @@ def persistent_jit(fn: Callable) -> Callable:
     processes once :func:`set_folder` has named a folder. ``fn`` must depend only on its
     arguments (no closed-over arrays or mutable globals)."""
     jitted = eqx.filter_jit(fn)
+    keys: OrderedDict[tuple, str | None] = OrderedDict()  # the call's signature -> _key
 
     @functools.wraps(fn)
     def call(*args):
@@ -370,7 +392,16 @@ def persistent_jit(fn: Callable) -> Callable:
         if any(len(a.sharding.device_set) > 1 for a in arrays if isinstance(a, jax.Array)):
             return jitted(*args)  # stored programs run on one device
         arrays = [a if isinstance(a, jax.Array) else jax.device_put(a) for a in arrays]
-        key = _key(fn, arrays, static, in_tree)
+        signature = _signature(arrays, static, in_tree)
+        if signature is not None and signature in keys:
+            keys.move_to_end(signature)
+            key = keys[signature]
+        else:
+            key = _key(fn, arrays, static, in_tree)
+            if signature is not None:
+                keys[signature] = key
+                while len(keys) > _MAX_PROGRAMS:
+                    keys.popitem(last=False)
         program = None if key is None else _program(fn, arrays, static, in_tree, key)
         if program is None:
             return jitted(*args)
