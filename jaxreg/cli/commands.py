@@ -51,7 +51,6 @@ from jaxreg.core._program_cache import persistent_jit
 from jaxreg.core.compilation import enable_compilation_cache
 
 GRIPPER_OPENING = 0.085  # metres: a Robotiq 2F-85-class parallel-jaw gripper
-MODEL_SAMPLES = 20_000  # points sampled on a mesh model
 _TANGENT_AXES = ("vx", "vy", "vz", "wx", "wy", "wz")
 
 
@@ -367,9 +366,8 @@ def _truth_errors(pose, truth, model_points, symmetry):
 
 
 def run_demo(args) -> int:
-    import trimesh
-
     from jaxreg.pipeline.estimate import estimate_pose
+    from jaxreg.synth._meshes import surface_points
     from jaxreg.synth.scenes import OBJECTS, StereoSensor, tabletop_scene
 
     if args.object not in OBJECTS:
@@ -384,8 +382,7 @@ def run_demo(args) -> int:
         )
     progress("render")
     scene = tabletop_scene(args.seed, object=args.object)
-    samples, _ = trimesh.sample.sample_surface(scene.model, MODEL_SAMPLES, seed=0)
-    model = samples.astype(np.float32)
+    model = surface_points(scene.model)
     symmetry = scene.symmetry
     noise = StereoSensor.d435().depth_noise(scene.frame.intrinsics)
     estimate = estimate_pose(

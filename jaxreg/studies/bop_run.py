@@ -22,18 +22,11 @@ import numpy as np
 
 from jaxreg.io.bop import BopResult, BopSplit
 from jaxreg.pipeline.estimate import estimate_pose
+from jaxreg.synth._meshes import MODEL_SAMPLES, surface_points
 
 __all__ = ["MODEL_SAMPLES", "gather_bop_results", "run_bop"]
 
-MODEL_SAMPLES = 20_000  # points sampled on each model's surface (the pose command's number)
 _FIELDS = 17  # scene_id, im_id, obj_id, score, R (9), t (3), time: float64 each
-
-
-def _model_points(mesh) -> np.ndarray:
-    import trimesh
-
-    samples, _ = trimesh.sample.sample_surface(mesh, MODEL_SAMPLES, seed=0)
-    return samples.astype(np.float32)
 
 
 def run_bop(
@@ -82,7 +75,7 @@ def run_bop(
                 continue
             model = split.models[target.obj_id]
             if target.obj_id not in points:
-                points[target.obj_id] = _model_points(model.mesh)
+                points[target.obj_id] = surface_points(model.mesh)
             mask = split.mask(target) if use_masks else None
             if mask is not None and not mask.any():
                 continue  # nothing of the object is visible: no estimate, a miss

@@ -13,7 +13,7 @@ import trimesh
 
 from jaxreg.geometry.metrics import Symmetry
 
-__all__ = ["OBJECTS", "distractor_mesh", "object_mesh"]
+__all__ = ["MODEL_SAMPLES", "OBJECTS", "distractor_mesh", "object_mesh", "surface_points"]
 
 OBJECTS = ("box", "mug", "cylinder", "container")
 _SECTIONS = 64  # facets around a round object: 0.1 mm sagitta at 4 cm radius
@@ -117,3 +117,13 @@ def distractor_mesh(rng: np.random.Generator) -> trimesh.Trimesh:
             rng.uniform(0.02, 0.045), rng.uniform(0.05, 0.15), sections=_SECTIONS
         )
     return trimesh.creation.icosphere(subdivisions=3, radius=rng.uniform(0.025, 0.05))
+
+
+MODEL_SAMPLES = 20_000  # points a mesh model is sampled to (the pose and bop commands, demo)
+
+
+def surface_points(mesh: trimesh.Trimesh, count: int = MODEL_SAMPLES) -> np.ndarray:
+    """``(count, 3)`` float32 points sampled uniformly on ``mesh``'s surface (by area), in
+    the mesh's frame and units; the same points for the same mesh on every run (seed 0)."""
+    samples, _ = trimesh.sample.sample_surface(mesh, count, seed=0)
+    return samples.astype(np.float32)
