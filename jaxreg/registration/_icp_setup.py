@@ -19,6 +19,7 @@ from jaxlie import SE3
 from jaxtyping import ArrayLike, Float
 
 from jaxreg.core._program_cache import persistent_jit
+from jaxreg.core._threads import lane_pieces, split_lanes
 from jaxreg.geometry.kernels import L2, AbstractRobustKernel
 from jaxreg.geometry.lie import se3_from_matrix
 from jaxreg.registration._icp_core import Options, Problem, RegistrationResult, run_many
@@ -281,14 +282,21 @@ def run_starts(
     problem: Problem, opts: Options, sizes: tuple[int, int], inits
 ) -> RegistrationResult:
     """ICP from every start of ``inits`` (an ``SE3`` batch ``(S,)`` or ``(S, 4, 4)``) in one
-    compiled call, sharded over ``jax.local_devices()`` when there are several; every leaf of the
-    (unpadded) result has the leading axis ``S``."""
+    compiled program, sharded over ``jax.local_devices()`` when there are several, and on a
+    single CPU device run as one concurrent call per core on a piece of the starts
+    (:func:`jaxreg.core._threads.split_lanes`); every leaf of the (unpadded) result has the
+    leading axis ``S``."""
     starts = as_pose(inits, problem.source.dtype)
     if len(starts.get_batch_axes()) != 1:
         raise ValueError(
             f"inits must have exactly one batch axis (S,), got {starts.get_batch_axes()}"
         )
     count = starts.wxyz_xyz.shape[0]
+    pieces = lane_pieces(count) if _is_concrete(starts.wxyz_xyz) else 1
+    if pieces > 1:  # one CPU device: a piece of the starts per core, run concurrently
+        params = np.asarray(starts.wxyz_xyz)
+        results = split_lanes(lambda part: run_many(problem, opts, SE3(part)), params, pieces)
+        return unpad(results, *sizes)
     results = run_many(problem, opts, _shard_starts(starts))
     if results.pose.wxyz_xyz.shape[0] != count:
         results = results[:count]

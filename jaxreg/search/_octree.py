@@ -28,11 +28,10 @@ grids (``k=None``) apply the first test alone.
 
 from __future__ import annotations
 
-import concurrent.futures
-import os
-
 import numba
 import numpy as np
+
+from jaxreg.core._threads import CORES, in_pieces
 
 __all__ = [
     "counting_sort",
@@ -48,32 +47,16 @@ __all__ = [
 ]
 
 _CACHE = dict(cache=True, nogil=True)
-_WORKERS = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-_pool: tuple[int, concurrent.futures.ThreadPoolExecutor] | None = None  # (pid, pool)
 
 
 def num_pieces(work: int, grain: int) -> int:
     """Pieces to cut ``work`` units into for :func:`in_pieces`: about one per ``grain``
     units, at most 4 per core (uneven pieces and a loaded machine even out), a multiple of
     the cores when more than one each (3 pieces on 2 cores take as long as 4), at least 1."""
-    if _WORKERS < 2:
+    if CORES < 2:
         return 1
-    pieces = min(work // grain, 4 * _WORKERS)
-    return max(1, pieces - pieces % _WORKERS if pieces > _WORKERS else pieces)
-
-
-def in_pieces(fn, pieces) -> list:
-    """``[fn(*piece) for piece in pieces]``, on a pool of one thread per core when there are
-    several pieces: the compiled loops release the GIL (``nogil``), so independent pieces
-    run in parallel. The pool is made on first use, and again in a forked child (whose
-    copy of the parent's pool has no threads)."""
-    global _pool
-    pieces = list(pieces)
-    if len(pieces) < 2:
-        return [fn(*piece) for piece in pieces]
-    if _pool is None or _pool[0] != os.getpid():
-        _pool = (os.getpid(), concurrent.futures.ThreadPoolExecutor(_WORKERS, "jaxreg-host"))
-    return list(_pool[1].map(lambda piece: fn(*piece), pieces))
+    pieces = min(work // grain, 4 * CORES)
+    return max(1, pieces - pieces % CORES if pieces > CORES else pieces)
 
 
 @numba.njit(**_CACHE)

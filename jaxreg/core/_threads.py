@@ -1,0 +1,63 @@
+"""One pool of host threads, a thread per core, for work that leaves the interpreter's lock.
+
+Two kinds of work run on it: compiled host loops (numba ``nogil``: the neighbour grid's
+build, the host kNN) and compiled JAX programs. A JAX program on the CPU runs on one core
+however many lanes it has (a vmapped ICP of 64 starts used 1.0 of 2 cores), while two
+executions of a program on the same CPU device run at once: :func:`split_lanes` cuts a batch
+of lanes into one piece per core and runs the pieces concurrently.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import os
+import threading
+from collections.abc import Callable, Iterable
+
+import jax
+import numpy as np
+
+__all__ = ["CORES", "in_pieces", "lane_pieces", "split_lanes"]
+
+CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+_MIN_LANES = 8  # lanes per piece, at least: fewer do not repay a second program run
+_pool: tuple[int, concurrent.futures.ThreadPoolExecutor] | None = None  # (pid, pool)
+_NAME = "jaxreg-host"
+
+
+def in_pieces(fn: Callable, pieces: Iterable) -> list:
+    """``[fn(*piece) for piece in pieces]``, on the pool when there are several pieces. The
+    pool is made on first use, and again in a forked child (whose copy of the parent's pool
+    has no threads); a call from one of its own threads runs inline (no nested waits)."""
+    global _pool
+    pieces = list(pieces)
+    if len(pieces) < 2 or threading.current_thread().name.startswith(_NAME):
+        return [fn(*piece) for piece in pieces]
+    if _pool is None or _pool[0] != os.getpid():
+        _pool = (os.getpid(), concurrent.futures.ThreadPoolExecutor(CORES, _NAME))
+    return list(_pool[1].map(lambda piece: fn(*piece), pieces))
+
+
+def lane_pieces(lanes: int) -> int:
+    """How many pieces :func:`split_lanes` cuts ``lanes`` into: one per core when JAX runs on
+    a single local CPU device and each piece keeps at least ``_MIN_LANES`` lanes; else 1 (an
+    accelerator, or several devices, already run the lanes in parallel)."""
+    devices = jax.local_devices()
+    if len(devices) != 1 or devices[0].platform != "cpu":
+        return 1
+    return max(1, min(CORES, lanes // _MIN_LANES))
+
+
+def split_lanes(fn: Callable, lanes: np.ndarray, pieces: int):
+    """``fn(lanes)`` computed as ``pieces`` concurrent calls on equal slices of the leading
+    axis (padded with copies of the last lane, so one program serves every piece), their
+    results (pytrees with the lane axis leading every leaf) joined on the host and trimmed
+    to ``len(lanes)``. ``fn`` must treat lanes independently (a vmapped function)."""
+    count = len(lanes)
+    size = -(-count // pieces)
+    padded = np.concatenate([lanes, np.repeat(lanes[-1:], size * pieces - count, axis=0)])
+    parts = in_pieces(
+        lambda i: jax.block_until_ready(fn(padded[i * size : (i + 1) * size])),
+        [(i,) for i in range(pieces)],
+    )
+    return jax.tree.map(lambda *xs: jax.device_put(np.concatenate(xs)[:count]), *parts)
