@@ -14,8 +14,10 @@
 
 Scale-out uses JAX's own runtime, nothing else: the starts are one array sharded over a 1-D
 mesh of ``jax.devices()``. On one machine that is every local device (force several CPU
-devices with ``XLA_FLAGS=--xla_force_host_platform_device_count=N``); in processes started
-with ``jax.distributed.initialize`` it is every device of every process, each process
+devices with ``XLA_FLAGS=--xla_force_host_platform_device_count=N``; on a single CPU
+device each chunk of starts runs as one concurrent call per core,
+:func:`jaxreg.core._threads.split_lanes`); in processes started with
+``jax.distributed.initialize`` it is every device of every process, each process
 registers the starts on its own devices, and every process receives the whole result. Call
 the study with the same arguments in every process (the starts are drawn from ``key``, the
 same everywhere). On CPU the processes need gloo collectives, which only the caller may
@@ -39,6 +41,7 @@ from jax.experimental import multihost_utils
 from jaxlie import SE3
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from jaxreg.core._threads import lane_pieces, split_lanes
 from jaxreg.geometry.kernels import AbstractRobustKernel
 from jaxreg.geometry.metrics import Symmetry, pose_error
 from jaxreg.registration._icp_core import ICPStatus, run
@@ -336,12 +339,20 @@ def basin_sweep(
         (problem, opts, np.asarray(truth.wxyz_xyz, dtype), symmetry,
          np.array([success_rotation_deg, success_translation], dtype))
     )  # fmt: skip
+    # One device (a CPU): a piece of each chunk per core, run concurrently.
+    pieces = lane_pieces(chunk) if len(devices) == 1 else 1
     parts = []
     for i in range(count):
         block = flat[i * chunk : (i + 1) * chunk]
-        sharded = jax.make_array_from_callback(block.shape, sharding, block.__getitem__)
-        out = _register_shard(constants[0], constants[1], sharded, *constants[2:], mesh)
-        parts.append(multihost_utils.process_allgather(out, tiled=True))
+        if pieces > 1:
+            run = lambda part: _register_shard(  # noqa: E731
+                constants[0], constants[1], part, *constants[2:], mesh
+            )
+            parts.append(jax.tree.map(np.asarray, split_lanes(run, block, pieces)))
+        else:
+            sharded = jax.make_array_from_callback(block.shape, sharding, block.__getitem__)
+            out = _register_shard(constants[0], constants[1], sharded, *constants[2:], mesh)
+            parts.append(multihost_utils.process_allgather(out, tiled=True))
         if progress is not None:
             progress(min((i + 1) * chunk, total), total)
     out = jax.tree.map(
