@@ -36,6 +36,7 @@ _EXPORTS = {
     "jaxreg.geometry.metrics": (
         "Symmetry", "add", "add_s", "canonicalise", "pose_error", "rotation_error",
     ),
+    "jaxreg.pipeline.batch": ("estimate_poses",),
     "jaxreg.pipeline.estimate": ("PoseEstimate", "estimate_pose"),
     "jaxreg.registration.icp": (
         "ICPStatus", "RegistrationResult", "best_index", "icp", "icp_covariance", "init_spread",
@@ -153,6 +154,7 @@ if TYPE_CHECKING:  # what type checkers and editors see; the same names as _EXPO
         pose_error as pose_error,
         rotation_error as rotation_error,
     )
+    from jaxreg.pipeline.batch import estimate_poses as estimate_poses
     from jaxreg.pipeline.estimate import (
         PoseEstimate as PoseEstimate,
         estimate_pose as estimate_pose,

@@ -75,6 +75,7 @@ def data_root() -> Path | None:
 _SAME_WORKER = {
     "tests/test_cli.py": "tests/test_pipeline.py",
     "tests/test_bop_run.py": "tests/test_pipeline.py",
+    "tests/test_pipeline_batch.py": "tests/test_pipeline.py",
 }
 
 
