@@ -17,9 +17,10 @@ import functools
 import jax
 import jax.numpy as jnp
 from jaxlie import SE3
+from jaxtyping import Array
 
 from jaxreg.camera._pnp_linalg import matmul, packed, spd_inverse_rows
-from jaxreg.camera._pnp_refine import _evaluate, _Problem, weighted_jacobian
+from jaxreg.camera._pnp_refine import _cross, _distortion_jacobian, weighted_jacobian
 
 __all__ = ["covariance", "covariances"]
 
@@ -64,6 +65,27 @@ def covariance(pose: SE3, X, K, dist, w, sigma_px):
     return _with_undetermined(cov, free, pose, tol)
 
 
+def _information(R, t, X, K, dist, sw) -> list[Array]:
+    """The 21 upper-triangle entries (row by row) of `J^T W J` at the pose `(R, t)`, on scalars:
+    J's rows are `[a R, X x (a R)]` for the rows `a` of the pixels' Jacobian with respect to
+    the camera-frame point (`jaxreg.camera.model.pose_jacobian`), weighted by `sw`."""
+    Xs = (X[:, 0], X[:, 1], X[:, 2])
+    Rs = tuple(tuple(R[i, j] for j in range(3)) for i in range(3))
+    Xc = [sum(Rs[i][k] * Xs[k] for k in range(3)) + t[i] for i in range(3)]
+    x, y = Xc[0] / Xc[2], Xc[1] / Xc[2]
+    d = None if dist is None else tuple(dist[i] for i in range(5))
+    (d00, d01), (d10, d11) = _distortion_jacobian(x, y, d)
+    inv_z = sw / Xc[2]
+    rows = []
+    for k0, k1 in ((K[0, 0], K[0, 1]), (K[1, 0], K[1, 1])):
+        q0, q1 = k0 * d00 + k1 * d10, k0 * d01 + k1 * d11
+        P = (q0 * inv_z, q1 * inv_z, -(q0 * x + q1 * y) * inv_z)
+        B = tuple(P[0] * Rs[0][j] + P[1] * Rs[1][j] + P[2] * Rs[2][j] for j in range(3))
+        rows.append((*B, *_cross(Xs, B)))
+    J0, J1 = rows
+    return [jnp.sum(J0[i] * J0[j] + J1[i] * J1[j]) for i in range(6) for j in range(i, 6)]
+
+
 def _covariance_closed_form(pose: SE3, X, K, dist, w, sigma_px):
     """`covariance`'s outputs without an eigendecomposition, and whether they are its.
 
@@ -81,10 +103,7 @@ def _covariance_closed_form(pose: SE3, X, K, dist, w, sigma_px):
     dtype = X.dtype
     tol = 100 * jnp.finfo(dtype).eps
     R = pose.rotation().as_matrix()
-    problem = _Problem.build(
-        R, pose.translation(), X, jnp.zeros_like(X[:, :2]), K, dist, jnp.sqrt(w), jnp.ones(6, dtype)
-    )
-    info = packed(_evaluate(problem, jnp.zeros(6, dtype))[0])
+    info = packed(_information(R, pose.translation(), X, K, dist, jnp.sqrt(w)))
     finite = functools.reduce(jnp.logical_and, [jnp.isfinite(a) for row in info for a in row])
     info = [[jnp.where(finite, a, 0.0) for a in row] for row in info]
     col = [jnp.sqrt(info[i][i]) for i in range(6)]
