@@ -204,15 +204,13 @@ def _host_pca(points: np.ndarray, mask, k: int, viewpoint) -> NormalEstimate:
     flat_tol = 100 * float(np.finfo(dtype).eps)
     out = host_normals(points, ok, cov, count, vp.astype(dtype), flat_tol, codes)
     code = out[:, 4].astype(np.int32)
-    return NormalEstimate(
-        normals=jax.device_put(out[:, :3].astype(dtype)),
-        curvature=jax.device_put(out[:, 3].astype(dtype)),
-        valid=jax.device_put(code == int(NormalStatus.success._value)),
-        status=NormalStatus.success.__class__(
-            _value=jax.device_put(code), _enumeration=NormalStatus.success._enumeration
-        ),
-        num_neighbors=jax.device_put(count.astype(np.int32)),
+    success = int(NormalStatus.success._value)
+    host = (out[:, :3].astype(dtype), out[:, 3].astype(dtype), code == success, code, count)
+    normals, curvature, valid, code, count = jax.device_put(host)  # one transfer call
+    status = NormalStatus.success.__class__(
+        _value=code, _enumeration=NormalStatus.success._enumeration
     )
+    return NormalEstimate(normals, curvature, valid, status, count)
 
 
 def estimate_normals_with_curvature(
