@@ -18,8 +18,11 @@ from jaxreg.camera.pnp import (
     PlanarPnPResult,
     PnPResult,
     PnPStatus,
+    _ranking,
+    _Reprojection,
     _reprojection,
     _result,
+    _swap_pair,
     solve_pnp,
     solve_pnp_planar,
 )
@@ -514,6 +517,40 @@ def test_static_problems_raise_on_the_host(solver):
 # --------------------------------------------------------------------------------------------
 # The closed-form pieces of the batched path, against their references
 # --------------------------------------------------------------------------------------------
+
+
+def test_pair_order_is_the_rankings():
+    """The planar path orders its two candidates by comparisons; they put the second first
+    exactly when `_ranking` (the general path's sort) does, over every combination of tier
+    (finite, behind the camera), error (equal, within the rounding slack, apart, inf) and
+    convergence."""
+    import itertools
+
+    errors = [0.5, 0.5 + 1e-9, 0.5 + 1e-3, 0.7, np.inf]
+    cases = list(
+        itertools.product(
+            [True, False],
+            [True, False],
+            [True, False],
+            [True, False],
+            errors,
+            errors,
+            [True, False],
+            [True, False],
+        )
+    )
+    columns = [np.array(c) for c in zip(*cases, strict=True)]
+    f0, f1, b0, b1, e0, e1, c0, c1 = columns
+    fits = _Reprojection(
+        rmse=jnp.asarray(np.stack([e0, e1], -1), jnp.float32),
+        behind=jnp.asarray(np.stack([b0, b1], -1)),
+        finite=jnp.asarray(np.stack([f0, f1], -1) & np.isfinite(np.stack([e0, e1], -1))),
+    )
+    converged = jnp.asarray(np.stack([c0, c1], -1))
+    swap = jax.vmap(_swap_pair)(fits, converged)
+    first = jax.vmap(lambda fit, conv: _ranking(fit, conv)[0])(fits, converged)
+    np.testing.assert_array_equal(np.asarray(swap), np.asarray(first) == 1)
+    assert 0 < int(np.sum(swap)) < len(cases)
 
 
 def test_unrolled_cholesky_solve_and_inverse_match_numpy(x64):

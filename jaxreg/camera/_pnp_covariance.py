@@ -97,9 +97,9 @@ def _covariance_closed_form(pose: SE3, X, K, dist, w, sigma_px):
     non-finite Jacobian). Between them lie near-singular problems, left to `covariance`: the
     returned flag is False there.
 
-    Written on scalars, as the refinement's step is (`jaxreg.camera._pnp_refine`): the
-    information is the refinement's `J^T J` at the pose itself (its chart at `y = 0` with unit
-    scales is the right perturbation), so that a vmapped batch runs as a few fused loops."""
+    Written on scalars (`_information`, a Cholesky inverse of rows of scalars), as the
+    refinement's step is (`jaxreg.camera._pnp_refine`), so that a vmapped batch runs as
+    fused elementwise loops rather than batched dots and slices of `(B, 6, 6)` arrays."""
     dtype = X.dtype
     tol = 100 * jnp.finfo(dtype).eps
     R = pose.rotation().as_matrix()
