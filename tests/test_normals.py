@@ -261,3 +261,24 @@ def test_host_path_equals_the_jax_rules_on_milk(pcl_dir):
         np.testing.assert_allclose(np.asarray(host.normals), np.asarray(rules.normals), atol=1e-5)
         np.testing.assert_allclose(host.curvature, rules.curvature, rtol=1e-5, atol=1e-7)
         np.testing.assert_array_equal(host.num_neighbors, rules.num_neighbors)
+
+
+def test_host_knn_is_exact_with_ties_and_outliers():
+    """The host kNN (whose ring searches skip the cells beyond the current k-th distance)
+    finds the exact k nearest distances on a lattice full of equal distances, with duplicated
+    points and far outliers whose neighbours lie many cells away, with and without a radius."""
+    from jaxreg.search._knn import self_knn
+
+    rng = np.random.default_rng(8)
+    grid = np.stack(np.meshgrid(*[np.arange(12)] * 2, np.arange(3), indexing="ij"), -1)
+    lattice = grid.reshape(-1, 3) * 0.01
+    x = np.concatenate([lattice, lattice[:100], rng.normal(size=(30, 3)) + 2.0])
+    d2 = np.sum((x[:, None] - x[None]) ** 2, axis=-1)
+    for k, radius in ((9, np.inf), (20, np.inf), (20, 0.025)):
+        idx, sq = self_knn(x, k, radius)
+        expect = np.sort(np.where(d2 < radius**2, d2, np.inf), axis=1)[:, :k]
+        np.testing.assert_array_equal(sq, expect)
+        found = np.isfinite(sq)
+        np.testing.assert_array_equal(
+            np.take_along_axis(d2, np.where(found, idx, 0), 1)[found], sq[found]
+        )
