@@ -166,7 +166,9 @@ def host_normals(points, ok, cov, count, viewpoint, flat_tol: float, codes) -> n
     out = np.empty((n, 5))
     pieces = num_pieces(n, _GRAIN)
     bounds = (np.arange(pieces + 1) * n) // pieces
-    args = (points, ok, cov, count, np.asarray(viewpoint, np.float64), flat_tol, codes)
+    # One compiled signature whatever the cloud's dtype (the eigenproblems are float64).
+    points, viewpoint = (np.asarray(a, np.float64) for a in (points, viewpoint))
+    args = (points, ok, cov, count, viewpoint, flat_tol, codes)
     in_pieces(
         lambda a, b: _normals_pass(*args, a, b, out),
         zip(bounds[:-1], bounds[1:], strict=True),
