@@ -1,6 +1,7 @@
 """Nearest-neighbour engines on milk.pcd: the grid, blocked brute force, scipy, Open3D.
 
 Usage: python benchmarks/bench_neighbors.py [--data DIR] [--radius 0.02] [--repeats 30]
+       [--cases icp normals]
 (DIR defaults to $JAXREG_DATA/pcl, else ../shared/data/pcl beside the repository)
 
 Prints one table (median milliseconds of repeated runs, after a warm-up call that compiles).
@@ -211,15 +212,20 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=DATA / "pcl", help="default $JAXREG_DATA/pcl")
     parser.add_argument("--radius", type=float, default=0.02)
     parser.add_argument("--repeats", type=int, default=30)
+    parser.add_argument(
+        "--cases", nargs="+", choices=["icp", "normals"], default=["icp", "normals"]
+    )
     args = parser.parse_args()
     full = load_points(args.data / "milk.pcd")
     target = voxel_downsample(full, 0.004)
     print(f"milk.pcd: {len(full)} points, {len(target)} after 4 mm voxels; {jax.devices()[0]}")
     print(f"  {'case':<28} {'engine':<44} {'median ms':>10}")
-    icp_case(target, args.radius, args.repeats)
-    icp_case(full, args.radius, args.repeats)
-    normals_case(target, args.repeats)
-    normals_case(full, args.repeats)
+    if "icp" in args.cases:
+        icp_case(target, args.radius, args.repeats)
+        icp_case(full, args.radius, args.repeats)
+    if "normals" in args.cases:
+        normals_case(target, args.repeats)
+        normals_case(full, args.repeats)
 
 
 if __name__ == "__main__":

@@ -5,6 +5,8 @@ batch that holds every case the tests need (random views, Monte Carlo draws, fin
 perturbations, padded and degenerate lanes); the tests read their slices of it.
 """
 
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -16,8 +18,11 @@ from jaxreg.camera.pnp import (
     PlanarPnPResult,
     PnPResult,
     PnPStatus,
+    _ranking,
+    _Reprojection,
     _reprojection,
     _result,
+    _swap_pair,
     solve_pnp,
     solve_pnp_planar,
 )
@@ -96,8 +101,9 @@ MC_R = _rotation([np.deg2rad(30.0), 0.0, 0.0]) @ FACING @ _rotation([0.0, 0.0, 0
 MC_T = np.array([0.03, -0.02, 0.55])
 
 
-@pytest.fixture(scope="module")
-def planar():
+def planar_batch():
+    """Corner pixels `(1130, 4, 2)` of every planar case (the views, the Monte Carlo draws, the
+    fronto-parallel draws, a NaN corner, collinear corners) and the views `(R, t)`."""
     rng = np.random.default_rng(10)
     views = [_tag_view(rng, rng.uniform(0.0, 40.0)) for _ in range(N_VIEWS)]
     images = np.stack([_project_np(R, t, TAG_POINTS) for R, t in views])
@@ -109,7 +115,14 @@ def planar():
     nan_corner[2] = np.nan
     collinear = np.column_stack([np.linspace(300, 360, 4), np.linspace(200, 230, 4)])
     batch = np.concatenate([images, mc, fronto, nan_corner[None], collinear[None]])
+    return batch, views
+
+
+@pytest.fixture(scope="module")
+def planar():
+    batch, views = planar_batch()
     result = solve_pnp_planar(TAG_POINTS, batch, K, sigma_px=0.2)
+    images = batch[:N_VIEWS]
     return dict(views=views, images=images, batch=batch, result=jax.device_get(result))
 
 
@@ -201,6 +214,45 @@ def test_planar_degenerate_lanes_are_flagged_without_failing_the_batch(planar):
     assert np.all(status[-1] == PnPStatus.degenerate._value)  # collinear corners
     assert np.all(status[:-2] == PnPStatus.success._value)
     assert np.all(planar["result"].candidates.iterations[-2:] <= 1)  # no LM spent on them
+
+
+REFERENCE = Path(__file__).parent / "fixtures" / "pnp" / "planar_reference.npz"
+
+
+@pytest.mark.parametrize("refine", [False, True])
+def test_planar_results_equal_the_frozen_reference(planar, refine):
+    """The batched planar path reproduces, within float32 rounding, the results that
+    `fixtures/pnp/make_planar_reference.py` froze (every 16th lane of the planar batch and
+    its two failing lanes): statuses, candidate order, poses, errors, covariances, ratios.
+    The NaN-corner lane is compared by status alone: with three valid corners the pose is
+    whatever the solver reached (see `jaxreg.camera.pnp`)."""
+    ref = np.load(REFERENCE)
+    prefix = "refined" if refine else "unrefined"
+    result = planar["result"]
+    if not refine:
+        result = jax.device_get(
+            solve_pnp_planar(TAG_POINTS, planar["batch"], K, sigma_px=0.2, refine=False)
+        )
+    c = jax.tree.map(lambda leaf: np.asarray(leaf)[ref["lanes"]], result.candidates)
+    expect = {key[len(prefix) + 1 :]: ref[key] for key in ref.files if key.startswith(prefix)}
+    np.testing.assert_array_equal(c.status._value, expect["status"])
+    np.testing.assert_allclose(c.iterations, expect["iterations"], atol=1)
+    kept = expect["status"][:, 0] != PnPStatus.too_few_correspondences._value
+    assert np.sum(~kept) == 1
+    close = lambda actual, key, **tol: np.testing.assert_allclose(  # noqa: E731
+        np.asarray(actual)[kept], expect[key][kept], **tol
+    )
+    close(c.pose.wxyz_xyz, "wxyz_xyz", atol=1e-5)  # quaternion and metres
+    close(c.reprojection_rmse_px, "rmse", atol=1e-4)
+    close(c.translation_sigma, "translation_sigma", rtol=1e-3)
+    close(c.rotation_sigma_deg, "rotation_sigma_deg", rtol=1e-3)
+    close(np.asarray(result.ambiguity_ratio)[ref["lanes"]], "ambiguity_ratio", rtol=1e-3)
+    close(np.asarray(result.separation_deg)[ref["lanes"]], "separation_deg", atol=1e-3)
+    # float32 inverses: the covariances' differences relative to their standard deviations
+    sd = np.sqrt(np.abs(np.einsum("...ii->...i", expect["covariance"])))
+    gap = (c.covariance - expect["covariance"]) / (sd[..., :, None] * sd[..., None, :])
+    assert np.array_equal(np.isfinite(c.covariance), np.isfinite(expect["covariance"]))
+    assert np.nanmax(np.abs(gap[kept])) < 1e-3
 
 
 @needs_cv2
@@ -465,6 +517,40 @@ def test_static_problems_raise_on_the_host(solver):
 # --------------------------------------------------------------------------------------------
 # The closed-form pieces of the batched path, against their references
 # --------------------------------------------------------------------------------------------
+
+
+def test_pair_order_is_the_rankings():
+    """The planar path orders its two candidates by comparisons; they put the second first
+    exactly when `_ranking` (the general path's sort) does, over every combination of tier
+    (finite, behind the camera), error (equal, within the rounding slack, apart, inf) and
+    convergence."""
+    import itertools
+
+    errors = [0.5, 0.5 + 1e-9, 0.5 + 1e-3, 0.7, np.inf]
+    cases = list(
+        itertools.product(
+            [True, False],
+            [True, False],
+            [True, False],
+            [True, False],
+            errors,
+            errors,
+            [True, False],
+            [True, False],
+        )
+    )
+    columns = [np.array(c) for c in zip(*cases, strict=True)]
+    f0, f1, b0, b1, e0, e1, c0, c1 = columns
+    fits = _Reprojection(
+        rmse=jnp.asarray(np.stack([e0, e1], -1), jnp.float32),
+        behind=jnp.asarray(np.stack([b0, b1], -1)),
+        finite=jnp.asarray(np.stack([f0, f1], -1) & np.isfinite(np.stack([e0, e1], -1))),
+    )
+    converged = jnp.asarray(np.stack([c0, c1], -1))
+    swap = jax.vmap(_swap_pair)(fits, converged)
+    first = jax.vmap(lambda fit, conv: _ranking(fit, conv)[0])(fits, converged)
+    np.testing.assert_array_equal(np.asarray(swap), np.asarray(first) == 1)
+    assert 0 < int(np.sum(swap)) < len(cases)
 
 
 def test_unrolled_cholesky_solve_and_inverse_match_numpy(x64):

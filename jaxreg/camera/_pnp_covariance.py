@@ -12,12 +12,15 @@ batch is near-singular.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 from jaxlie import SE3
+from jaxtyping import Array
 
-from jaxreg.camera._pnp_linalg import matmul, spd_inverse
-from jaxreg.camera._pnp_refine import weighted_jacobian
+from jaxreg.camera._pnp_linalg import matmul, packed, spd_inverse_rows
+from jaxreg.camera._pnp_refine import _cross, _distortion_jacobian, weighted_jacobian
 
 __all__ = ["covariance", "covariances"]
 
@@ -62,6 +65,27 @@ def covariance(pose: SE3, X, K, dist, w, sigma_px):
     return _with_undetermined(cov, free, pose, tol)
 
 
+def _information(R, t, X, K, dist, sw) -> list[Array]:
+    """The 21 upper-triangle entries (row by row) of `J^T W J` at the pose `(R, t)`, on scalars:
+    J's rows are `[a R, X x (a R)]` for the rows `a` of the pixels' Jacobian with respect to
+    the camera-frame point (`jaxreg.camera.model.pose_jacobian`), weighted by `sw`."""
+    Xs = (X[:, 0], X[:, 1], X[:, 2])
+    Rs = tuple(tuple(R[i, j] for j in range(3)) for i in range(3))
+    Xc = [sum(Rs[i][k] * Xs[k] for k in range(3)) + t[i] for i in range(3)]
+    x, y = Xc[0] / Xc[2], Xc[1] / Xc[2]
+    d = None if dist is None else tuple(dist[i] for i in range(5))
+    (d00, d01), (d10, d11) = _distortion_jacobian(x, y, d)
+    inv_z = sw / Xc[2]
+    rows = []
+    for k0, k1 in ((K[0, 0], K[0, 1]), (K[1, 0], K[1, 1])):
+        q0, q1 = k0 * d00 + k1 * d10, k0 * d01 + k1 * d11
+        P = (q0 * inv_z, q1 * inv_z, -(q0 * x + q1 * y) * inv_z)
+        B = tuple(P[0] * Rs[0][j] + P[1] * Rs[1][j] + P[2] * Rs[2][j] for j in range(3))
+        rows.append((*B, *_cross(Xs, B)))
+    J0, J1 = rows
+    return [jnp.sum(J0[i] * J0[j] + J1[i] * J1[j]) for i in range(6) for j in range(i, 6)]
+
+
 def _covariance_closed_form(pose: SE3, X, K, dist, w, sigma_px):
     """`covariance`'s outputs without an eigendecomposition, and whether they are its.
 
@@ -71,16 +95,44 @@ def _covariance_closed_form(pose: SE3, X, K, dist, w, sigma_px):
     whose relative error there is ~`eps / tol`): then the covariance is the plain inverse, by
     Cholesky. No direction is determined when the information is zero (no weight, or a
     non-finite Jacobian). Between them lie near-singular problems, left to `covariance`: the
-    returned flag is False there."""
-    tol = 100 * jnp.finfo(X.dtype).eps
-    info, col, C = _normalised_information(pose, X, K, dist, w)
-    C_inv, positive = spd_inverse(C)
-    trace = jnp.trace(C_inv)
-    largest = jnp.max(jnp.sum(jnp.abs(C), axis=1))
+    returned flag is False there.
+
+    Written on scalars (`_information`, a Cholesky inverse of rows of scalars), as the
+    refinement's step is (`jaxreg.camera._pnp_refine`), so that a vmapped batch runs as
+    fused elementwise loops rather than batched dots and slices of `(B, 6, 6)` arrays."""
+    dtype = X.dtype
+    tol = 100 * jnp.finfo(dtype).eps
+    R = pose.rotation().as_matrix()
+    info = packed(_information(R, pose.translation(), X, K, dist, jnp.sqrt(w)))
+    finite = functools.reduce(jnp.logical_and, [jnp.isfinite(a) for row in info for a in row])
+    info = [[jnp.where(finite, a, 0.0) for a in row] for row in info]
+    col = [jnp.sqrt(info[i][i]) for i in range(6)]
+    col = [jnp.where(c > 0, c, 1.0) for c in col]
+    C = [[info[i][j] / (col[i] * col[j]) for j in range(6)] for i in range(6)]
+    C_inv, positive = spd_inverse_rows(C)
+    trace = sum(C_inv[i][i] for i in range(6))
+    largest = functools.reduce(jnp.maximum, [sum(jnp.abs(a) for a in row) for row in C])
     determined = positive & jnp.isfinite(trace) & (trace * 2 * tol * largest < 1.0)
-    zero = jnp.all(info == 0)
-    cov = jnp.where(zero, 0.0, sigma_px**2 * C_inv / jnp.outer(col, col))
-    return _with_undetermined(cov, jnp.full(6, zero), pose, tol), determined | zero
+    zero = functools.reduce(jnp.logical_and, [info[i][j] == 0 for i in range(6) for j in range(6)])
+    cov = [
+        [jnp.where(zero, 0.0, sigma_px**2 * C_inv[i][j] / (col[i] * col[j])) for j in range(6)]
+        for i in range(6)
+    ]
+    # `_with_undetermined` with every coordinate free or none: the translation's variance
+    # along the camera axes is `diag(R cov_tt R^T)`.
+    t_var = [
+        sum(R[i, j] * R[i, k] * cov[j][k] for j in range(3) for k in range(3)) for i in range(3)
+    ]
+    t_free = [zero & jnp.any(jnp.abs(R[i]) > jnp.sqrt(tol)) for i in range(3)]
+    t_sigma = jnp.stack(
+        [
+            jnp.where(f, jnp.inf, jnp.sqrt(jnp.maximum(v, 0.0)))
+            for f, v in zip(t_free, t_var, strict=True)
+        ]
+    )
+    cov = jnp.where(zero, jnp.inf, jnp.stack([jnp.stack(row) for row in cov]))
+    r_sigma = jnp.rad2deg(jnp.sqrt(jnp.maximum(jnp.diagonal(cov[3:, 3:]), 0.0)))
+    return (cov, t_sigma, r_sigma, zero), determined | zero
 
 
 def covariances(pose: SE3, X, K, dist, w, sigma_px, axes):

@@ -33,25 +33,25 @@ import jax.numpy as jnp
 from jaxlie import SE3, SO3
 from jaxtyping import Array, Float
 
+from jaxreg.camera._pnp_linalg import matmul
 from jaxreg.geometry._eig3 import eigh3
 from jaxreg.geometry.alignment import align
 
 __all__ = ["general_starts", "image_spread", "ippe_candidates", "weighted_pca"]
 
 
-def _inv3(M: Array) -> Array:
-    """Inverse of a 3x3 matrix by its adjugate."""
-    return _adjugate3(M) / jnp.dot(M[0], jnp.cross(M[1], M[2]))
-
-
 def weighted_pca(X: Float[Array, "N 3"], w: Float[Array, " N"]):
     """Weighted PCA of the object points: centroid `(3,)`, eigenvalues `(3,)` ascending and
     unit eigenvectors `(3, 3)` as columns, in closed form (elementwise over a vmapped batch)."""
     wsum = jnp.maximum(jnp.sum(w), jnp.finfo(X.dtype).tiny)
-    centroid = w @ X / wsum
+    centroid = jnp.sum(w[:, None] * X, axis=0) / wsum
     centred = X - centroid
-    scatter = jnp.einsum("n,ni,nj->ij", w, centred, centred) / wsum
-    entries = scatter[jnp.array([0, 0, 0, 1, 1, 2]), jnp.array([0, 1, 2, 1, 2, 2])]
+    entries = jnp.stack(
+        [
+            jnp.sum(w * centred[:, i] * centred[:, j]) / wsum
+            for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+        ]
+    )
     evals, evecs = eigh3(entries)
     return centroid, jnp.maximum(evals, 0.0), evecs
 
@@ -59,7 +59,7 @@ def weighted_pca(X: Float[Array, "N 3"], w: Float[Array, " N"]):
 def image_spread(m: Float[Array, "N 2"], w: Float[Array, " N"]) -> Float[Array, "2"]:
     """Eigenvalues `(2,)`, ascending, of the weighted scatter of the normalised image points."""
     wsum = jnp.maximum(jnp.sum(w), jnp.finfo(m.dtype).tiny)
-    centred = m - w @ m / wsum
+    centred = m - jnp.sum(w[:, None] * m, axis=0) / wsum
     x, y = centred[:, 0], centred[:, 1]
     a, b, c = jnp.sum(w * x * x) / wsum, jnp.sum(w * x * y) / wsum, jnp.sum(w * y * y) / wsum
     mean = 0.5 * (a + c)
@@ -102,17 +102,27 @@ def _epnp_kernel(M: Array, count: Array) -> Array:
     return B * jnp.where(largest < 0, -1.0, 1.0)
 
 
-def _translation_given_rotation(R: Array, X: Array, m: Array, w: Array) -> Array:
-    """Least-squares t for fixed R on the algebraic error [1 0 -u; 0 1 -v](R X + t) = 0."""
-    one, zero = jnp.ones_like(m[:, 0]), jnp.zeros_like(m[:, 0])
-    rows = jnp.stack(
-        [jnp.stack([one, zero, -m[:, 0]], axis=-1), jnp.stack([zero, one, -m[:, 1]], axis=-1)],
-        axis=1,
-    )  # (N, 2, 3)
-    rhs = -jnp.einsum("nij,nj->ni", rows, X @ R.T)  # (N, 2)
-    normal = jnp.einsum("n,nki,nkj->ij", w, rows, rows)
-    b = jnp.einsum("n,nki,nk->i", w, rows, rhs)
-    return _inv3(normal) @ b
+def _translation_given_rotation(R, X: Array, m: Array, w: Array) -> tuple:
+    """Least-squares t for fixed R (rows of scalars) on the algebraic error
+    [1 0 -u; 0 1 -v](R X + t) = 0, as three scalars; X `(N, 3)`, m `(N, 2)`, w `(N,)`.
+
+    The normal matrix is `[[W, 0, -Su], [0, W, -Sv], [-Su, -Sv, S(u^2 + v^2)]]` (weighted sums
+    over the points), solved by its adjugate."""
+    u, v = m[:, 0], m[:, 1]
+    Y = [R[i][0] * X[:, 0] + R[i][1] * X[:, 1] + R[i][2] * X[:, 2] for i in range(3)]
+    ru, rv = w * (u * Y[2] - Y[0]), w * (v * Y[2] - Y[1])  # weighted right-hand sides
+    sw, su, sv = jnp.sum(w), jnp.sum(w * u), jnp.sum(w * v)
+    suv = jnp.sum(w * (u * u + v * v))
+    b = (jnp.sum(ru), jnp.sum(rv), -jnp.sum(u * ru + v * rv))
+    # adjugate of the symmetric normal matrix [[sw, 0, -su], [0, sw, -sv], [-su, -sv, suv]]
+    a00, a11, a22 = sw * suv - sv * sv, sw * suv - su * su, sw * sw
+    a01, a02, a12 = su * sv, su * sw, sv * sw
+    det = sw * a00 - su * a02
+    return (
+        (a00 * b[0] + a01 * b[1] + a02 * b[2]) / det,
+        (a01 * b[0] + a11 * b[1] + a12 * b[2]) / det,
+        (a02 * b[0] + a12 * b[1] + a22 * b[2]) / det,
+    )
 
 
 def _homography(xy: Array, m: Array, w: Array) -> Array:
@@ -145,7 +155,7 @@ def _homography(xy: Array, m: Array, w: Array) -> Array:
     _, T_dst_inv, b = similarity(m)
     if xy.shape[0] == 4:
         # Four points determine H exactly: the DLT's null vector, in closed form.
-        Hn = _square_to_quad(b) @ _adjugate3(_square_to_quad(a))
+        Hn = matmul(_square_to_quad(b), _adjugate3(_square_to_quad(a)))
     else:
         one, zero = jnp.ones_like(a[:, :1]), jnp.zeros_like(a[:, :1])
         row_u = jnp.concatenate([a, one, zero, zero, zero, -b[:, :1] * a, -b[:, :1]], axis=-1)
@@ -153,7 +163,7 @@ def _homography(xy: Array, m: Array, w: Array) -> Array:
         sw = jnp.sqrt(w)[:, None]
         A = jnp.concatenate([row_u * sw, row_v * sw], axis=0)
         Hn = _null_vector(A).reshape(3, 3)
-    H = T_dst_inv @ Hn @ T_src
+    H = matmul(matmul(T_dst_inv, Hn), T_src)
     return H / jnp.where(H[2, 2] < 0, -1.0, 1.0)
 
 
@@ -180,49 +190,62 @@ def _square_to_quad(p: Float[Array, "4 2"]) -> Float[Array, "3 3"]:
     )
 
 
-def _ippe_rotations(H: Array) -> tuple[Array, Array]:
-    """The two IPPE rotations camera_R_plane from a plane->normalised-image homography whose
-    plane origin is the point of expansion (the plane points' centroid)."""
-    p, q = H[0, 2] / H[2, 2], H[1, 2] / H[2, 2]
+def _ippe_rotations(H: Array) -> tuple[tuple, tuple]:
+    """The two IPPE rotations camera_R_plane (rows of scalars) from a plane->normalised-image
+    homography whose plane origin is the point of expansion (the plane points' centroid).
+    Written on scalars: vmapped, every product of the small matrices below is elementwise."""
+    h = [[H[i, j] for j in range(3)] for i in range(3)]
+    p, q = h[0][2] / h[2][2], h[1][2] / h[2][2]
     # Jacobian of the homography at the plane origin.
-    J = (H[:2, :2] - jnp.outer(jnp.stack([p, q]), H[2, :2])) / H[2, 2]
+    J = [[(h[i][j] - c * h[2][j]) / h[2][2] for j in range(2)] for i, c in enumerate((p, q))]
     # Rotation Rv taking the optical axis onto the line of sight through (p, q): with
     # u = e_z x v and c = v . e_z, Rv = I + [u]x + [u]x^2 / (1 + c) (c > 0: no singularity).
-    v = jnp.stack([p, q, jnp.ones_like(p)]) / jnp.sqrt(p * p + q * q + 1.0)
-    ux = jnp.array([[0.0, 0.0, v[0]], [0.0, 0.0, v[1]], [-v[0], -v[1], 0.0]], H.dtype)
-    Rv = jnp.eye(3, dtype=H.dtype) + ux + ux @ ux / (1.0 + v[2])
+    norm = jnp.sqrt(p * p + q * q + 1.0)
+    v0, v1, v2 = p / norm, q / norm, 1.0 / norm
+    k = 1.0 / (1.0 + v2)
+    Rv = (
+        (1.0 - v0 * v0 * k, -v0 * v1 * k, v0),
+        (-v0 * v1 * k, 1.0 - v1 * v1 * k, v1),
+        (-v0, -v1, 1.0 - (v0 * v0 + v1 * v1) * k),
+    )
     # [I2 | -(p, q)] Rv = [B | 0], so J = B R'[:2, :2] / depth with R = Rv R'.
-    B = Rv[:2, :2] - jnp.outer(jnp.stack([p, q]), Rv[2, :2])
-    B_inv = jnp.array([[B[1, 1], -B[0, 1]], [-B[1, 0], B[0, 0]]]) / (
-        B[0, 0] * B[1, 1] - B[0, 1] * B[1, 0]
-    )
-    A = B_inv @ J
+    B = [[Rv[i][j] - c * Rv[2][j] for j in range(2)] for i, c in enumerate((p, q))]
+    det = B[0][0] * B[1][1] - B[0][1] * B[1][0]
+    B_inv = ((B[1][1] / det, -B[0][1] / det), (-B[1][0] / det, B[0][0] / det))
+    A = [[B_inv[i][0] * J[0][j] + B_inv[i][1] * J[1][j] for j in range(2)] for i in range(2)]
     # The 2x2 top-left block of a rotation has largest singular value 1: gamma = 1 / depth.
-    ata = A.T @ A
-    gamma = jnp.sqrt(
-        0.5 * (ata[0, 0] + ata[1, 1] + jnp.sqrt((ata[0, 0] - ata[1, 1]) ** 2 + 4 * ata[0, 1] ** 2))
-    )
-    Rt = A / gamma
-    b0 = jnp.sqrt(jnp.maximum(1.0 - Rt[0, 0] ** 2 - Rt[1, 0] ** 2, 0.0))
-    b1 = jnp.sqrt(jnp.maximum(1.0 - Rt[0, 1] ** 2 - Rt[1, 1] ** 2, 0.0))
+    ata00 = A[0][0] * A[0][0] + A[1][0] * A[1][0]
+    ata01 = A[0][0] * A[0][1] + A[1][0] * A[1][1]
+    ata11 = A[0][1] * A[0][1] + A[1][1] * A[1][1]
+    gamma = jnp.sqrt(0.5 * (ata00 + ata11 + jnp.sqrt((ata00 - ata11) ** 2 + 4 * ata01**2)))
+    Rt = [[a / gamma for a in row] for row in A]
+    b0 = jnp.sqrt(jnp.maximum(1.0 - Rt[0][0] ** 2 - Rt[1][0] ** 2, 0.0))
+    b1 = jnp.sqrt(jnp.maximum(1.0 - Rt[0][1] ** 2 - Rt[1][1] ** 2, 0.0))
     # Orthogonal first two columns: Rt00 Rt01 + Rt10 Rt11 + b0 b1 = 0 fixes sign(b1) given b0.
-    b1 = jnp.where(Rt[0, 0] * Rt[0, 1] + Rt[1, 0] * Rt[1, 1] > 0, -b1, b1)
+    b1 = jnp.where(Rt[0][0] * Rt[0][1] + Rt[1][0] * Rt[1][1] > 0, -b1, b1)
 
     def complete(s):
-        c1 = jnp.stack([Rt[0, 0], Rt[1, 0], s * b0])
-        c2 = jnp.stack([Rt[0, 1], Rt[1, 1], s * b1])
-        return Rv @ jnp.stack([c1, c2, jnp.cross(c1, c2)], axis=-1)
+        c1 = (Rt[0][0], Rt[1][0], s * b0)
+        c2 = (Rt[0][1], Rt[1][1], s * b1)
+        c3 = _cross(c1, c2)
+        return tuple(
+            tuple(sum(Rv[i][k] * c[k] for k in range(3)) for c in (c1, c2, c3)) for i in range(3)
+        )
 
     return complete(1.0), complete(-1.0)
 
 
-def _plane_frame(centroid: Array, evecs: Array) -> SE3:
-    """plane_T_object from the object points' PCA: origin at the weighted centroid, z along the
-    smallest principal axis."""
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _plane_frame(centroid: Array, evecs: Array) -> tuple[Array, Array]:
+    """plane_T_object `(R, t)` from the object points' PCA: origin at the weighted centroid, z
+    along the smallest principal axis."""
     normal, e1 = evecs[:, 0], evecs[:, 2]
     e2 = jnp.cross(normal, e1)
     R = jnp.stack([e1, e2, normal], axis=0)  # rows: plane axes in object coordinates
-    return SE3.from_rotation_and_translation(SO3.from_matrix(R), -R @ centroid)
+    return R, -jnp.sum(R * centroid, axis=-1)
 
 
 def ippe_candidates(
@@ -231,16 +254,23 @@ def ippe_candidates(
     """The two IPPE poses camera_T_object, stacked as an SE3 of batch `(2,)`, for object points
     `X` on (or near: their best-fit plane is used) a plane; `object_pca` from `weighted_pca`."""
     centroid, _, evecs = object_pca
-    plane_T_object = _plane_frame(centroid, evecs)
-    P = plane_T_object @ X
+    R_plane, t_plane = _plane_frame(centroid, evecs)  # plane_T_object
+    P = matmul(X, R_plane.T) + t_plane
     H = _homography(P[:, :2], m, w)
     flat = P.at[:, 2].set(0.0)
 
+    # The rotation as the product of quaternions camera_R_plane plane_R_object, so that its
+    # sign is that of the composition of the two poses.
+    plane_q = SO3.from_matrix(R_plane)
+
     def pose(R):
         t = _translation_given_rotation(R, flat, m, w)
-        return SE3.from_rotation_and_translation(SO3.from_matrix(R), t) @ plane_T_object
+        t_object = [sum(R[i][k] * t_plane[k] for k in range(3)) + t[i] for i in range(3)]
+        rotation = SO3.from_matrix(jnp.stack([jnp.stack(row) for row in R])) @ plane_q
+        return SE3.from_rotation_and_translation(rotation, jnp.stack(t_object))
 
-    return jax.vmap(pose)(jnp.stack(_ippe_rotations(H)))
+    first, second = _ippe_rotations(H)
+    return jax.tree.map(lambda a, b: jnp.stack([a, b]), pose(first), pose(second))
 
 
 def _epnp(X: Array, m: Array, w: Array, object_pca) -> SE3:

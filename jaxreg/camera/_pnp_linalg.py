@@ -15,7 +15,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-__all__ = ["cho_solve", "cholesky", "matmul", "packed", "spd_inverse", "spd_solve"]
+__all__ = [
+    "cho_solve",
+    "cholesky",
+    "matmul",
+    "packed",
+    "spd_inverse",
+    "spd_inverse_rows",
+    "spd_solve",
+]
 
 
 def matmul(
@@ -88,13 +96,11 @@ def spd_solve(
     return jnp.stack(x, axis=-1), ok
 
 
-def spd_inverse(
-    A: Float[Array, "*batch n n"],
-) -> tuple[Float[Array, "*batch n n"], Bool[Array, "*batch"]]:
-    """`A^-1` by Cholesky (`L^-T L^-1`, exactly symmetric), and whether `A` was positive
-    definite."""
-    n = A.shape[-1]
-    L, inv_diag, ok = cholesky(_unpack(A))
+def spd_inverse_rows(a: list[list[Array]]) -> tuple[list[list[Array]], Array]:
+    """`A^-1` by Cholesky (`L^-T L^-1`, exactly symmetric) of a matrix given as rows of
+    scalars, as rows of scalars, and whether `A` was positive definite."""
+    n = len(a)
+    L, inv_diag, ok = cholesky(a)
     zero = jnp.zeros_like(inv_diag[0])
     # M = L^-1, lower triangular, by forward substitution on the identity's columns.
     M: list[list[Array]] = [[zero] * n for _ in range(n)]
@@ -103,10 +109,17 @@ def spd_inverse(
         for i in range(j + 1, n):
             dot = sum((L[i][k] * M[k][j] for k in range(j, i)), zero)
             M[i][j] = -dot * inv_diag[i]
-    rows = []
+    rows: list[list[Array]] = [[zero] * n for _ in range(n)]
     for i in range(n):
-        row = []
-        for j in range(n):
-            row.append(sum((M[k][i] * M[k][j] for k in range(max(i, j), n)), zero))
-        rows.append(jnp.stack(row, axis=-1))
-    return jnp.stack(rows, axis=-2), ok
+        for j in range(i, n):
+            rows[i][j] = rows[j][i] = sum((M[k][i] * M[k][j] for k in range(j, n)), zero)
+    return rows, ok
+
+
+def spd_inverse(
+    A: Float[Array, "*batch n n"],
+) -> tuple[Float[Array, "*batch n n"], Bool[Array, "*batch"]]:
+    """`A^-1` by Cholesky (`L^-T L^-1`, exactly symmetric), and whether `A` was positive
+    definite."""
+    rows, ok = spd_inverse_rows(_unpack(A))
+    return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2), ok

@@ -63,8 +63,8 @@ from jaxreg.camera._pnp_covariance import (
     covariances as pose_covariances,
 )
 from jaxreg.camera._pnp_init import general_starts, image_spread, ippe_candidates, weighted_pca
-from jaxreg.camera._pnp_refine import refine_poses
-from jaxreg.camera.model import canonical_dist_coeffs, project, undistort_points
+from jaxreg.camera._pnp_refine import _distort, refine_poses
+from jaxreg.camera.model import canonical_dist_coeffs, undistort_points
 from jaxreg.core._result import AbstractResult, select_status
 from jaxreg.geometry.lie import geodesic_angle
 
@@ -228,12 +228,19 @@ class _Reprojection(eqx.Module):
 
 
 def _reprojection(pose: SE3, X, uv, K, dist, w) -> _Reprojection:
-    Xc = pose @ X
-    res = (project(Xc, K, dist) - uv) * jnp.sqrt(w)[:, None]
-    rmse = jnp.sqrt(jnp.sum(res * res) / jnp.maximum(jnp.sum(w), jnp.finfo(res.dtype).tiny))
+    # On scalars (per point an (N,) array): vmapped, the projection is a few fused loops.
+    R = pose.rotation().as_matrix()
+    t = pose.translation()
+    Xc = [R[i, 0] * X[:, 0] + R[i, 1] * X[:, 1] + R[i, 2] * X[:, 2] + t[i] for i in range(3)]
+    d = None if dist is None else tuple(dist[i] for i in range(5))
+    xd, yd = _distort(Xc[0] / Xc[2], Xc[1] / Xc[2], d)
+    sw = jnp.sqrt(w)
+    ru = (K[0, 0] * xd + K[0, 1] * yd + K[0, 2] - uv[:, 0]) * sw
+    rv = (K[1, 0] * xd + K[1, 1] * yd + K[1, 2] - uv[:, 1]) * sw
+    rmse = jnp.sqrt(jnp.sum(ru * ru + rv * rv) / jnp.maximum(jnp.sum(w), jnp.finfo(ru.dtype).tiny))
     return _Reprojection(
         rmse=rmse,
-        behind=jnp.any((Xc[:, 2] <= 0) & (w > 0)),
+        behind=jnp.any((Xc[2] <= 0) & (w > 0)),
         finite=jnp.all(jnp.isfinite(pose.wxyz_xyz)) & jnp.isfinite(rmse),
     )
 
@@ -254,6 +261,24 @@ def _ranking(fits: _Reprojection, converged: Array, eligible: Array | bool = Tru
     slack = jnp.sqrt(jnp.finfo(rmse.dtype).eps) * (1.0 + lowest)
     tied = (tier == best_tier) & (rmse <= lowest + slack)
     return jnp.lexsort((rmse, ~(tied & converged), tier))
+
+
+def _swap_pair(fits: _Reprojection, converged: Array) -> Array:
+    """Whether `_ranking` puts the second of a pair `(2,)` of fits first, as comparisons (a
+    batched sort of pairs is a slow kernel on XLA's CPU backend)."""
+    tier = fits.tier
+    rmse = jnp.where(fits.finite, fits.rmse, jnp.inf)
+    best_tier = jnp.minimum(tier[0], tier[1])
+    lowest = jnp.minimum(
+        jnp.where(tier[0] == best_tier, rmse[0], jnp.inf),
+        jnp.where(tier[1] == best_tier, rmse[1], jnp.inf),
+    )
+    slack = jnp.sqrt(jnp.finfo(rmse.dtype).eps) * (1.0 + lowest)
+    late = ~((tier == best_tier) & (rmse <= lowest + slack) & converged)
+    # Lexicographic (tier, late, rmse), the first kept on equal keys (lexsort is stable).
+    return (tier[1] < tier[0]) | (
+        (tier[1] == tier[0]) & ((late[0] & ~late[1]) | ((late[0] == late[1]) & (rmse[1] < rmse[0])))
+    )
 
 
 def _result(
@@ -365,9 +390,9 @@ def _general_choose(st: _Starts, poses, iterations, converged, K, dist) -> _Refi
 def _planar_choose(st: _Starts, poses, iterations, converged, K, dist) -> _Refined:
     """Both candidates, best first."""
     fits = jax.vmap(lambda T: _reprojection(T, st.X, st.uv, K, dist, st.w))(poses)
-    order = _ranking(fits, converged)
+    swap = _swap_pair(fits, converged)
     poses, fits, iterations, converged = jax.tree.map(
-        lambda leaf: leaf[order], (poses, fits, iterations, converged)
+        lambda leaf: jnp.where(swap, leaf[::-1], leaf), (poses, fits, iterations, converged)
     )
     return _Refined(poses, fits, iterations, converged, st.status, st.X, st.w)
 

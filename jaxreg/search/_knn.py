@@ -350,8 +350,14 @@ def _ring_knn(xs, j, cell, lo, size, span, start, idx, best):
     for ring in range(max(span[0], span[1], span[2])):
         # Cells at Chebyshev distance `ring`: whole z-runs on the ring's x or y faces,
         # the two z caps elsewhere.
+        # A column or cap wholly at least the k-th distance away is skipped: none of its
+        # points would enter the list (the gaps are shrunk by 1e-6 cells for rounding).
         for ax in range(max(cx - ring, 0), min(cx + ring + 1, span[0])):
+            gx = _gap(xs[0, j], lo[0], size, ax, span[0])
             for ay in range(max(cy - ring, 0), min(cy + ring + 1, span[1])):
+                gxy = gx + _gap(xs[1, j], lo[1], size, ay, span[1])
+                if gxy >= best[k - 1]:
+                    continue
                 row = (ax * span[1] + ay) * span[2]
                 if abs(ax - cx) == ring or abs(ay - cy) == ring:
                     first = start[row + max(cz - ring, 0)]
@@ -360,7 +366,8 @@ def _ring_knn(xs, j, cell, lo, size, span, start, idx, best):
                 else:
                     for az in (cz - ring, cz + ring):
                         if 0 <= az < span[2]:
-                            _scan(xs, j, start[row + az], start[row + az + 1], idx, best)
+                            if gxy + _gap(xs[2, j], lo[2], size, az, span[2]) < best[k - 1]:
+                                _scan(xs, j, start[row + az], start[row + az + 1], idx, best)
         # Every point nearer to p than the scanned block's nearest open face is scanned.
         reach_sq = np.inf
         for i in range(3):
@@ -371,6 +378,16 @@ def _ring_knn(xs, j, cell, lo, size, span, start, idx, best):
                 reach_sq = min(reach_sq, (lo[i] + high * size - xs[i, j]) ** 2)
         if best[k - 1] <= reach_sq:
             break
+
+
+@numba.njit(inline="always")
+def _gap(x, lo, size, c, span):
+    """Squared distance along one axis from ``x`` to cell ``c``'s slab, less 1e-6 cells
+    (the last cell is unbounded above, the first below: points are clamped into them)."""
+    below = lo + c * size - x if c > 0 else 0.0
+    above = x - (lo + (c + 1) * size) if c + 1 < span else 0.0
+    gap = max(below, above, 0.0) - 1e-6 * size
+    return gap * gap if gap > 0 else 0.0
 
 
 @numba.njit(inline="always")

@@ -27,10 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg.core._program_cache import persistent_jit
 from jaxreg.core._result import select_status
 from jaxreg.geometry._eig3 import eigh3
-from jaxreg.search._grid import _bucket
+from jaxreg.search._host_normals import host_normals
 from jaxreg.search._knn import knn_moments, self_knn
 from jaxreg.search.neighbors import knn, valid_rows
 
@@ -121,9 +120,6 @@ def _from_moments(points, ok, cov, count, viewpoint) -> NormalEstimate:
     return NormalEstimate(normal, curvature, valid, status, count.astype(jnp.int32))
 
 
-_finish = persistent_jit(_from_moments)
-
-
 @jax.jit
 def _pca(points, ok, idx, nbr_ok, viewpoint) -> NormalEstimate:
     """Per-point PCA from neighbour indices ``(N, K)`` (one compiled function per shape)."""
@@ -178,9 +174,9 @@ def _host_knn(
 
 def _host_pca(points: np.ndarray, mask, k: int, viewpoint) -> NormalEstimate:
     """:func:`estimate_normals_with_curvature` of a concrete float cloud: the exact kNN and
-    each neighbourhood's covariance (float64) by compiled host loops, the eigenproblems in one
-    compiled program (kept by the program store: no JAX operation runs eagerly here) on rows
-    padded to a power of two (invalid rows), so clouds of similar size share it."""
+    each neighbourhood's covariance (float64) by compiled host loops, and the eigenproblems,
+    orientation and status by more of them (:func:`jaxreg.search._host_normals.host_normals`,
+    :func:`_from_moments`'s rules): no JAX program runs, the answer is moved to the device."""
     ok = np.all(np.isfinite(points), axis=-1)
     if mask is not None:
         mask = np.asarray(mask)
@@ -195,12 +191,26 @@ def _host_pca(points: np.ndarray, mask, k: int, viewpoint) -> NormalEstimate:
         cov = np.zeros((len(points), 6))
         count = np.zeros(len(points), np.int32)
         cov[rows], count[rows] = knn_moments(np.ascontiguousarray(points[rows], np.float64), k)
-    vp = np.zeros(3) if viewpoint is None else np.asarray(viewpoint)
-    n, pad = len(points), _bucket(len(points)) - len(points)
-    arrays = (points, ok, cov.astype(dtype), count)
-    padded = [np.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1)) for a in arrays]
-    estimate = _finish(*padded, vp.astype(dtype))
-    return jax.tree.map(lambda a: jax.device_put(np.asarray(a)[:n]), estimate)
+    vp = np.zeros(3) if viewpoint is None else np.asarray(viewpoint, np.float64)
+    if vp.shape != (3,):
+        raise ValueError(f"viewpoint must be (3,), got {vp.shape}")
+    members = (
+        NormalStatus.invalid_point,
+        NormalStatus.too_few_neighbors,
+        NormalStatus.degenerate,
+        NormalStatus.success,
+    )
+    codes = np.array([int(m._value) for m in members], np.int64)
+    flat_tol = 100 * float(np.finfo(dtype).eps)
+    out = host_normals(points, ok, cov, count, vp.astype(dtype), flat_tol, codes)
+    code = out[:, 4].astype(np.int32)
+    success = int(NormalStatus.success._value)
+    host = (out[:, :3].astype(dtype), out[:, 3].astype(dtype), code == success, code, count)
+    normals, curvature, valid, code, count = jax.device_put(host)  # one transfer call
+    status = NormalStatus.success.__class__(
+        _value=code, _enumeration=NormalStatus.success._enumeration
+    )
+    return NormalEstimate(normals, curvature, valid, status, count)
 
 
 def estimate_normals_with_curvature(
