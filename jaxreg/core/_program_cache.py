@@ -72,6 +72,7 @@ _FOLDER: Path | None = None
 _MAX_PROGRAMS = 32  # executables kept in memory, least recently used dropped first
 _LOADED: OrderedDict[str, tuple[Callable, object] | None] = OrderedDict()
 _DIGESTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # static leaf -> key text
+_LOCK = threading.Lock()  # guards _LOADED and each persistent_jit's keys (threads share them)
 _HITS = threading.local()  # .count: XLA persistent-cache hits seen by this thread
 # Code a key covers without reading it: jaxreg's sources are digested and these libraries'
 # versions recorded (jax's, jaxlib's, equinox's, jaxlie's) or fixed with the interpreter.
@@ -355,9 +356,10 @@ def _read(path: Path):
 def _program(fn: Callable, arrays: list, static, in_tree, key: str):
     """The program of ``key``: kept in memory, read from the folder, or compiled (and
     stored when there is a folder); ``None`` where none could be made."""
-    if key in _LOADED:
-        _LOADED.move_to_end(key)
-        return _LOADED[key]
+    with _LOCK:
+        if key in _LOADED:
+            _LOADED.move_to_end(key)
+            return _LOADED[key]
     program = None
     if _FOLDER is None:
         with contextlib.suppress(Exception):  # compiled the ordinary way instead
@@ -369,9 +371,10 @@ def _program(fn: Callable, arrays: list, static, in_tree, key: str):
         if program is None:
             with contextlib.suppress(Exception):  # a program that cannot be stored is compiled
                 program = _store(fn, arrays, static, in_tree, path)  # the ordinary way
-    _LOADED[key] = program
-    while len(_LOADED) > _MAX_PROGRAMS:
-        _LOADED.popitem(last=False)
+    with _LOCK:
+        _LOADED[key] = program
+        while len(_LOADED) > _MAX_PROGRAMS:
+            _LOADED.popitem(last=False)
     return program
 
 
@@ -393,15 +396,18 @@ def persistent_jit(fn: Callable) -> Callable:
             return jitted(*args)  # stored programs run on one device
         arrays = [a if isinstance(a, jax.Array) else jax.device_put(a) for a in arrays]
         signature = _signature(arrays, static, in_tree)
-        if signature is not None and signature in keys:
-            keys.move_to_end(signature)
-            key = keys[signature]
-        else:
+        with _LOCK:
+            known = signature is not None and signature in keys
+            if known:
+                keys.move_to_end(signature)
+                key = keys[signature]
+        if not known:
             key = _key(fn, arrays, static, in_tree)
             if signature is not None:
-                keys[signature] = key
-                while len(keys) > _MAX_PROGRAMS:
-                    keys.popitem(last=False)
+                with _LOCK:
+                    keys[signature] = key
+                    while len(keys) > _MAX_PROGRAMS:
+                        keys.popitem(last=False)
         program = None if key is None else _program(fn, arrays, static, in_tree, key)
         if program is None:
             return jitted(*args)

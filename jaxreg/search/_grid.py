@@ -20,6 +20,7 @@ import jax
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from jaxreg.core._threads import in_pieces
 from jaxreg.search import _knn, _octree
 
 __all__ = ["NeighborGrid", "build_grid", "pad_grid", "validate_grid"]
@@ -145,13 +146,13 @@ def _split_piece(x, corner, counts, pid, split, edge, tests, a, b):
 
 def _in_pieces(fill, work):
     """The candidate lists of a level's nodes, filled in pieces of consecutive nodes of about
-    equal ``work (L,)`` (on one thread per core: :func:`jaxreg.search._octree.in_pieces`): ``fill(a,
+    equal ``work (L,)`` (on one thread per core: :func:`jaxreg.core._threads.in_pieces`): ``fill(a,
     b)`` returns ``(counts, pid)`` of nodes ``a:b``, concatenated here in node order."""
     cumulative = np.cumsum(work)
     pieces = _octree.num_pieces(int(cumulative[-1]) if len(work) else 0, _GRAIN)
     cuts = np.searchsorted(cumulative, cumulative[-1] * np.arange(1, pieces) / pieces)
     bounds = np.unique(np.concatenate(([0], cuts, [len(work)])))
-    parts = _octree.in_pieces(fill, zip(bounds[:-1], bounds[1:], strict=True))
+    parts = in_pieces(fill, zip(bounds[:-1], bounds[1:], strict=True))
     if len(parts) == 1:
         return parts[0]
     return tuple(np.concatenate(p) for p in zip(*parts, strict=True))

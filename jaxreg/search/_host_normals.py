@@ -7,7 +7,7 @@ program (whose fixed cost, padding and transfers outweigh ~0.1 us of arithmetic 
 Status codes are :class:`jaxreg.search.normals.NormalStatus`'s, passed in as integers.
 
 Compiled on the first call on a machine and cached on disk (``__pycache__``); large clouds run
-on one thread per core (:func:`jaxreg.search._octree.in_pieces`), each point's answer
+on one thread per core (:func:`jaxreg.core._threads.in_pieces`), each point's answer
 independent of the split.
 """
 
@@ -18,7 +18,8 @@ import math
 import numba
 import numpy as np
 
-from jaxreg.search._octree import in_pieces, num_pieces
+from jaxreg.core._threads import in_pieces
+from jaxreg.search._octree import num_pieces
 
 __all__ = ["host_normals"]
 

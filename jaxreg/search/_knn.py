@@ -22,7 +22,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from jaxreg.search._octree import counting_sort, in_pieces, kth_smallest, num_pieces
+from jaxreg.core._threads import in_pieces
+from jaxreg.search._octree import counting_sort, kth_smallest, num_pieces
 
 __all__ = ["knn_moments", "self_knn"]
 
@@ -59,7 +60,7 @@ def _knn_pass(x, k, max_distance, moments):
     :func:`knn_moments` (true: empty ``idx``, ``sq``, then ``cov``, ``count``).
 
     :func:`_hash` sorts the points into cells, then :func:`_search` answers runs of whole
-    cells, on several threads for large clouds (:func:`jaxreg.search._octree.in_pieces`): every
+    cells, on several threads for large clouds (:func:`jaxreg.core._threads.in_pieces`): every
     cell's answers depend on its block alone, so the split never changes a bit.
     """
     n = x.shape[0]
