@@ -23,7 +23,7 @@ from jaxreg.geometry.lie import geodesic_angle
 from jaxreg.geometry.metrics import Symmetry, canonicalise
 from jaxreg.pipeline._model import _Model
 from jaxreg.pipeline.segment import TablePlane
-from jaxreg.registration._icp_core import run
+from jaxreg.registration._icp_core import _apply, run
 from jaxreg.registration._icp_setup import Settings, prepare
 from jaxreg.registration.icp import multistart_icp, pca_inits, rotation_inits
 from jaxreg.search.neighbors import (
@@ -76,9 +76,10 @@ def visibility(
 
 def _visibilities(frame, base_T_object: SE3, model_points, tolerance, plane, cell, sigma_z):
     """:func:`visibility` counts ``(S, 5)`` of a batch of poses ``base_T_object`` ``(S,)``
-    (traced). The per-point geometry is vmapped over the poses; the z-buffer is one scatter
-    into ``S`` cell grids laid end to end (a vmapped scatter is several times slower on a
-    CPU)."""
+    (traced). The per-point geometry is vmapped over the poses, the points moved by rotation
+    matrices (jaxlie's quaternion ``apply`` gathers its Hamilton products' terms: ~50x
+    slower on XLA's CPU backend for a batch of poses); the z-buffer is one scatter into
+    ``S`` cell grids laid end to end (a vmapped scatter is ~20x slower on a CPU)."""
     h, w = frame.depth.shape
     hc, wc = -(-h // cell), -(-w // cell)
 
@@ -86,7 +87,7 @@ def _visibilities(frame, base_T_object: SE3, model_points, tolerance, plane, cel
         """Camera-frame points ``(M, 3)``, clipped pixel ``(row, col)``, whether each lies in
         front of the camera and inside the image, its tolerance and its cell ``(M,)``."""
         camera_T_object = frame.base_T_camera.inverse() @ pose
-        cam = camera_T_object @ jnp.asarray(model_points, frame.depth.dtype)
+        cam = _apply(camera_T_object, jnp.asarray(model_points, frame.depth.dtype))
         pix = frame.intrinsics.project(cam)
         col = jnp.round(pix[:, 0]).astype(jnp.int32)
         row = jnp.round(pix[:, 1]).astype(jnp.int32)
@@ -99,7 +100,7 @@ def _visibilities(frame, base_T_object: SE3, model_points, tolerance, plane, cel
         code = (row // cell) * wc + col // cell
         below = jnp.zeros(cam.shape[0], bool)
         if plane is not None:
-            height = plane.height(pose @ jnp.asarray(model_points, cam.dtype))
+            height = plane.height(_apply(pose, jnp.asarray(model_points, cam.dtype)))
             below = height < -limit
         return cam, row, col, inside, limit, code, below
 
@@ -275,8 +276,8 @@ def _spread_best(poses: Array, score: Array, count: int, min_distance: float) ->
 
 @persistent_jit
 def _score_candidates(
-    frame, plane, problem, rounds, clouds, used, model_points, screen_points, model_axes,
-    tolerance, sigma_z, explained_distance, num_starts, yaws, survivors, keep,
+    frame, plane, problem, rounds, fine_grid, clouds, used, model_points, screen_points,
+    model_axes, tolerance, sigma_z, explained_distance, num_starts, yaws, survivors, keep,
 ):  # fmt: skip
     """Multi-start ICP of every candidate cloud ``(C, N, 3)`` (NaN padding) into the model,
     its ranked starts, and the evidence for each; slots where ``used`` ``(C,)`` is False are
@@ -295,7 +296,10 @@ def _score_candidates(
     take the third and are scored with ``model_points`` (4-pixel cells; the sparse
     judgement is too coarse to rank near-equal candidates). The score is the share of the
     cloud within ``explained_distance`` of the model times the confirmed share
-    (:func:`visibility` with ``tolerance`` and ``sigma_z``)."""
+    (:func:`visibility` with ``tolerance`` and ``sigma_z``). Those shares are counted on
+    ``fine_grid`` (the model's grid exact to the refinement's largest distance, 15 mm or
+    more: the same neighbours within 1 cm as ICP's coarse grid, in lists an eighth as
+    long)."""
     screen_opts, first_opts, rest_opts = rounds
 
     def one(cloud):
@@ -318,7 +322,7 @@ def _score_candidates(
         cloud0 = jnp.where(ok[:, None], cloud, 0.0)
 
         def explains(pose, distance):
-            _, _, near = query_nearest(problem.grid, pose @ cloud0, distance)
+            _, _, near = query_nearest(fine_grid, _apply(pose, cloud0), distance)
             return jnp.sum(near & ok) / jnp.maximum(ok.sum(), 1)
 
         def evidence(poses, points, cell):
@@ -362,7 +366,7 @@ def _near_model(grid, object_T_base, points, distance):
     within ``distance`` of the model at a pose."""
     flat = points.reshape(-1, 3)
     ok = jnp.all(jnp.isfinite(flat), -1)
-    moved = SE3(object_T_base) @ jnp.where(ok[:, None], flat, 0.0)
+    moved = _apply(SE3(object_T_base), jnp.where(ok[:, None], flat, 0.0))
     _, _, near = query_nearest(grid, moved, distance)
     return (near & ok).reshape(points.shape[:-1])
 
