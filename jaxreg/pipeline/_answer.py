@@ -28,28 +28,28 @@ CONTACT_POINTS = 128  # virtual contact points appended to the refined cloud (st
 CONTACT_WEIGHT = 8.0
 
 
-def resting_contact(model: _Model, matrix: np.ndarray, plane, tolerance: float, voxel):
+def resting_contact(points: np.ndarray, matrix: np.ndarray, normal, offset, tolerance, voxel):
     """Virtual contact points of a model resting on the table, or ``None``.
 
-    At the refined pose (``matrix``: ``(4, 4)`` base_T_object), the model's lowest point must
-    lie within ``tolerance`` (metres) of the plane, and the model's points within one
-    ``voxel`` of that height must form a face (spanning a third of the model's width, not a
-    corner or an edge). The face's points, moved onto the plane along its normal, are where
-    the table says the model's bottom is: ``(CONTACT_POINTS, 3)`` base-frame points
-    (subsampled, or NaN padded), and the height (metres) the model's lowest point had above
-    the plane.
+    At the refined pose (``matrix``: ``(4, 4)`` base_T_object), the model's lowest point
+    (of ``points`` ``(M, 3)``, float64, object frame, no padding rows) must lie within
+    ``tolerance`` (metres) of the plane ``normal . x + offset = 0``, and the model's points
+    within one ``voxel`` of that height must form a face (spanning a third of the model's
+    width, not a corner or an edge). The face's points, moved onto the plane along its
+    normal, are where the table says the model's bottom is: ``(CONTACT_POINTS, 3)``
+    base-frame points (subsampled, or NaN padded), and the height (metres) the model's
+    lowest point had above the plane.
     """
-    points = model.points[np.all(np.isfinite(model.points), axis=1)]  # less the padding rows
-    placed = points.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]  # host numpy
-    normal, offset = np.asarray(plane.normal, np.float64), float(plane.offset)
-    height = placed @ normal + offset
+    placed = points @ matrix[:3, :3].T + matrix[:3, 3]  # host numpy
+    along = placed @ normal
+    height = along + offset
     lowest = float(height.min())
     if not np.isfinite(lowest) or abs(lowest) > tolerance:
         return None
     face = placed[height <= lowest + voxel]
     flat = face - np.outer(face @ normal, normal)
     spread = np.ptp(flat @ np.linalg.svd(flat - flat.mean(0), full_matrices=False)[2][:2].T, axis=0)
-    width = np.ptp(placed - np.outer(placed @ normal, normal), axis=0).max()
+    width = np.ptp(placed - np.outer(along, normal), axis=0).max()
     if len(face) < 3 or spread.min() < width / 3:
         return None
     contact = face - np.outer(face @ normal + offset, normal)  # onto the plane
@@ -168,13 +168,16 @@ def _onto_table(model, answers, plane, settings: _Settings):
     if plane is None:
         return answers, [None] * len(answers)
     matrices = np.asarray(SE3(np.asarray(answers, np.float64)).inverse().as_matrix())
+    points = model.points[np.all(np.isfinite(model.points), axis=1)].astype(np.float64)
+    normal, offset = np.asarray(plane.normal, np.float64), float(plane.offset)
     restings = [
-        resting_contact(model, matrix, plane, settings.rest_tolerance, settings.voxel_size)
+        resting_contact(
+            points, matrix, normal, offset, settings.rest_tolerance, settings.voxel_size
+        )
         for matrix in matrices
     ]
     rests = np.array([resting is not None for resting in restings])
     if rests.any():
-        normal = np.asarray(plane.normal, np.float64)
         shifts = np.array([normal * (0.0 if r is None else r[1]) for r in restings])
         shifted = SE3(np.asarray(answers, np.float64)) @ SE3.from_translation(shifts)
         answers = np.where(rests[:, None], np.asarray(shifted.wxyz_xyz, np.float32), answers)
