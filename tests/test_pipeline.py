@@ -119,6 +119,37 @@ def test_nan_model_rows_count_nowhere_in_the_images_judgement(scene):
     )
 
 
+def test_a_batch_of_poses_is_judged_as_each_pose_alone(scene):
+    """The register stage's judgement of a batch of poses (one z-buffer scatter into the
+    poses' cell grids laid end to end) gives each pose the counts that visibility gives it
+    alone, with the table plane and the depth noise: poses whose models cover the same
+    pixels do not hide one another's points."""
+    from jaxlie import SE3
+
+    from jaxreg.pipeline._register_stage import _judge
+    from jaxreg.pipeline.estimate import visibility
+    from jaxreg.pipeline.segment import segment_frame
+
+    box, model, _ = scene
+    points = model[::10]
+    plane = segment_frame(box.frame).plane
+    sigma_z = np.asarray([0.0, 0.0, 2.5e-3], np.float32)
+    rng = np.random.default_rng(0)
+    scale = np.float32([0.01] * 3 + [0.3] * 3)
+    nudges = SE3.exp(rng.normal(size=(6, 6)).astype(np.float32) * scale)
+    base_T_object = box.truth @ nudges  # overlapping views of the box
+    object_T_base = base_T_object.inverse().wxyz_xyz
+    batch = np.asarray(
+        _judge(box.frame, plane, object_T_base, points, np.float32(0.01), sigma_z)
+    )
+    alone = [
+        np.asarray(visibility(box.frame, pose, points, np.float32(0.01), plane, sigma_z=sigma_z))
+        for pose in (SE3(q) for q in np.asarray(base_T_object.wxyz_xyz))
+    ]
+    assert batch[:, 0].max() > 100 and len({tuple(row) for row in batch}) == len(batch)
+    np.testing.assert_array_equal(batch, np.stack(alone))
+
+
 def test_a_failed_final_registration_fails_the_register_stage(scene, monkeypatch):
     """The refinement's ICP ending non-finite (or degenerate without a symmetry) leaves no
     pose to claim, however well its last finite pose fits: the register stage fails with
@@ -431,3 +462,24 @@ def test_every_object_is_found_on_the_table_and_with_its_mask(name, seed):
         est = estimate_pose(scene.frame, model, mask=mask, symmetry=scene.symmetry)
         assert est.failed_stage is None, est.reason
         assert float(add_s(scene.model_points, est.pose, scene.truth)) < 0.005
+
+
+def test_the_budgets_border_distances_are_the_whole_images():
+    """The error budget's distances into and around the mask, computed on the mask's box
+    grown by a margin, are the whole image's (inside; and outside up to the margin, beyond
+    which they only need to exceed it), for masks in the middle and against the border."""
+    from scipy import ndimage
+
+    from jaxreg.pipeline._budget import _distances
+
+    rng = np.random.default_rng(0)
+    for top, left in [(20, 30), (0, 5), (50, 70), (0, 0)]:
+        mask = np.zeros((60, 80), bool)
+        mask[top : top + 25, left : left + 20] = True
+        mask &= rng.random(mask.shape) > 0.2  # holes: inner distances of several sizes
+        inside, outside = _distances(mask, 4)
+        np.testing.assert_array_equal(inside, ndimage.distance_transform_edt(mask))
+        whole = ndimage.distance_transform_edt(~mask)
+        near = whole <= 4
+        np.testing.assert_array_equal(outside[near], whole[near])
+        assert np.all(outside[~near] > 4)

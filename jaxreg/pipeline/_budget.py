@@ -195,16 +195,36 @@ def _pixels(frame, points: np.ndarray) -> np.ndarray:
     )
 
 
+RING = 3  # the widest border (pixels) eroded from or added to the mask
+
+
+def _distances(mask: np.ndarray, margin: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(H, W)`` Euclidean distances (pixels) of each pixel of ``mask`` to the nearest pixel
+    outside it (0 outside), and of each pixel outside to the nearest one in it (0 inside;
+    ``inf`` beyond ``margin``), computed on the mask's bounding box grown by ``margin``: the
+    same distances as on the whole image (the box's border is outside the mask, nearer than
+    anything beyond it), at a fraction of the cost."""
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    box = (
+        slice(max(rows[0] - margin, 0), rows[-1] + margin + 1),
+        slice(max(cols[0] - margin, 0), cols[-1] + margin + 1),
+    )
+    inside = np.zeros(mask.shape)
+    outside = np.full(mask.shape, np.inf)
+    inside[box] = ndimage.distance_transform_edt(mask[box])
+    outside[box] = ndimage.distance_transform_edt(~mask[box])
+    return inside, outside
+
+
 def perturbed_segments(frame, mask, points, plane, min_height, size, rng, count=16):
     """``(count, size, 3)`` float32 segments with their membership changed (NaN padding):
     a quarter with the mask's border eroded by 1-3 pixels, a quarter with the ring of 1-3
     pixels around it added (points above the table), half with a contiguous ~15% piece of the
     visible part dropped. Each is subsampled to ``size`` points like the registered cloud."""
-    inside = ndimage.distance_transform_edt(mask)
-    outside = ndimage.distance_transform_edt(~mask)
+    inside, outside = _distances(mask, RING + 1)
     rows, cols = _pixels(frame, points).T
     border = inside[rows, cols]
-    ring_r, ring_c = np.nonzero((outside > 0) & (outside <= 3))
+    ring_r, ring_c = np.nonzero((outside > 0) & (outside <= RING))
     ring = np.asarray(lift_pixels(frame, ring_r, ring_c), np.float64)
     ring_ok = np.all(np.isfinite(ring), 1)
     if plane is not None:  # above the table band, as the lift keeps

@@ -214,9 +214,9 @@ def _score(frame, plane: TablePlane | None, model, settings: _Settings, clouds, 
     )
     coarse = jax.block_until_ready(
         _score_candidates(
-            frame, plane, problem, tuple(rounds), padded, used, model.points, model.screen,
-            model.axes, _TOLERANCE, noise.coefficients, s.fine_distances[-1], s.num_starts,
-            s.resting_yaws, s.coarse_survivors, s.coarse_keep,
+            frame, plane, problem, tuple(rounds), model.fine_grid, padded, used, model.points,
+            model.screen, model.axes, _TOLERANCE, noise.coefficients, s.fine_distances[-1],
+            s.num_starts, s.resting_yaws, s.coarse_survivors, s.coarse_keep,
         )
     )  # fmt: skip
     scored = []

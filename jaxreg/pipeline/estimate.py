@@ -401,7 +401,7 @@ def estimate_pose(
     )
     model = _prepare_model(
         model_points, model_normals, voxel_size, float(settings.coarse_distances[0]),
-        float(settings.fine_distances[0]),
+        float(settings.fine_distances.max()),
     )  # fmt: skip
     noise = _noise(depth_noise, frame)
     stages: dict[str, Any] = {}
