@@ -1,10 +1,12 @@
 """One pool of host threads, a thread per core, for work that leaves the interpreter's lock.
 
 Two kinds of work run on it: compiled host loops (numba ``nogil``: the neighbour grid's
-build, the host kNN) and compiled JAX programs. A JAX program on the CPU runs on one core
-however many lanes it has (a vmapped ICP of 64 starts used 1.0 of 2 cores), while two
-executions of a program on the same CPU device run at once: :func:`split_lanes` cuts a batch
-of lanes into one piece per core and runs the pieces concurrently.
+build, the host kNN) and compiled JAX programs. XLA spreads a CPU program's large loops over
+the cores but runs its many small steps (a loop's scalar bookkeeping, tiny solves) on one,
+and two executions on the same CPU device run at once: :func:`split_lanes` cuts a batch of
+lanes into one piece per core and runs the pieces concurrently, so that each fills the
+other's gaps (on a quiet 2-core CPU: 64 ICP starts 1.16x, a 1,280-start basin sweep 1.11x
+faster than one call).
 """
 
 from __future__ import annotations
