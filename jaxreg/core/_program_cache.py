@@ -72,7 +72,8 @@ _FOLDER: Path | None = None
 _MAX_PROGRAMS = 32  # executables kept in memory, least recently used dropped first
 _LOADED: OrderedDict[str, tuple[Callable, object] | None] = OrderedDict()
 _DIGESTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # static leaf -> key text
-_LOCK = threading.Lock()  # guards _LOADED and each persistent_jit's keys (threads share them)
+_LOCK = threading.Lock()  # guards _LOADED, _MAKING and each persistent_jit's keys
+_MAKING: dict[str, threading.Lock] = {}  # key -> held by the thread making its program
 _HITS = threading.local()  # .count: XLA persistent-cache hits seen by this thread
 # Code a key covers without reading it: jaxreg's sources are digested and these libraries'
 # versions recorded (jax's, jaxlib's, equinox's, jaxlie's) or fixed with the interpreter.
@@ -355,26 +356,33 @@ def _read(path: Path):
 
 def _program(fn: Callable, arrays: list, static, in_tree, key: str):
     """The program of ``key``: kept in memory, read from the folder, or compiled (and
-    stored when there is a folder); ``None`` where none could be made."""
+    stored when there is a folder); ``None`` where none could be made. Threads asking for
+    the same key at once wait for the first one's program instead of compiling it again."""
     with _LOCK:
         if key in _LOADED:
             _LOADED.move_to_end(key)
             return _LOADED[key]
-    program = None
-    if _FOLDER is None:
-        with contextlib.suppress(Exception):  # compiled the ordinary way instead
-            program = _compile(fn, arrays, static, in_tree)
-    else:
-        path = _FOLDER / f"{fn.__name__}-{key}.jaxprog"
-        with contextlib.suppress(Exception):  # unreadable (another jaxlib build?): written anew
-            program = _read(path) if path.is_file() else None
-        if program is None:
-            with contextlib.suppress(Exception):  # a program that cannot be stored is compiled
-                program = _store(fn, arrays, static, in_tree, path)  # the ordinary way
-    with _LOCK:
-        _LOADED[key] = program
-        while len(_LOADED) > _MAX_PROGRAMS:
-            _LOADED.popitem(last=False)
+        making = _MAKING.setdefault(key, threading.Lock())
+    with making:
+        with _LOCK:
+            if key in _LOADED:  # made by another thread while this one waited
+                return _LOADED[key]
+        program = None
+        if _FOLDER is None:
+            with contextlib.suppress(Exception):  # compiled the ordinary way instead
+                program = _compile(fn, arrays, static, in_tree)
+        else:
+            path = _FOLDER / f"{fn.__name__}-{key}.jaxprog"
+            with contextlib.suppress(Exception):  # unreadable (another jaxlib build?): anew
+                program = _read(path) if path.is_file() else None
+            if program is None:
+                with contextlib.suppress(Exception):  # one that cannot be stored is compiled
+                    program = _store(fn, arrays, static, in_tree, path)  # the ordinary way
+        with _LOCK:
+            _LOADED[key] = program
+            _MAKING.pop(key, None)
+            while len(_LOADED) > _MAX_PROGRAMS:
+                _LOADED.popitem(last=False)
     return program
 
 

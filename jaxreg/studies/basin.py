@@ -41,6 +41,7 @@ from jax.experimental import multihost_utils
 from jaxlie import SE3
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from jaxreg.core._program_cache import persistent_jit
 from jaxreg.core._threads import lane_pieces, split_lanes
 from jaxreg.geometry.kernels import AbstractRobustKernel
 from jaxreg.geometry.metrics import Symmetry, pose_error
@@ -218,6 +219,11 @@ def _scores(problem, opts, starts, truth, symmetry, thresholds):
     )
 
 
+# One device: the same scores as a stored program (jaxreg.enable_compilation_cache's folder
+# serves a fresh process the executable without tracing), run on pieces of the starts.
+_scores_stored = persistent_jit(_scores)
+
+
 @eqx.filter_jit
 def _register_shard(problem, opts, starts, truth, symmetry, thresholds, mesh):
     """:func:`_scores` with the start axis split over ``mesh``: each device runs its own loop
@@ -345,9 +351,7 @@ def basin_sweep(
     for i in range(count):
         block = flat[i * chunk : (i + 1) * chunk]
         if pieces > 1:
-            run = lambda part: _register_shard(  # noqa: E731
-                constants[0], constants[1], part, *constants[2:], mesh
-            )
+            run = lambda part: _scores_stored(constants[0], constants[1], part, *constants[2:])  # noqa: E731
             parts.append(jax.tree.map(np.asarray, split_lanes(run, block, pieces)))
         else:
             sharded = jax.make_array_from_callback(block.shape, sharding, block.__getitem__)
