@@ -53,8 +53,9 @@ def lane_pieces(lanes: int) -> int:
 def split_lanes(fn: Callable, lanes: np.ndarray, pieces: int):
     """``fn(lanes)`` computed as ``pieces`` concurrent calls on equal slices of the leading
     axis (padded with copies of the last lane, so one program serves every piece), their
-    results (pytrees with the lane axis leading every leaf) joined on the host and trimmed
-    to ``len(lanes)``. ``fn`` must treat lanes independently (a vmapped function)."""
+    results (pytrees with the lane axis leading every leaf) joined on the host as numpy
+    arrays and trimmed to ``len(lanes)``. ``fn`` must treat lanes independently (a vmapped
+    function)."""
     count = len(lanes)
     size = -(-count // pieces)
     padded = np.concatenate([lanes, np.repeat(lanes[-1:], size * pieces - count, axis=0)])
@@ -62,4 +63,4 @@ def split_lanes(fn: Callable, lanes: np.ndarray, pieces: int):
         lambda i: jax.block_until_ready(fn(padded[i * size : (i + 1) * size])),
         [(i,) for i in range(pieces)],
     )
-    return jax.tree.map(lambda *xs: jax.device_put(np.concatenate(xs)[:count]), *parts)
+    return jax.tree.map(lambda *xs: np.concatenate(xs)[:count], *parts)

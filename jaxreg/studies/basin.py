@@ -347,12 +347,15 @@ def basin_sweep(
     )  # fmt: skip
     # One device (a CPU): a piece of each chunk per core, run concurrently.
     pieces = lane_pieces(chunk) if len(devices) == 1 else 1
+
+    def scores(part):
+        return _scores_stored(constants[0], constants[1], part, *constants[2:])
+
     parts = []
     for i in range(count):
         block = flat[i * chunk : (i + 1) * chunk]
         if pieces > 1:
-            run = lambda part: _scores_stored(constants[0], constants[1], part, *constants[2:])  # noqa: E731
-            parts.append(jax.tree.map(np.asarray, split_lanes(run, block, pieces)))
+            parts.append(split_lanes(scores, block, pieces))
         else:
             sharded = jax.make_array_from_callback(block.shape, sharding, block.__getitem__)
             out = _register_shard(constants[0], constants[1], sharded, *constants[2:], mesh)
