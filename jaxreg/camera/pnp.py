@@ -54,17 +54,14 @@ import functools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxlie import SE3, SO3
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg.camera._pnp_covariance import (
-    covariance as pose_covariance,
-    covariances as pose_covariances,
-)
+from jaxreg.camera._pnp_batch import checked_inputs, solve_batch
+from jaxreg.camera._pnp_covariance import covariance as pose_covariance
 from jaxreg.camera._pnp_init import general_starts, image_spread, ippe_candidates, weighted_pca
-from jaxreg.camera._pnp_refine import _distort, refine_poses
-from jaxreg.camera.model import canonical_dist_coeffs, undistort_points
+from jaxreg.camera._pnp_refine import _distort
+from jaxreg.camera.model import undistort_points
 from jaxreg.core._result import AbstractResult, select_status
 from jaxreg.geometry.lie import geodesic_angle
 
@@ -422,101 +419,6 @@ def _planar_result(refined: _Refined, K, dist, sigma_px, covariance) -> PlanarPn
     )
 
 
-# --------------------------------------------------------------------------------------------
-# Batching and host-side validation
-# --------------------------------------------------------------------------------------------
-
-
-# Trailing (core) dimensions of object_points, image_points, K, dist_coeffs, weights.
-_CORE_NDIMS = (2, 2, 2, 1, 1)
-
-
-def _checked_inputs(name, object_points, image_points, K, dist_coeffs, weights, sigma_px):
-    """Host-side shape checks; returns float arrays of one dtype, sigma_px in that dtype and
-    the broadcast batch shape."""
-    object_points, image_points, K = (jnp.asarray(a) for a in (object_points, image_points, K))
-    if object_points.ndim < 2 or object_points.shape[-1] != 3:
-        raise ValueError(f"{name}: object_points must be (..., N, 3), got {object_points.shape}")
-    if image_points.ndim < 2 or image_points.shape[-1] != 2:
-        raise ValueError(f"{name}: image_points must be (..., N, 2), got {image_points.shape}")
-    n = object_points.shape[-2]
-    if image_points.shape[-2] != n:
-        raise ValueError(f"{name}: {n} object points but {image_points.shape[-2]} image points")
-    if n < 4:
-        raise ValueError(f"{name} needs at least 4 correspondences, got {n}")
-    if K.ndim < 2 or K.shape[-2:] != (3, 3):
-        raise ValueError(f"{name}: K must be (3, 3) or (..., 3, 3), got {K.shape}")
-    dist_coeffs = canonical_dist_coeffs(dist_coeffs)
-    weights = jnp.ones(object_points.shape[:-1]) if weights is None else jnp.asarray(weights)
-    if weights.ndim < 1 or weights.shape[-1] != n:
-        raise ValueError(f"{name}: weights must be (..., {n}), got {weights.shape}")
-    arrays = [object_points, image_points, K, dist_coeffs, weights]
-    dtype = np.result_type(*(a.dtype for a in arrays if a is not None), np.float32)
-    dtype = jax.dtypes.canonicalize_dtype(dtype if np.issubdtype(dtype, np.floating) else float)
-    arrays = [None if a is None else a.astype(dtype) for a in arrays]
-    try:
-        batch = np.broadcast_shapes(
-            *(
-                a.shape[: a.ndim - k]
-                for a, k in zip(arrays, _CORE_NDIMS, strict=True)
-                if a is not None
-            )
-        )
-    except ValueError as err:
-        shapes = [None if a is None else a.shape for a in arrays]
-        raise ValueError(f"{name}: batch axes do not broadcast: {shapes}") from err
-    sigma_px = jnp.asarray(sigma_px, dtype)
-    if sigma_px.ndim != 0:
-        raise ValueError(f"{name}: sigma_px must be a scalar, got shape {sigma_px.shape}")
-    return arrays, sigma_px, tuple(batch)
-
-
-def _solve_batch(starts_fn, choose_fn, finish_fn, arrays, batch, sigma_px, *, refine, iterations):
-    """Solve every problem of the broadcast leading `batch` axes (one problem when
-    `batch == ()`): `starts_fn(X, uv, K, dist, w) -> _Starts` per problem, the refinement of all
-    starts of all problems together (`refine_poses`), `choose_fn` per problem, the covariances
-    of the whole batch at once (`pose_covariances`), then `finish_fn` per problem."""
-    size = int(np.prod(batch))
-    flat, axes = [], []
-    for a, k in zip(arrays, _CORE_NDIMS, strict=True):
-        if a is None or a.ndim == k:
-            flat.append(a)
-            axes.append(None)
-        else:
-            core_shape = a.shape[a.ndim - k :]
-            flat.append(jnp.broadcast_to(a, batch + core_shape).reshape(size, *core_shape))
-            axes.append(0)
-    if not batch:  # one problem: a batch of one, so that every stage is written for a batch
-        for i in (0, 1, 4):  # object points, image points, weights (never None)
-            flat[i], axes[i] = flat[i][None], 0
-    K, dist = flat[2], flat[3]
-    st = jax.vmap(starts_fn, in_axes=axes)(*flat)
-    if refine:
-        poses, its, conv = refine_poses(
-            st.starts,
-            st.go,
-            st.X,
-            st.uv,
-            K,
-            dist,
-            st.w,
-            max_iterations=iterations,
-            axes=axes[2:4],
-        )
-    else:
-        poses = st.starts
-        its = jnp.zeros(st.go.shape, jnp.int32)
-        conv = jnp.ones(st.go.shape, bool)
-    refined = jax.vmap(choose_fn, in_axes=(0, 0, 0, 0, axes[2], axes[3]))(
-        st, poses, its, conv, K, dist
-    )
-    cov = pose_covariances(refined.pose, refined.X, K, dist, refined.w, sigma_px, axes[2:4])
-    out = jax.vmap(finish_fn, in_axes=(0, axes[2], axes[3], None, 0))(
-        refined, K, dist, sigma_px, cov
-    )
-    return jax.tree.map(lambda leaf: leaf.reshape(*batch, *leaf.shape[1:]), out)
-
-
 def _general_result(refined: _Refined, K, dist, sigma_px, covariance) -> PnPResult:
     r = refined
     return _result(
@@ -536,7 +438,7 @@ def _general_result(refined: _Refined, K, dist, sigma_px, covariance) -> PnPResu
 
 @functools.partial(jax.jit, static_argnames=("batch", "max_iterations"))
 def _solve_general(arrays, sigma_px, *, batch, max_iterations):
-    return _solve_batch(
+    return solve_batch(
         _general_starts,
         _general_choose,
         _general_result,
@@ -550,7 +452,7 @@ def _solve_general(arrays, sigma_px, *, batch, max_iterations):
 
 @functools.partial(jax.jit, static_argnames=("batch", "max_iterations", "refine"))
 def _solve_planar(arrays, sigma_px, *, batch, max_iterations, refine):
-    return _solve_batch(
+    return solve_batch(
         _planar_starts,
         _planar_choose,
         _planar_result,
@@ -594,7 +496,7 @@ def solve_pnp(
     floating input by implicit differentiation at the optimum. Raises `ValueError` for N < 4 or
     malformed shapes.
     """
-    arrays, sigma_px, batch = _checked_inputs(
+    arrays, sigma_px, batch = checked_inputs(
         "solve_pnp", object_points, image_points, K, dist_coeffs, weights, sigma_px
     )
     return _solve_general(arrays, sigma_px, batch=batch, max_iterations=max_iterations)
@@ -622,7 +524,7 @@ def solve_pnp_planar(
     weakly determined directions). Returns a `PlanarPnPResult`: `.pose` / `.best` the best
     candidate, `.candidates` both (batch `(..., 2)`), `.ambiguity_ratio`, `.separation_deg`.
     """
-    arrays, sigma_px, batch = _checked_inputs(
+    arrays, sigma_px, batch = checked_inputs(
         "solve_pnp_planar", object_points, image_points, K, dist_coeffs, weights, sigma_px
     )
     return _solve_planar(
