@@ -1,6 +1,6 @@
 """Planar PnP on thousands of tags: one batched jaxreg call against an OpenCV loop, same run.
 
-Usage: python benchmarks/bench_pnp.py [--sizes 2000] [--repeats 3] [--max-iterations 100 30]
+Usage: python benchmarks/bench_pnp.py [--sizes 2000] [--repeats 15] [--max-iterations 100 30]
 
 Views: a 45 mm square tag facing the camera at 0.5-0.6 m, tilted up to 40 degrees, any in-plane
 spin, 0.2 px Gaussian corner noise, a 640x480 camera with f = 600 px; float32 (jaxreg's default).
@@ -66,7 +66,7 @@ def rodrigues(rotvec) -> np.ndarray:
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[2000])
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--max-iterations", type=int, nargs="+", default=[100, 30])
     args = parser.parse_args()
     try:

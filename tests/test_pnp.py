@@ -22,6 +22,7 @@ from jaxreg.camera.pnp import (
     _Reprojection,
     _reprojection,
     _result,
+    _solve_planar,
     _swap_pair,
     solve_pnp,
     solve_pnp_planar,
@@ -646,3 +647,23 @@ def test_a_lane_refines_alike_alone_and_in_a_large_batch(planar):
             for order in ([0, 1], [1, 0])
         ]
         assert min(gaps) < 2e-5, (lane, gaps)  # float32 rounding differs by batch size
+
+
+def test_tag_counts_that_change_call_by_call_share_one_compiled_solver(planar):
+    """A tracker's tag count changes frame by frame: 5, 6 and 7 tags all run as a batch of 8
+    (padded with copies of the last tag, trimmed away), so the solver compiles at most once
+    for them, and the lanes they share answer alike, bit for bit (one program, independent
+    lanes). The padding is invisible: each result has the caller's batch shape."""
+    images = planar["images"]
+    before = _solve_planar._cache_size()
+    results = [
+        jax.device_get(solve_pnp_planar(TAG_POINTS, images[:n], K, max_iterations=37))
+        for n in (5, 6, 7)
+    ]
+    assert _solve_planar._cache_size() - before <= 1
+    for n, result in zip((5, 6, 7), results, strict=True):
+        assert result.pose.wxyz_xyz.shape == (n, 7)
+        assert result.candidates.covariance.shape == (n, 2, 6, 6)
+        jax.tree.map(np.testing.assert_array_equal, _lanes(result, 0, 5), results[0])
+    grid = jax.device_get(solve_pnp_planar(TAG_POINTS, images[:6].reshape(2, 3, 4, 2), K))
+    assert grid.pose.wxyz_xyz.shape == (2, 3, 7)

@@ -8,6 +8,8 @@ Leading batch axes of every argument broadcast; a problem's trailing (core) dime
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -15,8 +17,9 @@ import numpy as np
 from jaxreg.camera._pnp_covariance import covariances as pose_covariances
 from jaxreg.camera._pnp_refine import refine_poses
 from jaxreg.camera.model import _canonical_dist
+from jaxreg.core._sizes import bucket
 
-__all__ = ["checked_inputs", "solve_batch"]
+__all__ = ["checked_inputs", "solve_batch", "solve_padded"]
 
 # Trailing (core) dimensions of object_points, image_points, K, dist_coeffs, weights.
 _CORE_NDIMS = (2, 2, 2, 1, 1)
@@ -112,3 +115,44 @@ def solve_batch(starts_fn, choose_fn, finish_fn, arrays, batch, sigma_px, *, ref
 def _as_array(x):
     """``x`` as an array: numpy for host values, a JAX array for JAX arrays and tracers."""
     return jnp.asarray(x) if isinstance(x, jax.Array | jax.core.Tracer) else np.asarray(x)
+
+
+def _padded_count(count: int) -> int:
+    """Problems a batch of ``count`` runs as: a power of two up to 64 (a tag tracker that
+    sees 1-30 tags frame by frame meets six sizes), then :func:`jaxreg.core._sizes.bucket`'s
+    steps of an eighth."""
+    if count <= 64:
+        return 1 << (count - 1).bit_length()
+    return bucket(count)
+
+
+def solve_padded(program, arrays, sigma_px, batch, **static):
+    """``program(arrays, sigma_px, batch=..., **static)`` (a jitted :func:`solve_batch`) on
+    every problem of ``batch``, so that the batch's size is not the program's shape.
+
+    With concrete arguments and batch axes, the batched arguments are flattened on the host
+    and padded with copies of the last problem to :func:`_padded_count` problems: a process
+    whose batch sizes change call by call compiles the solver a few times, not once per
+    count (each compile takes seconds), and pays a small trimming program per count instead.
+    A problem's answer never depends on the others; it depends on the compiled batch size by
+    float rounding alone (XLA vectorises each size on its own). Traced arguments (the
+    caller's ``jit`` or ``grad``) and a single problem (``batch == ()``) run as given."""
+    if not batch or any(isinstance(a, jax.core.Tracer) for a in (*arrays, sigma_px)):
+        return program(arrays, sigma_px, batch=batch, **static)
+    size = int(np.prod(batch))
+    padded = _padded_count(size)
+    flat = list(arrays)
+    for i, (a, k) in enumerate(zip(arrays, _CORE_NDIMS, strict=True)):
+        if a is not None and a.ndim > k:
+            core = a.shape[a.ndim - k :]
+            rows = np.broadcast_to(np.asarray(a), batch + core).reshape(size, *core)
+            flat[i] = np.concatenate([rows, np.repeat(rows[-1:], padded - size, axis=0)])
+    result = program(flat, sigma_px, batch=(padded,), **static)
+    return result if (padded,) == batch else _trim(result, batch)
+
+
+@functools.partial(jax.jit, static_argnames=("batch",))
+def _trim(result, batch):
+    """The first ``prod(batch)`` problems of a padded flat result, shaped ``batch + ...``."""
+    size = int(np.prod(batch))
+    return jax.tree.map(lambda leaf: leaf[:size].reshape(*batch, *leaf.shape[1:]), result)

@@ -57,7 +57,7 @@ import jax.numpy as jnp
 from jaxlie import SE3, SO3
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg.camera._pnp_batch import checked_inputs, solve_batch
+from jaxreg.camera._pnp_batch import checked_inputs, solve_batch, solve_padded
 from jaxreg.camera._pnp_covariance import covariance as pose_covariance
 from jaxreg.camera._pnp_init import general_starts, image_spread, ippe_candidates, weighted_pca
 from jaxreg.camera._pnp_refine import _distort
@@ -499,7 +499,7 @@ def solve_pnp(
     arrays, sigma_px, batch = checked_inputs(
         "solve_pnp", object_points, image_points, K, dist_coeffs, weights, sigma_px
     )
-    return _solve_general(arrays, sigma_px, batch=batch, max_iterations=max_iterations)
+    return solve_padded(_solve_general, arrays, sigma_px, batch, max_iterations=max_iterations)
 
 
 def solve_pnp_planar(
@@ -527,6 +527,6 @@ def solve_pnp_planar(
     arrays, sigma_px, batch = checked_inputs(
         "solve_pnp_planar", object_points, image_points, K, dist_coeffs, weights, sigma_px
     )
-    return _solve_planar(
-        arrays, sigma_px, batch=batch, max_iterations=max_iterations, refine=refine
+    return solve_padded(
+        _solve_planar, arrays, sigma_px, batch, max_iterations=max_iterations, refine=refine
     )

@@ -19,6 +19,7 @@ from jaxlie import SE3
 from jaxtyping import ArrayLike, Float
 
 from jaxreg.core._program_cache import persistent_jit
+from jaxreg.core._sizes import bucket
 from jaxreg.core._threads import lane_pieces, split_lanes
 from jaxreg.geometry.kernels import L2, AbstractRobustKernel
 from jaxreg.geometry.lie import se3_from_matrix
@@ -143,7 +144,7 @@ def prepare(
         )
     m = target.shape[0]
     source, weights, target, target_ok, target_normals = _clean(
-        source, weights, target, target_normals, _bucket(n) - n, _bucket(m) - m
+        source, weights, target, target_normals, bucket(n) - n, bucket(m) - m
     )
     grid = s.neighbors
     if grid is not None:
@@ -252,17 +253,6 @@ def _clean(source, source_weights, target, target_normals, n_pad: int, m_pad: in
         jnp.pad(target_ok, (0, m_pad)),
         target_normals,
     )
-
-
-def _bucket(rows: int) -> int:
-    """``rows`` rounded up to a multiple of an eighth of its leading power of two (at most
-    12.5% padding, at least 32 rows, 8 sizes per doubling): padding rows cost every query
-    what a real row does (a 1,280-start sweep of 800 points is 7% faster at 832 rows than at
-    896)."""
-    if rows <= 32:
-        return 32
-    step = 1 << (rows.bit_length() - 4)
-    return -(-rows // step) * step
 
 
 @persistent_jit
