@@ -1,7 +1,7 @@
-"""The lift stage's host-side work for :mod:`jaxreg.pipeline`: a segment's pixels with depth
-lifted into the base frame, and the filters that drop what a depth camera gets wrong at an
-object's edges (flying pixels between two surfaces, points below the table band, isolated
-points).
+"""The lift stage of :func:`jaxreg.estimate_pose` (:func:`lift_stage`) and its host-side
+work: a segment's pixels with depth lifted into the base frame, and the filters that drop
+what a depth camera gets wrong at an object's edges (flying pixels between two surfaces,
+points below the table band, isolated points).
 
 Frames are :mod:`jaxreg.camera.model`'s: pixels ``(row, col)`` index the depth image, points are in
 the frame's base frame (``base_T_camera`` applied). Everything is numpy except the lifting
@@ -10,13 +10,20 @@ itself, one stored program over a padded pixel list.
 
 from __future__ import annotations
 
+import dataclasses
+import time
+
 import numpy as np
 
 from jaxreg.camera.model import RGBDFrame
 from jaxreg.core._program_cache import persistent_jit
+from jaxreg.pipeline._records import LiftRecord
+from jaxreg.pipeline._settings import _Failed, _ms, _Settings
+from jaxreg.pipeline.segment import TablePlane
 from jaxreg.search.neighbors import voxel_downsample
+from jaxreg.uncertainty import DepthNoise
 
-__all__ = ["lift_pixels", "lift_region"]
+__all__ = ["lift_pixels", "lift_region", "lift_stage"]
 
 
 def _flying(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray, tolerance: np.ndarray, need):
@@ -124,3 +131,51 @@ def lift_region(
         "points": int(len(points)),
     }
     return mask, points, counts
+
+
+def lift_stage(
+    frame, region, plane: TablePlane | None, noise: DepthNoise, settings: _Settings, stages
+):
+    """The lift stage of :func:`jaxreg.estimate_pose`: the segment's footprint ``region``
+    ``(H, W)`` lifted and filtered (:func:`lift_region`; the band above the ``plane``, if any),
+    its record in ``stages["lift"]``. Returns the mask of the lifted pixels ``(H, W)`` and the
+    base-frame points ``(K, 3)``; raises ``_Failed`` with too little valid depth or too few
+    points left."""
+    s = settings
+    start = time.perf_counter()
+    depth = np.asarray(frame.depth)
+    rows, cols = np.nonzero(region)
+    has_depth = np.isfinite(depth[rows, cols])
+    valid_fraction = float(has_depth.mean()) if len(rows) else 0.0
+    rows, cols = rows[has_depth], cols[has_depth]
+    diag = LiftRecord(
+        ms=0.0, footprint_pixels=int(region.sum()), valid_depth_fraction=round(valid_fraction, 3)
+    )
+    if valid_fraction < s.min_valid_fraction:
+        stages["lift"] = dataclasses.replace(diag, ms=_ms(start))
+        raise _Failed(
+            "lift",
+            f"too little valid depth: {valid_fraction:.0%} of the segment's {int(region.sum())} "
+            f"pixels have depth (need {s.min_valid_fraction:.0%}); dark, shiny or grazing "
+            "surfaces, or the object too near the camera",
+            mask=region,
+        )
+    sigma = np.polynomial.polynomial.polyval(
+        depth[rows, cols], np.asarray(noise.coefficients, np.float64)
+    )
+    normal, offset = (None, None) if plane is None else (np.asarray(plane.normal), plane.offset)
+    mask, points, counts = lift_region(
+        frame, rows, cols, sigma, normal, None if offset is None else float(offset),
+        min_height=s.lift_min_height, voxel_size=s.voxel_size,
+        min_consistent_neighbors=s.min_consistent_neighbors,
+    )  # fmt: skip
+    stages["lift"] = dataclasses.replace(diag, **counts, ms=_ms(start))
+    if len(points) < s.min_segment_points:
+        raise _Failed(
+            "lift",
+            f"only {len(points)} points left after filtering (need {s.min_segment_points}): "
+            "the segment is too small or too noisy to register",
+            mask=mask,
+            points=points,
+        )
+    return mask, points
