@@ -55,19 +55,9 @@ import numpy as np  # noqa: E402
 from _timing import interleaved_medians, print_table  # noqa: E402
 
 import jaxreg as jr  # noqa: E402
-from jaxreg.studies import basin_starts, basin_sweep  # noqa: E402
+from jaxreg.studies import basin_starts, basin_sweep, lesson_cube  # noqa: E402
 
 DISTANCE, ITERATIONS, TOLERANCE = 0.02, 40, 1e-6
-
-
-def lesson_cube():
-    rng = np.random.default_rng(0)
-    model = rng.uniform(-0.03, 0.03, (800, 3)).astype(np.float32)
-    truth = jr.SE3.from_rotation_and_translation(
-        jr.SO3.from_z_radians(np.deg2rad(15.0)), jnp.array([0.01, -0.02, 0.005])
-    )
-    scene = np.asarray(truth @ model) + rng.normal(0, 0.002, model.shape)
-    return model, scene.astype(np.float32), truth
 
 
 def sweep_options(angles):

@@ -11,10 +11,10 @@ Run: python paper_figs/fig_15_vs_60.py
 import jax
 import matplotlib.pyplot as plt
 import numpy as np
-from _common import lesson_cube, save
+from _common import save
 
 import jaxreg as jr
-from jaxreg.studies import basin_sweep
+from jaxreg.studies import basin_sweep, lesson_cube
 
 OPTIONS = dict(max_correspondence_distance=0.02, max_iterations=40)
 

@@ -13,10 +13,10 @@ import jax
 import jax.numpy as jnp
 import matplotlib.pyplot as plt
 import numpy as np
-from _common import DATA, lesson_cube, save
+from _common import DATA, save
 
 import jaxreg as jr
-from jaxreg.studies import basin_sweep
+from jaxreg.studies import basin_sweep, lesson_cube
 
 ANGLES = [5.0, 15.0, 25.0, 35.0, 45.0, 60.0, 75.0, 90.0, 120.0]
 

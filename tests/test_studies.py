@@ -10,32 +10,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jaxlie import SE3, SO3
+from jaxlie import SE3
 
 from jaxreg.geometry.metrics import Symmetry, rotation_error
-from jaxreg.studies import basin_radius, basin_starts, basin_sweep
+from jaxreg.studies import basin_radius, basin_starts, basin_sweep, lesson_cube
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
-
-
-def lesson_cube(n=300, seed=0):
-    """The lesson's experiment: points uniform in a 6 cm cube, the scene turned 15 degrees
-    about z and shifted, with 2 mm noise."""
-    rng = np.random.default_rng(seed)
-    model = rng.uniform(-0.03, 0.03, (n, 3)).astype(np.float32)
-    truth = SE3.from_rotation_and_translation(
-        SO3.from_z_radians(np.deg2rad(15.0)), jnp.array([0.01, -0.02, 0.005])
-    )
-    scene = np.asarray(truth @ model) + rng.normal(0, 0.002, model.shape)
-    return model, scene.astype(np.float32), truth
 
 
 SWEEP = dict(angles_deg=[10.0, 40.0, 120.0], samples_per_angle=8, max_iterations=30)
 
 
 def small_sweep():
-    model, scene, truth = lesson_cube()
+    model, scene, truth = lesson_cube(n=300)
     return basin_sweep(
         model, scene, truth, key=jax.random.key(3), max_correspondence_distance=0.02, **SWEEP
     )
@@ -55,7 +43,7 @@ def sweep():
 
 
 def test_starts_sit_at_the_requested_offsets():
-    model, _, truth = lesson_cube()
+    model, _, truth = lesson_cube(n=300)
     starts = basin_starts(
         model, truth, angles_deg=[5.0, 60.0], samples_per_angle=50, key=jax.random.key(0),
         translation_offsets=[0.0, 0.03],

@@ -21,6 +21,7 @@ from jaxreg.studies.basin import (
     basin_radius as basin_radius,
     basin_starts as basin_starts,
     basin_sweep as basin_sweep,
+    lesson_cube as lesson_cube,
 )
 from jaxreg.studies.bop_run import (
     gather_bop_results as gather_bop_results,

@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.experimental import multihost_utils
-from jaxlie import SE3
+from jaxlie import SE3, SO3
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxreg.core._program_cache import persistent_jit
@@ -58,6 +58,7 @@ __all__ = [
     "basin_radius",
     "basin_starts",
     "basin_sweep",
+    "lesson_cube",
     "estimate_hand_eye_correction",
     "repeatability",
 ]
@@ -100,6 +101,20 @@ class BasinSweep(eqx.Module):
     confidently_wrong: Bool[Array, "A T S"]
     success_rate: Float[Array, "A T"]
     basin_radius_deg: Float[Array, " T"]
+
+
+def lesson_cube(angle_deg: float = 15.0, n: int = 800, seed: int = 0):
+    """The lesson's basin experiment: ``n`` points uniform in a 6 cm cube (the model) and the
+    scene: the model turned ``angle_deg`` about z, shifted by (10, -20, 5) mm, with 2 mm
+    Gaussian noise. Returns ``(model (n, 3), scene (n, 3), truth)``: float32 clouds and the
+    model -> scene ``SE3``, ready for :func:`basin_sweep`."""
+    rng = np.random.default_rng(seed)
+    model = rng.uniform(-0.03, 0.03, (n, 3)).astype(np.float32)
+    truth = SE3.from_rotation_and_translation(
+        SO3.from_z_radians(np.deg2rad(angle_deg)), jnp.array([0.01, -0.02, 0.005])
+    )
+    scene = np.asarray(truth @ model) + rng.normal(0.0, 0.002, model.shape)
+    return model, scene.astype(np.float32), truth
 
 
 def basin_starts(
