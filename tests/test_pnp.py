@@ -667,3 +667,7 @@ def test_tag_counts_that_change_call_by_call_share_one_compiled_solver(planar):
         jax.tree.map(np.testing.assert_array_equal, _lanes(result, 0, 5), results[0])
     grid = jax.device_get(solve_pnp_planar(TAG_POINTS, images[:6].reshape(2, 3, 4, 2), K))
     assert grid.pose.wxyz_xyz.shape == (2, 3, 7)
+    # a frame without tags, and one tag without a batch axis
+    assert solve_pnp_planar(TAG_POINTS, images[:0], K).pose.wxyz_xyz.shape == (0, 7)
+    one = jax.device_get(solve_pnp_planar(TAG_POINTS, images[0], K, max_iterations=37))
+    np.testing.assert_allclose(one.pose.wxyz_xyz, results[0].pose.wxyz_xyz[0], atol=2e-5)

@@ -136,10 +136,11 @@ def solve_padded(program, arrays, sigma_px, batch, **static):
     count (each compile takes seconds), and pays a small trimming program per count instead.
     A problem's answer never depends on the others; it depends on the compiled batch size by
     float rounding alone (XLA vectorises each size on its own). Traced arguments (the
-    caller's ``jit`` or ``grad``) and a single problem (``batch == ()``) run as given."""
-    if not batch or any(isinstance(a, jax.core.Tracer) for a in (*arrays, sigma_px)):
-        return program(arrays, sigma_px, batch=batch, **static)
+    caller's ``jit`` or ``grad``), a single problem (``batch == ()``) and an empty batch run as
+    given."""
     size = int(np.prod(batch))
+    if not batch or size == 0 or any(isinstance(a, jax.core.Tracer) for a in (*arrays, sigma_px)):
+        return program(arrays, sigma_px, batch=batch, **static)
     padded = _padded_count(size)
     flat = list(arrays)
     for i, (a, k) in enumerate(zip(arrays, _CORE_NDIMS, strict=True)):
