@@ -490,8 +490,9 @@ def solve_pnp(
     - `max_iterations`: Levenberg-Marquardt step budget per start (static: a new value
       recompiles).
 
-    Leading batch axes of all arguments broadcast; one call solves every problem (vmap inside,
-    one compile per shape). Returns a `PnPResult` (pose camera_T_object, status, covariance;
+    Leading batch axes of all arguments broadcast; one call solves every problem (vmap inside;
+    the problem count is padded to a few sizes, so counts that change from call to call share
+    compiled programs). Returns a `PnPResult` (pose camera_T_object, status, covariance;
     see the module docstring for which start wins); differentiable with respect to every
     floating input by implicit differentiation at the optimum. Raises `ValueError` for N < 4 or
     malformed shapes.
