@@ -17,6 +17,7 @@ import numpy as np
 from jaxreg.camera._pnp_covariance import covariances as pose_covariances
 from jaxreg.camera._pnp_refine import refine_poses
 from jaxreg.camera.model import _canonical_dist
+from jaxreg.core._leaves import as_array
 from jaxreg.core._sizes import bucket
 
 __all__ = ["checked_inputs", "solve_batch", "solve_padded"]
@@ -29,7 +30,7 @@ def checked_inputs(name, object_points, image_points, K, dist_coeffs, weights, s
     """Host-side shape checks; returns float arrays of one dtype (numpy for host input, so that
     checking compiles no device program; JAX arrays and tracers stay JAX arrays), sigma_px in
     that dtype and the broadcast batch shape."""
-    object_points, image_points, K = (_as_array(a) for a in (object_points, image_points, K))
+    object_points, image_points, K = (as_array(a) for a in (object_points, image_points, K))
     if object_points.ndim < 2 or object_points.shape[-1] != 3:
         raise ValueError(f"{name}: object_points must be (..., N, 3), got {object_points.shape}")
     if image_points.ndim < 2 or image_points.shape[-1] != 2:
@@ -41,8 +42,8 @@ def checked_inputs(name, object_points, image_points, K, dist_coeffs, weights, s
         raise ValueError(f"{name} needs at least 4 correspondences, got {n}")
     if K.ndim < 2 or K.shape[-2:] != (3, 3):
         raise ValueError(f"{name}: K must be (3, 3) or (..., 3, 3), got {K.shape}")
-    dist_coeffs = None if dist_coeffs is None else _canonical_dist(_as_array(dist_coeffs))
-    weights = np.ones(object_points.shape[:-1]) if weights is None else _as_array(weights)
+    dist_coeffs = None if dist_coeffs is None else _canonical_dist(as_array(dist_coeffs))
+    weights = np.ones(object_points.shape[:-1]) if weights is None else as_array(weights)
     if weights.ndim < 1 or weights.shape[-1] != n:
         raise ValueError(f"{name}: weights must be (..., {n}), got {weights.shape}")
     arrays = [object_points, image_points, K, dist_coeffs, weights]
@@ -60,7 +61,7 @@ def checked_inputs(name, object_points, image_points, K, dist_coeffs, weights, s
     except ValueError as err:
         shapes = [None if a is None else a.shape for a in arrays]
         raise ValueError(f"{name}: batch axes do not broadcast: {shapes}") from err
-    sigma_px = _as_array(sigma_px).astype(dtype)
+    sigma_px = as_array(sigma_px).astype(dtype)
     if sigma_px.ndim != 0:
         raise ValueError(f"{name}: sigma_px must be a scalar, got shape {sigma_px.shape}")
     return arrays, sigma_px, tuple(batch)
@@ -110,11 +111,6 @@ def solve_batch(starts_fn, choose_fn, finish_fn, arrays, batch, sigma_px, *, ref
         refined, K, dist, sigma_px, cov
     )
     return jax.tree.map(lambda leaf: leaf.reshape(*batch, *leaf.shape[1:]), out)
-
-
-def _as_array(x):
-    """``x`` as an array: numpy for host values, a JAX array for JAX arrays and tracers."""
-    return jnp.asarray(x) if isinstance(x, jax.Array | jax.core.Tracer) else np.asarray(x)
 
 
 def _padded_count(count: int) -> int:

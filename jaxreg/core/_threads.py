@@ -19,7 +19,7 @@ from collections.abc import Callable, Iterable
 import jax
 import numpy as np
 
-__all__ = ["CORES", "in_pieces", "lane_pieces", "split_lanes"]
+__all__ = ["CORES", "in_pieces", "lane_pieces", "num_pieces", "split_lanes"]
 
 CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
 _MIN_LANES = 8  # lanes per piece, at least: fewer do not repay a second program run
@@ -38,6 +38,16 @@ def in_pieces(fn: Callable, pieces: Iterable) -> list:
     if _pool is None or _pool[0] != os.getpid():
         _pool = (os.getpid(), concurrent.futures.ThreadPoolExecutor(CORES, _NAME))
     return list(_pool[1].map(lambda piece: fn(*piece), pieces))
+
+
+def num_pieces(work: int, grain: int) -> int:
+    """Pieces to cut ``work`` units into for :func:`in_pieces`: about one per ``grain`` units,
+    at most 4 per core (uneven pieces and a loaded machine even out), a multiple of the cores
+    when more than one each (3 pieces on 2 cores take as long as 4), at least 1."""
+    if CORES < 2:
+        return 1
+    pieces = min(work // grain, 4 * CORES)
+    return max(1, pieces - pieces % CORES if pieces > CORES else pieces)
 
 
 def lane_pieces(lanes: int) -> int:

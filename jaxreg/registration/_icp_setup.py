@@ -18,6 +18,7 @@ import numpy as np
 from jaxlie import SE3
 from jaxtyping import ArrayLike, Float
 
+from jaxreg.core._leaves import as_array
 from jaxreg.core._program_cache import persistent_jit
 from jaxreg.core._sizes import bucket
 from jaxreg.core._threads import lane_pieces, split_lanes
@@ -71,15 +72,6 @@ def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
-def _as_array(x, dtype=None):
-    """``x`` as an array of ``dtype``: a numpy array for host input (Python numbers, numpy
-    arrays), so that preparing it compiles no device program (each costs a fresh process tens
-    of milliseconds); JAX arrays and tracers stay JAX arrays."""
-    if isinstance(x, jax.Array | jax.core.Tracer):
-        return jnp.asarray(x, dtype)
-    return np.asarray(x, dtype)
-
-
 def prepare(
     source: Float[ArrayLike, "N 3"],
     target: Float[ArrayLike, "M 3"],
@@ -106,10 +98,10 @@ def prepare(
     if s.method not in ("point_to_point", "point_to_plane"):
         raise ValueError(f"method must be 'point_to_point' or 'point_to_plane', got {s.method!r}")
     user_target = target
-    source = _as_array(source)
+    source = as_array(source)
     dtype = jnp.result_type(source.dtype, float)
-    source = _as_array(source, dtype)
-    target = _as_array(target, dtype)
+    source = as_array(source, dtype)
+    target = as_array(target, dtype)
     for name, cloud in (("source", source), ("target", target)):
         if cloud.ndim != 2 or cloud.shape[-1] != 3:
             raise ValueError(f"{name} must have shape (N, 3), got {cloud.shape}")
@@ -124,16 +116,16 @@ def prepare(
             raise ValueError(
                 "point_to_plane needs target_normals (M, 3): see jaxreg.estimate_normals"
             )
-        target_normals = _as_array(s.target_normals, dtype)
+        target_normals = as_array(s.target_normals, dtype)
         if target_normals.shape != target.shape:
             raise ValueError(
                 f"target_normals must match target {target.shape}, got {target_normals.shape}"
             )
     weights = np.ones(n, dtype) if s.source_weights is None else s.source_weights
-    weights = _as_array(weights, dtype)
+    weights = as_array(weights, dtype)
     if weights.shape != (n,):
         raise ValueError(f"source_weights must have shape ({n},), got {weights.shape}")
-    distances = _as_array(s.max_correspondence_distance, dtype)
+    distances = as_array(s.max_correspondence_distance, dtype)
     if distances.ndim == 0:
         full = np.full if isinstance(distances, np.ndarray) else jnp.full
         distances = full((s.max_iterations,), distances, dtype)
@@ -161,9 +153,9 @@ def prepare(
         method=s.method,
         max_iterations=int(s.max_iterations),
         distances=distances,
-        tolerance=_as_array(s.tolerance, dtype),
+        tolerance=as_array(s.tolerance, dtype),
         kernel=L2() if s.kernel is None else s.kernel,
-        trim_fraction=None if s.trim_fraction is None else _as_array(s.trim_fraction, dtype),
+        trim_fraction=None if s.trim_fraction is None else as_array(s.trim_fraction, dtype),
     )
     return problem, opts, (n, m)
 

@@ -20,7 +20,7 @@ import jax
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg.core._threads import in_pieces
+from jaxreg.core._threads import in_pieces, num_pieces
 from jaxreg.search import _knn, _octree
 
 __all__ = ["NeighborGrid", "build_grid", "pad_grid", "validate_grid"]
@@ -149,7 +149,7 @@ def _in_pieces(fill, work):
     equal ``work (L,)`` (on one thread per core: :func:`jaxreg.core._threads.in_pieces`): ``fill(a,
     b)`` returns ``(counts, pid)`` of nodes ``a:b``, concatenated here in node order."""
     cumulative = np.cumsum(work)
-    pieces = _octree.num_pieces(int(cumulative[-1]) if len(work) else 0, _GRAIN)
+    pieces = num_pieces(int(cumulative[-1]) if len(work) else 0, _GRAIN)
     cuts = np.searchsorted(cumulative, cumulative[-1] * np.arange(1, pieces) / pieces)
     bounds = np.unique(np.concatenate(([0], cuts, [len(work)])))
     parts = in_pieces(fill, zip(bounds[:-1], bounds[1:], strict=True))

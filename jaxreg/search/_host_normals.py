@@ -18,8 +18,7 @@ import math
 import numba
 import numpy as np
 
-from jaxreg.core._threads import in_pieces
-from jaxreg.search._octree import num_pieces
+from jaxreg.core._threads import in_pieces, num_pieces
 
 __all__ = ["host_normals"]
 

@@ -22,8 +22,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from jaxreg.core._threads import in_pieces
-from jaxreg.search._octree import counting_sort, kth_smallest, num_pieces
+from jaxreg.core._threads import in_pieces, num_pieces
+from jaxreg.search._octree import counting_sort, kth_smallest
 
 __all__ = ["knn_moments", "self_knn"]
 

@@ -31,14 +31,11 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from jaxreg.core._threads import CORES
-
 __all__ = [
     "counting_sort",
     "kth_smallest",
     "leaf_tables",
     "no_witnesses",
-    "num_pieces",
     "split_nodes",
     "stencil_cells",
     "top_level_nodes",
@@ -46,17 +43,6 @@ __all__ = [
 ]
 
 _CACHE = dict(cache=True, nogil=True)
-
-
-def num_pieces(work: int, grain: int) -> int:
-    """Pieces to cut ``work`` units into for :func:`jaxreg.core._threads.in_pieces`: about
-    one per ``grain`` units, at most 4 per core (uneven pieces and a loaded machine even
-    out), a multiple of the cores when more than one each (3 pieces on 2 cores take as long
-    as 4), at least 1."""
-    if CORES < 2:
-        return 1
-    pieces = min(work // grain, 4 * CORES)
-    return max(1, pieces - pieces % CORES if pieces > CORES else pieces)
 
 
 @numba.njit(**_CACHE)

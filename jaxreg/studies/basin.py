@@ -58,8 +58,8 @@ __all__ = [
     "basin_radius",
     "basin_starts",
     "basin_sweep",
-    "lesson_cube",
     "estimate_hand_eye_correction",
+    "lesson_cube",
     "repeatability",
 ]
 
