@@ -235,7 +235,7 @@ def test_the_fit_term_sees_residuals_shared_by_neighbouring_points():
 
 
 def test_perturbed_segments_erode_grow_and_drop_pieces(box):
-    from jaxreg.pipeline._budget import perturbed_segments
+    from jaxreg.pipeline._error_sources import perturbed_segments
 
     scene, _ = box
     frame, mask = scene.frame, scene.mask

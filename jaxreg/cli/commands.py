@@ -203,7 +203,8 @@ def print_report(report: dict, stages: dict, title: str, out=sys.stdout) -> None
             f"({seg.plane_inlier_fraction:.0%}); {len(seg.cluster_sizes)} clusters above it "
             f"(sizes {seg.cluster_sizes})"
         )
-    for c in (seg.candidates if seg is not None else None) or []:
+    reg = stages.get("register")
+    for c in (reg.candidates if reg is not None else None) or []:
         line(
             f"           candidate {c.clusters or 'mask'}: score {c.score:.2f} (model explains "
             f"{c.explained:.0%}, image contradicts {c.contradicted:.0%})"
@@ -218,8 +219,7 @@ def print_report(report: dict, stages: dict, title: str, out=sys.stdout) -> None
                 f"{lift.points} points"
             )
         line(text)
-    reg = stages.get("register")
-    if reg is not None:
+    if reg is not None and reg.refined_starts is not None:
         residual = "none" if reg.inlier_rmse_mm is None else f"{reg.inlier_rmse_mm:.2f} mm"
         line(
             f"  register {reg.ms:8.1f} ms  {reg.starts} starts, best {reg.refined_starts} "

@@ -1,6 +1,7 @@
-"""The answer's last checks for :mod:`jaxreg.pipeline.estimate`: an answer resting on the table
-is moved onto it and settled there with virtual contact points, and the answer turned about
-the model's axes (probes) shows which other poses the image supports as well.
+"""The register stage's answer: an answer resting on the table is moved onto it and settled
+there with virtual contact points, the answer turned about the model's axes (probes) shows
+which other poses the image supports as well, and the answer is reported on one symmetry
+branch (:func:`_finish`).
 
 Conventions: poses are ``object_T_base`` (wxyz_xyz) as ICP returns them (the segment, base
 frame, registered into the model, object frame); tangents are jaxlie's ``(v, w)``.
@@ -14,9 +15,12 @@ import numpy as np
 from jaxlie import SE3, SO3
 
 from jaxreg.core._program_cache import persistent_jit
+from jaxreg.geometry.lie import geodesic_angle
+from jaxreg.geometry.metrics import Symmetry, canonicalise
+from jaxreg.pipeline._coarse import _register_starts
+from jaxreg.pipeline._judge import TOLERANCE, _confirmed_share, _judge
 from jaxreg.pipeline._model import _Model
-from jaxreg.pipeline._register_stage import _confirmed_share, _judge, _register_starts
-from jaxreg.pipeline._settings import _TOLERANCE, _Settings
+from jaxreg.pipeline.settings import PipelineSettings
 from jaxreg.registration.icp import icp
 
 # --------------------------------------------------------------------------------------------
@@ -98,7 +102,9 @@ def probe_starts(model: _Model, object_T_base: np.ndarray) -> np.ndarray:
     return np.asarray((centre @ turns @ centre.inverse() @ answer).wxyz_xyz, np.float32)
 
 
-def _probe(frame, plane, model, source, answer, score, rmse, trim, noise, settings: _Settings):
+def _probe(
+    frame, plane, model, source, answer, score, rmse, trim, noise, settings: PipelineSettings
+):
     """The answer turned about the model's axes (:func:`probe_starts`), refined and judged
     like the refined starts: their poses ``(P, 7)`` (object_T_base), which are as good as
     the answer ``(P,)`` (score within 0.02, residual within 10%) and their residuals
@@ -111,7 +117,7 @@ def _probe(frame, plane, model, source, answer, score, rmse, trim, noise, settin
         trim, 30,
     )  # fmt: skip
     poses, _ = _onto_table(model, probed.pose.wxyz_xyz, plane, settings)
-    seen = np.asarray(_judge(frame, plane, poses, model.points, _TOLERANCE, noise.coefficients))
+    seen = np.asarray(_judge(frame, plane, poses, model.points, TOLERANCE, noise.coefficients))
     scores = np.asarray(probed.inlier_fraction) * _confirmed_share(seen)
     rmses = np.nan_to_num(np.asarray(probed.inlier_rmse), nan=np.inf)
     return poses, (scores >= score - 0.02) & (rmses <= rmse * 1.1 + 1e-4), rmses
@@ -161,7 +167,7 @@ def _good_arc(angles: np.ndarray, good: np.ndarray) -> float:
     return float(turns[right % n] - turns[left % n]) % 360.0
 
 
-def _onto_table(model, answers, plane, settings: _Settings):
+def _onto_table(model, answers, plane, settings: PipelineSettings):
     """``answers`` ``(S, 7)`` (object_T_base wxyz_xyz) with each one that rests on the table
     (:func:`resting_contact`) moved onto it, and each one's contact (points, lowest height)
     or ``None`` (a list of ``S``). The poses are composed in batches (a few dispatches for
@@ -174,7 +180,8 @@ def _onto_table(model, answers, plane, settings: _Settings):
     normal, offset = np.asarray(plane.normal, np.float64), float(plane.offset)
     restings = [
         resting_contact(
-            points, matrix, normal, offset, settings.rest_tolerance, settings.voxel_size
+            points, matrix, normal, offset, settings.register.rest_tolerance,
+            settings.voxel_size,
         )
         for matrix in matrices
     ]
@@ -186,7 +193,7 @@ def _onto_table(model, answers, plane, settings: _Settings):
     return answers, restings
 
 
-def _rest(source, model, results, best: int, plane, trim, settings: _Settings):
+def _rest(source, model, results, best: int, plane, trim, settings: PipelineSettings):
     """The refined answers ``(S, 7)`` (object_T_base) with each one that rests on the table
     moved onto it, the best one settled there by ICP with the contact points; the contact
     points ``(C, 3)`` of the best (``None`` when it does not rest) and its lowest point's
@@ -203,3 +210,54 @@ def _rest(source, model, results, best: int, plane, trim, settings: _Settings):
             answers[best] = np.asarray(settled.pose.wxyz_xyz, np.float32)
             contact, lowest = resting
     return answers, contact, lowest
+
+
+# --------------------------------------------------------------------------------------------
+# The answer on one symmetry branch, and the distinct starts it is chosen from.
+
+
+def _canonical(pose: SE3, reference: SE3, symmetry) -> SE3:
+    """:func:`canonicalise` by a bucketed ``symmetry`` ``(rotations (K, 3, 3), axis (3,),
+    continuous)``: with the axis when ``continuous``, else the rotations alone."""
+    rotations, axis, continuous = symmetry
+    fixed = canonicalise(pose, reference, Symmetry(rotations))
+    turned = canonicalise(pose, reference, Symmetry(rotations, axis))
+    return SE3(jnp.where(continuous, turned.wxyz_xyz, fixed.wxyz_xyz))
+
+
+@persistent_jit
+def _finish(object_T_base, best, equal, symmetry):
+    """The answer from the refined starts ``object_T_base (S, 7)``, as one stored program
+    for every model: ``base_T_object`` of start ``best`` (wxyz_xyz; the equivalent under the
+    bucketed ``symmetry`` (:func:`_bucketed_symmetry`) nearest the base axes), the largest
+    offset (metres) and angle (degrees) to the starts flagged ``equal`` ``(S,)`` and their
+    tangents ``(S, 6)``, all compared on the answer's symmetry branch (right perturbations
+    of the reported ``base_T_object``, object axes)."""
+    found = SE3(object_T_base[best])
+    pose = found.inverse()
+    others = _canonical(SE3(object_T_base).inverse(), pose, symmetry)
+    offset = jnp.linalg.norm(others.translation() - pose.translation(), axis=-1)
+    angle = jnp.degrees(geodesic_angle(others.rotation(), pose.rotation()))
+    spread = jnp.stack([jnp.max(jnp.where(equal, offset, 0)), jnp.max(jnp.where(equal, angle, 0))])
+    # report one branch: the equivalent nearest the base axes
+    pose = _canonical(pose, SE3.from_translation(pose.translation()), symmetry)
+    others = _canonical(others, pose, symmetry)
+    tangents = (pose.inverse() @ others).log()
+    return pose.wxyz_xyz, spread, tangents
+
+
+def _distinct(poses: np.ndarray, count: int, min_distance: float) -> list[int]:
+    """The first ``count`` rows of ``poses`` (``(S, 7)`` wxyz_xyz, best first) that differ
+    from every earlier pick by ``min_distance`` metres or 0.2 rad."""
+    quats, trans = poses[:, :4], poses[:, 4:]
+    chosen: list[int] = []
+    for i in range(len(poses)):
+        if all(
+            np.linalg.norm(trans[i] - trans[j]) > min_distance
+            or 2 * np.arccos(min(1.0, abs(float(quats[i] @ quats[j])))) > 0.2
+            for j in chosen
+        ):
+            chosen.append(i)
+        if len(chosen) == count:
+            break
+    return chosen

@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 
 from jaxreg.core._program_cache import persistent_jit
 from jaxreg.pipeline._answer import CONTACT_WEIGHT
-from jaxreg.pipeline._lift import lift_pixels
+from jaxreg.pipeline._lift_stage import lift_pixels
 from jaxreg.registration.icp import icp
 from jaxreg.uncertainty.budget import combine
 
