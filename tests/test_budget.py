@@ -190,7 +190,7 @@ def _box_points(rng, n=1500):
 
 def test_the_depth_term_is_icp_covariance_of_the_same_pairs():
     import jaxreg as jr
-    from jaxreg.pipeline import _budget
+    from jaxreg.pipeline import _error_sources as _budget
     from jaxreg.uncertainty import DepthNoise
 
     rng = np.random.default_rng(0)
@@ -216,7 +216,7 @@ def test_the_depth_term_is_icp_covariance_of_the_same_pairs():
 
 
 def test_the_fit_term_sees_residuals_shared_by_neighbouring_points():
-    from jaxreg.pipeline import _budget
+    from jaxreg.pipeline import _error_sources as _budget
 
     rng = np.random.default_rng(1)
     model, normals = _box_points(rng, 3000)

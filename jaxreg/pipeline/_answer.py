@@ -103,8 +103,9 @@ def probe_starts(model: _Model, object_T_base: np.ndarray) -> np.ndarray:
 
 
 def _probe(
-    frame, plane, model, source, answer, score, rmse, trim, noise, settings: PipelineSettings
-):
+    frame, plane, model, source, answer, score, rmse, trim, noise, distances,
+    settings: PipelineSettings,
+):  # fmt: skip
     """The answer turned about the model's axes (:func:`probe_starts`), refined and judged
     like the refined starts: their poses ``(P, 7)`` (object_T_base), which are as good as
     the answer ``(P,)`` (score within 0.02, residual within 10%) and their residuals
@@ -113,8 +114,7 @@ def _probe(
     its bars a little wider)."""
     starts = SE3(jax.device_put(probe_starts(model, answer)))
     probed = _register_starts(
-        source[::2], model.points, model.normals, model.fine_grid, starts, settings.fine_distances,
-        trim, 30,
+        source[::2], model.points, model.normals, model.fine_grid, starts, distances, trim, 30,
     )  # fmt: skip
     poses, _ = _onto_table(model, probed.pose.wxyz_xyz, plane, settings)
     seen = np.asarray(_judge(frame, plane, poses, model.points, TOLERANCE, noise.coefficients))
@@ -193,7 +193,7 @@ def _onto_table(model, answers, plane, settings: PipelineSettings):
     return answers, restings
 
 
-def _rest(source, model, results, best: int, plane, trim, settings: PipelineSettings):
+def _rest(source, model, results, best: int, plane, trim, distances, settings: PipelineSettings):
     """The refined answers ``(S, 7)`` (object_T_base) with each one that rests on the table
     moved onto it, the best one settled there by ICP with the contact points; the contact
     points ``(C, 3)`` of the best (``None`` when it does not rest) and its lowest point's
@@ -204,7 +204,7 @@ def _rest(source, model, results, best: int, plane, trim, settings: PipelineSett
     if resting is not None:
         settled = _settle(
             source, resting[0], model.points, model.normals, model.fine_grid, answers[best],
-            settings.fine_distances[-15:], trim, 15,
+            distances[-15:], trim, 15,
         )  # fmt: skip
         if bool(np.isfinite(np.asarray(settled.inlier_rmse))):
             answers[best] = np.asarray(settled.pose.wxyz_xyz, np.float32)

@@ -32,6 +32,7 @@ from scipy.spatial import cKDTree
 from jaxreg.core._program_cache import persistent_jit
 from jaxreg.pipeline._answer import CONTACT_WEIGHT
 from jaxreg.pipeline._lift_stage import lift_pixels
+from jaxreg.pipeline._surface import depth_step
 from jaxreg.registration.icp import icp
 from jaxreg.uncertainty.budget import combine
 
@@ -216,17 +217,21 @@ def _distances(mask: np.ndarray, margin: int) -> tuple[np.ndarray, np.ndarray]:
     return inside, outside
 
 
-def perturbed_segments(frame, mask, points, plane, min_height, size, rng, count=16):
+def perturbed_segments(frame, mask, points, plane, min_height, size, rng, count=16, noise=None):
     """``(count, size, 3)`` float32 segments with their membership changed (NaN padding):
     a quarter with the mask's border eroded by 1-3 pixels, a quarter with the ring of 1-3
-    pixels around it added (points above the table), half with a contiguous ~15% piece of the
-    visible part dropped. Each is subsampled to ``size`` points like the registered cloud."""
+    pixels around it added (points above the table; with the camera's ``noise``, only the
+    ring's pixels on one surface with the mask's, :func:`_continuing`), half with a contiguous
+    ~15% piece of the visible part dropped. Each is subsampled to ``size`` points like the
+    registered cloud."""
     inside, outside = _distances(mask, RING + 1)
     rows, cols = _pixels(frame, points).T
     border = inside[rows, cols]
     ring_r, ring_c = np.nonzero((outside > 0) & (outside <= RING))
     ring = np.asarray(lift_pixels(frame, ring_r, ring_c), np.float64)
     ring_ok = np.all(np.isfinite(ring), 1)
+    if noise is not None:
+        ring_ok &= _continuing(frame, mask, ring_r, ring_c, noise)
     if plane is not None:  # above the table band, as the lift keeps
         height = ring[ring_ok] @ np.asarray(plane.normal) + float(plane.offset)
         ring_ok[ring_ok] = height > min_height
@@ -247,6 +252,24 @@ def perturbed_segments(frame, mask, points, plane, min_height, size, rng, count=
             cloud = cloud[np.sort(rng.choice(len(cloud), size, replace=False))]
         out[k, : len(cloud)] = cloud
     return out
+
+
+def _continuing(frame, mask, rows, cols, noise) -> np.ndarray:
+    """``(R,)`` bool: which pixels ``(rows, cols)`` outside ``mask`` ``(H, W)`` continue its
+    surface: their depth within :func:`~jaxreg.pipeline._surface.depth_step` per pixel of
+    distance of the nearest mask pixel's (the background behind an object, or an occluder in
+    front, is a step away)."""
+    depth = np.asarray(frame.depth, np.float64)
+    if len(rows) == 0:
+        return np.zeros(0, bool)
+    top, left = max(rows.min() - RING - 1, 0), max(cols.min() - RING - 1, 0)
+    box = (slice(top, rows.max() + RING + 2), slice(left, cols.max() + RING + 2))
+    gap, (near_r, near_c) = ndimage.distance_transform_edt(~mask[box], return_indices=True)
+    r, c = rows - top, cols - left
+    z, z_near = depth[rows, cols], depth[near_r[r, c] + top, near_c[r, c] + left]
+    sigma = np.polynomial.polynomial.polyval(z_near, np.asarray(noise.coefficients, np.float64))
+    step = depth_step(z_near, sigma, float(frame.intrinsics.fx))
+    return np.abs(z - z_near) <= step * gap[r, c]
 
 
 @persistent_jit
@@ -348,7 +371,9 @@ def pose_budget(
     fit_base = _fit_term(jac, residual, blocks, inverse, depth_base)
     mismatch_base = _mismatch_term(jac, blocks, sensed, inverse, MISMATCH_SIGMA)
 
-    segments = perturbed_segments(frame, mask, points, plane, min_height, source_size, rng)
+    segments = perturbed_segments(
+        frame, mask, points, plane, min_height, source_size, rng, noise=noise
+    )
     weights = np.ones(source_size, np.float32)
     if contact is not None:
         segments = np.concatenate(

@@ -31,7 +31,7 @@ from jaxreg.pipeline._answer import (
     _unfixed_turns,
 )
 from jaxreg.pipeline._coarse import _coarse_problem, _register_starts, _score_candidates
-from jaxreg.pipeline._error_sources import pose_budget
+from jaxreg.pipeline._error_sources import MISMATCH_SIGMA, pose_budget
 from jaxreg.pipeline._judge import (
     TOLERANCE,
     _confirmed_share,
@@ -61,6 +61,61 @@ __all__ = ["coarse_search", "refine_stage"]
 _USABLE = (ICPStatus.success, ICPStatus.max_iterations)
 
 
+# A fit's residual may be this many times the one the depth noise, the model's sampling and
+# the model-sensor mismatch explain (their RMS sum).
+RESIDUAL_FACTOR = 1.5
+
+
+@dataclasses.dataclass(frozen=True)
+class Tolerances:
+    """The register stage's distances and gates for one segment, from the depth noise at the
+    segment's depth and the model's sampling (:func:`tolerances`).
+
+    Attributes:
+        distances: ``(30,)`` float32 the refinement's correspondence distances (metres, 15 mm
+            down to the final one).
+        max_rmse: the largest inlier RMSE of a fit (metres).
+        max_overhang: how far the segment may span beyond the model (metres).
+        sigma_z: the depth noise's standard deviation at the segment's depth (metres).
+    """
+
+    distances: np.ndarray
+    max_rmse: float
+    max_overhang: float
+    sigma_z: float
+
+
+def tolerances(model, noise, depth: float, settings: PipelineSettings) -> Tolerances:
+    """The :class:`Tolerances` of a segment ``depth`` metres from the camera (its median).
+
+    With ``sigma_z`` the depth noise there and the model's sampling (``rms``, ``gap``: how
+    far a surface point lies from the nearest model point, :func:`~jaxreg.pipeline._model.
+    _sampling`): the final correspondence distance reaches a point ``3 sigma_z`` off the
+    surface in the model's widest gap (``hypot(gap, 3 sigma_z)``, at least 1.5 voxels, the
+    measured points' own spacing, at most 15 mm); a fit's residual may be ``RESIDUAL_FACTOR``
+    times ``sqrt(rms^2 + sigma_z^2 + MISMATCH_SIGMA^2)`` (``max_inlier_rmse`` when set); the
+    segment may span ``max_overhang`` plus ``4 sigma_z`` beyond the model (the noise spreads
+    the points of both of its ends)."""
+    r = settings.register
+    sigma = float(np.polynomial.polynomial.polyval(depth, np.asarray(noise.coefficients)))
+    rms, gap = model.sampling
+    final = min(max(float(np.hypot(gap, 3 * sigma)), 1.5 * settings.voxel_size), 0.015)
+    if final == 1.5 * settings.voxel_size:
+        distances = settings.fine_distances
+    else:
+        distances = np.geomspace(0.015, final, 30).astype(np.float32)
+    expected = float(np.sqrt(rms**2 + sigma**2 + MISMATCH_SIGMA**2))
+    max_rmse = RESIDUAL_FACTOR * expected if r.max_inlier_rmse is None else r.max_inlier_rmse
+    return Tolerances(distances, max_rmse, r.max_overhang + 4 * sigma, sigma)
+
+
+def _camera_depth(frame, points: np.ndarray) -> float:
+    """The median camera depth (metres) of base-frame ``points`` ``(N, 3)``."""
+    camera = frame.base_T_camera
+    axis = np.asarray(camera.rotation().as_matrix(), np.float64)[:, 2]
+    return float(np.median((points - np.asarray(camera.translation(), np.float64)) @ axis))
+
+
 def coarse_search(
     frame, model, segmented: Segmented, settings: PipelineSettings, noise, rng
 ) -> CoarseSearch:
@@ -69,7 +124,8 @@ def coarse_search(
     Generator that subsamples the candidates."""
     start = time.perf_counter()
     clouds = [cloud for _, cloud in segmented.candidates]
-    coarse, scored = _score(frame, segmented.plane, model, settings, clouds, rng, noise)
+    gates = tolerances(model, noise, _camera_depth(frame, np.concatenate(clouds)), settings)
+    coarse, scored = _score(frame, segmented.plane, model, settings, clouds, rng, noise, gates)
     _, explained, _, _, chosen = scored[0]
     poses = np.asarray(coarse.poses[chosen])  # object_T_base per start, best first
     candidates = [_candidate(list(segmented.candidates[i][0]), *rest) for *rest, i in scored]
@@ -93,10 +149,10 @@ def coarse_search(
         coarse_kept_starts=int(poses.shape[0]),
         chosen_clusters=None if joined is None else list(joined),
     )  # fmt: skip
-    return CoarseSearch(region, poses, explained, record.with_ms(start))
+    return CoarseSearch(region, poses, explained, gates, record.with_ms(start))
 
 
-def _score(frame, plane: TablePlane | None, model, settings: PipelineSettings, clouds, rng, noise):
+def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, gates):
     """Coarse registration of the candidate ``clouds`` (each ``(N, 3)``, base frame) in one
     compiled call, and each one's evidence, best first: tuples ``(score, explained,
     contradicted, overhang, slot)``; a candidate whose points reach beyond the model
@@ -114,7 +170,7 @@ def _score(frame, plane: TablePlane | None, model, settings: PipelineSettings, c
     coarse = jax.block_until_ready(
         _score_candidates(
             frame, plane, problem, tuple(rounds), model.fine_grid, padded, used, model.points,
-            model.screen, model.axes, TOLERANCE, noise.coefficients, settings.fine_distances[-1],
+            model.screen, model.axes, TOLERANCE, noise.coefficients, gates.distances[-1],
             s.num_starts, s.resting_yaws, s.coarse_survivors, s.coarse_keep,
         )
     )  # fmt: skip
@@ -125,7 +181,7 @@ def _score(frame, plane: TablePlane | None, model, settings: PipelineSettings, c
         reach = float(overhang(model, np.asarray(coarse.poses[i, 0]), cloud).max())
         scored.append((explained * confirmed, explained, contradicted, reach, i))
     # larger objects (or an unmeasurable span) last
-    scored.sort(key=lambda item: (not item[3] <= s.max_overhang, -item[0]))
+    scored.sort(key=lambda item: (not item[3] <= gates.max_overhang, -item[0]))
     return coarse, scored
 
 
@@ -149,7 +205,8 @@ def refine_stage(
     coarse_poses, coarse_fraction = coarse.poses, coarse.explained
     mask, points = lifted.mask, lifted.points
     s = settings.register
-    fine_distances = settings.fine_distances
+    gates = coarse.tolerances
+    fine_distances = gates.distances
     start = time.perf_counter()
     source = _padded(points, s.max_points, rng)
     picks = _distinct(coarse_poses, s.refined_starts, 0.01)
@@ -170,12 +227,14 @@ def refine_stage(
     confirmed, contradicted = _support(seen[ranked[0]])
     reach = overhang(model, np.asarray(results.pose.wxyz_xyz[ranked[0]]), points)
     equal = (scores >= scores[ranked[0]] - 0.02) & (rmses <= rmse * 1.1 + 1e-4)
-    answers, contact, lowest = _rest(source, model, results, ranked[0], plane, trim, settings)
+    answers, contact, lowest = _rest(
+        source, model, results, ranked[0], plane, trim, fine_distances, settings
+    )
     padded_symmetry = _bucketed_symmetry(symmetry)
     wxyz_xyz, spread, tangents = _finish(answers, np.int32(ranked[0]), equal, padded_symmetry)
     probed = _probe(
         frame, plane, model, source, answers[ranked[0]], scores[ranked[0]], rmse, trim, noise,
-        settings,
+        fine_distances, settings,
     )
     _, _, probe_tangents = _finish(
         np.concatenate([answers[ranked[0]][None], probed[0]]), np.int32(0),
@@ -229,9 +288,10 @@ def refine_stage(
         problems.append(
             f"no segment point lies within {fine_distances[-1] * 1e3:.0f} mm of the model"
         )
-    elif not rmse <= s.max_inlier_rmse:
+    elif not rmse <= gates.max_rmse:
         problems.append(
-            f"the residual is {rmse * 1e3:.1f} mm (at most {s.max_inlier_rmse * 1e3:g})"
+            f"the residual is {rmse * 1e3:.1f} mm (at most {gates.max_rmse * 1e3:.1f} at "
+            f"sigma_z {gates.sigma_z * 1e3:.1f} mm)"
         )
     if contradicted > s.max_contradicted:
         problems.append(
@@ -243,11 +303,11 @@ def refine_stage(
             "the segment's span beyond the model could not be measured (NaN: a non-finite "
             "pose or segment point)"
         )
-    elif reach.max() > s.max_overhang:
+    elif reach.max() > gates.max_overhang:
         problems.append(
             f"the segment spans {reach.max() * 1e3:.0f} mm beyond the model along its "
             f"{('longest', 'middle', 'shortest')[int(reach.argmax())]} axis (at most "
-            f"{s.max_overhang * 1e3:g}): a larger object of a similar shape, or the object "
+            f"{gates.max_overhang * 1e3:.1f}): a larger object of a similar shape, or the object "
             "merged with a neighbour"
         )
     if problems:

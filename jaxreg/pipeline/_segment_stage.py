@@ -16,6 +16,7 @@ from jaxreg.camera.model import RGBDFrame
 from jaxreg.pipeline._lift_stage import lift_pixels
 from jaxreg.pipeline._model import _diameter
 from jaxreg.pipeline._stages import _Failed
+from jaxreg.pipeline._surface import mask_surface
 from jaxreg.pipeline.records import Segmented, SegmentRecord
 from jaxreg.pipeline.segment import SegmentStatus, choose_cluster, segment_frame
 from jaxreg.pipeline.settings import SegmentSettings
@@ -24,14 +25,16 @@ __all__ = ["segment_stage"]
 
 
 def segment_stage(
-    frame: RGBDFrame, model, settings: SegmentSettings, key, *, mask=None, pixel=None, box=None
-) -> Segmented:
-    """The candidates of ``frame`` for the prepared ``model``: the caller's ``mask`` ``(H, W)``
-    (:func:`_mask_route`), or the table route's clusters (:func:`_table_route`; a ``pixel``
-    ``(u, v)`` or ``box`` ``(u0, v0, u1, v1)`` prompt names the seed cluster). ``key``: the
-    plane hypotheses' PRNG key. Raises ``_Failed`` when no candidate can be the model."""
+    frame: RGBDFrame, model, settings: SegmentSettings, key, noise, *, mask=None, pixel=None,
+    box=None,
+) -> Segmented:  # fmt: skip
+    """The candidates of ``frame`` for the prepared ``model``: the object's surface in the
+    caller's ``mask`` ``(H, W)`` (:func:`_mask_route`), or the table route's clusters
+    (:func:`_table_route`; a ``pixel`` ``(u, v)`` or ``box`` ``(u0, v0, u1, v1)`` prompt names
+    the seed cluster). ``key``: the plane hypotheses' PRNG key; ``noise``: the camera's
+    ``DepthNoise``. Raises ``_Failed`` when no candidate can be the model."""
     if mask is not None:
-        return _mask_route(frame, model, settings, mask, key)
+        return _mask_route(frame, model, settings, mask, key, noise)
     return _table_route(frame, model, settings, key, pixel, box)
 
 
@@ -112,17 +115,21 @@ def _table_route(frame, model, settings: SegmentSettings, key, pixel, box) -> Se
     return Segmented(seg.plane, candidates, seg, None, record.with_ms(start))
 
 
-def _mask_route(frame, model, settings: SegmentSettings, mask, key) -> Segmented:
-    """The caller's mask as the one candidate. The table plane is fitted to the pixels
-    outside the mask (:func:`segment_frame` on the frame with the mask's depth removed: the
-    program the table route compiled); it is used when the object stands on it (the lowest
-    5% of the mask's points within 2 cm above it, and no more than 2% below it by more than
-    ``plane_distance``: a plane fitted to another object's face may cut through this one):
-    the band above it filters the segment, the resting starts stand the model on it, and the
-    image's judgement counts a model below it as contradicted. Without a table (no plane, or
-    the object not on it) there is no band, and the resting starts' share of the coarse
-    search goes to the rotation grid. The candidate is the mask's grid points (every
-    ``stride``-th pixel)."""
+def _mask_route(frame, model, settings: SegmentSettings, mask, key, noise) -> Segmented:
+    """The object's surface in the caller's mask as the one candidate: the mask's pixels
+    that the depth image connects to the object (:func:`~jaxreg.pipeline._surface.
+    mask_surface`: not the background behind it or an occluder in front, which a mask's
+    border holds). Its extent is judged against the model's, and it is what the lift lifts.
+
+    The table plane is fitted to the pixels outside the mask (:func:`segment_frame` on the
+    frame with the mask's depth removed: the program the table route compiled); it is used
+    when the object stands on it (the lowest 5% of the surface's points within 2 cm above it,
+    and no more than 2% below it by more than ``plane_distance``: a plane fitted to another
+    object's face may cut through this one): the band above it filters the segment, the
+    resting starts stand the model on it, and the image's judgement counts a model below it
+    as contradicted. Without a table (no plane, or the object not on it) there is no band,
+    and the resting starts' share of the coarse search goes to the rotation grid. The
+    candidate is the surface's grid points (every ``stride``-th pixel)."""
     s = settings
     start = time.perf_counter()
     depth = np.asarray(frame.depth)
@@ -131,7 +138,9 @@ def _mask_route(frame, model, settings: SegmentSettings, mask, key) -> Segmented
     seg = _segment(outside, s, key)
     grid = np.zeros_like(mask)
     grid[:: s.stride, :: s.stride] = True
-    rows, cols = np.nonzero(mask & grid & np.isfinite(depth))
+    sigma_z = np.asarray(noise.coefficients)
+    surface = mask_surface(depth, mask, sigma_z, float(frame.intrinsics.fx))
+    rows, cols = np.nonzero(surface & grid)
     cloud = lift_pixels(frame, rows, cols)
     plane = None
     if seg.status in (SegmentStatus.success, SegmentStatus.no_clusters) and len(cloud):
@@ -146,6 +155,7 @@ def _mask_route(frame, model, settings: SegmentSettings, mask, key) -> Segmented
         plane_inliers=None if plane is None else int(plane.num_inliers),
         plane_inlier_fraction=None if plane is None else round(float(plane.inlier_fraction), 3),
         mask_pixels=int(mask.sum()),
+        surface_pixels=int(surface.sum()),
         mask_grid_points=len(cloud),
     )
 
@@ -169,7 +179,7 @@ def _mask_route(frame, model, settings: SegmentSettings, mask, key) -> Segmented
     hint = _units_hint(model, span)
     if hint:
         fail("the masked segment is far smaller than the model (a mask on another object?)" + hint)
-    return Segmented(plane, [((), cloud)], None, mask, record.with_ms(start))
+    return Segmented(plane, [((), cloud)], None, surface, record.with_ms(start))
 
 
 def _units_hint(model, span: float) -> str:

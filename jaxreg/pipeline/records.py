@@ -76,8 +76,11 @@ class SegmentRecord(_Record):
         cluster_sizes, cluster_radii_mm: grid points and radius of each cluster (table route).
         overflow: the clustering's capacity overflowed (table route).
         mask_pixels: pixels of the caller's mask (mask route).
-        mask_grid_points: of them, grid points with depth (above the table band when there
-            is a table): the one candidate (mask route).
+        surface_pixels: of them, pixels on the object's surface (mask route: with depth, and
+            connected to the object by the depth image, not the background behind it or an
+            occluder in front).
+        mask_grid_points: of them, grid points (above the table band when there is a table):
+            the one candidate (mask route).
     """
 
     ms: float
@@ -89,6 +92,7 @@ class SegmentRecord(_Record):
     cluster_radii_mm: list[float] | None = None
     overflow: bool | None = None
     mask_pixels: int | None = None
+    surface_pixels: int | None = None
     mask_grid_points: int | None = None
 
 
@@ -200,12 +204,15 @@ class CoarseSearch:
             pose explains, or the caller's mask).
         poses: ``(K, 7)`` the winner's coarse poses, ``object_T_base`` wxyz_xyz, best first.
         explained: fraction of the winner's points its best coarse pose explains.
+        tolerances: the register stage's distances and gates for the segment's depth
+            (:class:`~jaxreg.pipeline._register_stage.Tolerances`).
         record: the register stage's record so far (its coarse part).
     """
 
     region: np.ndarray
     poses: np.ndarray
     explained: float
+    tolerances: Any
     record: RegisterRecord
 
 

@@ -82,13 +82,19 @@ class RegisterSettings:
         rest_tolerance: an answer whose model has a flat face within this distance (metres)
             of the table, facing it, is moved onto the table and settled there; 0 turns this
             off.
-        min_inlier_fraction: fewest segment points the model must explain, as a fraction.
-        max_inlier_rmse: largest RMS distance (metres) of the explained segment points.
+        min_inlier_fraction: fewest segment points the model must explain (within the final
+            correspondence distance, which follows the depth noise at the segment's depth
+            and the model's sampling), as a fraction.
+        max_inlier_rmse: largest RMS distance (metres) of the explained segment points;
+            ``None``: 1.5 times what the depth noise at the segment's depth, the model's
+            sampling and the model-sensor mismatch explain
+            (:func:`~jaxreg.pipeline._register_stage.tolerances`).
         max_contradicted: largest share of the model's judged surface the image may see
             through.
         max_overhang: how far (metres) the segment may span beyond the model along one of
-            its principal axes at the fitted pose (2% to 98% quantiles): a larger object of
-            a similar shape fits well by every other measure but reaches beyond the model.
+            its principal axes at the fitted pose (2% to 98% quantiles), beyond the depth
+            noise's spread (4 sigma_z at the segment's depth): a larger object of a similar
+            shape fits well by every other measure but reaches beyond the model.
     """
 
     num_starts: int = 24
@@ -102,7 +108,7 @@ class RegisterSettings:
     refined_starts: int = 4
     rest_tolerance: float = 0.015
     min_inlier_fraction: float = 0.7
-    max_inlier_rmse: float = 0.004
+    max_inlier_rmse: float | None = None
     max_contradicted: float = 0.25
     max_overhang: float = 0.003
 

@@ -1,0 +1,219 @@
+"""Tracking: the pose in the next frame of a stream, from the pose in the previous one.
+
+:func:`track` needs no segmentation: the model at the ``previous`` pose, projected into the new
+frame, says which pixels to look at (its footprint grown by the motion allowed between frames,
+the depths near the model's), the depth image says which of them lie on one surface with the
+model's (:func:`jaxreg.pipeline._surface.mask_surface`), and the register stage refines the
+previous pose on them alone: no candidates, no coarse search. The same evidence as
+:func:`jaxreg.estimate_pose` refuses an answer (the share of the segment the model explains,
+the residual, the image seeing through the model, the segment reaching beyond it), and the
+same error budget gives its covariance. A refusal says the object is lost (it moved farther
+than ``max_motion``, left the view, or is hidden): re-detect it with ``estimate_pose``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any
+
+import numpy as np
+from jaxlie import SE3
+from jaxtyping import Float
+from scipy import ndimage
+
+from jaxreg.camera.model import RGBDFrame
+from jaxreg.geometry.lie import geodesic_angle
+from jaxreg.geometry.metrics import Symmetry
+from jaxreg.pipeline._error_sources import Calibration
+from jaxreg.pipeline._judge import _near_model
+from jaxreg.pipeline._lift_stage import lift_stage
+from jaxreg.pipeline._model import _prepare_model
+from jaxreg.pipeline._register_stage import refine_stage, tolerances
+from jaxreg.pipeline._stages import _Failed
+from jaxreg.pipeline._surface import mask_surface
+from jaxreg.pipeline.estimate import PoseEstimate, _checked_model, _in_order, _noise
+from jaxreg.pipeline.records import CoarseSearch, RegisterRecord, SegmentRecord
+from jaxreg.pipeline.settings import PipelineSettings
+from jaxreg.uncertainty import DepthNoise
+
+__all__ = ["track"]
+
+
+def track(
+    frame: RGBDFrame,
+    model_points: Float[Any, "M 3"],
+    previous: SE3 | Float[Any, "4 4"] | PoseEstimate,
+    *,
+    max_motion: float = 0.05,
+    max_turn_deg: float = 20.0,
+    model_normals: Float[Any, "M 3"] | None = None,
+    symmetry: Symmetry | None = None,
+    depth_noise: DepthNoise | None = None,
+    hand_eye_covariance: Float[Any, "6 6"] | None = None,
+    intrinsics_sigma: Float[Any, " 4"] | None = None,
+    depth_scale_sigma: float = 0.0,
+    settings: PipelineSettings | None = None,
+    **keywords,
+) -> PoseEstimate:
+    """``base_T_object`` in ``frame`` starting from its pose in the previous frame.
+
+    Args:
+        frame: the new depth frame.
+        model_points: ``(M, 3)`` the model's points (object frame, metres).
+        previous: the previous ``base_T_object``: an ``SE3``, a ``(4, 4)`` matrix, or the
+            previous :class:`PoseEstimate` (which must hold a pose).
+        max_motion: the farthest (metres) the object's points may move between the frames:
+            the footprint grows by it, the depths looked at reach it beyond the model's, and
+            an answer farther from ``previous`` is refused as lost.
+        max_turn_deg: the largest turn (degrees) between the frames; a larger one is
+            refused as lost.
+        model_normals, symmetry, depth_noise, hand_eye_covariance, intrinsics_sigma,
+        depth_scale_sigma, settings, **keywords: as for :func:`jaxreg.estimate_pose`.
+
+    Returns:
+        A :class:`PoseEstimate`; its ``stages`` are ``segment`` (the projected footprint:
+        ``mask_pixels`` the pixels looked at, ``mask_grid_points`` those on the surface),
+        ``lift`` and ``register``. A refusal (``failed_stage``) means the object is lost.
+
+    Raises:
+        ValueError: bad input as for ``estimate_pose``, a ``previous`` that is not a pose or
+            an estimate without one, or a non-positive ``max_motion`` / ``max_turn_deg``.
+    """
+    model_points, model_normals = _checked_model(frame, model_points, model_normals)
+    base_T_object = _previous_pose(previous)
+    if not (max_motion > 0 and max_turn_deg > 0):
+        raise ValueError(
+            f"max_motion and max_turn_deg must be positive, got {max_motion}, {max_turn_deg}"
+        )
+    settings = (settings or PipelineSettings()).replace(**keywords)
+    calibration = Calibration(hand_eye_covariance, intrinsics_sigma, depth_scale_sigma)
+    model = _prepare_model(
+        model_points, model_normals, settings.voxel_size, float(settings.coarse_distances[0]),
+        float(settings.fine_distances.max()),
+    )  # fmt: skip
+    noise = _noise(depth_noise, frame)
+    records: dict[str, Any] = {}
+    try:
+        region, coarse, records["segment"] = _footprint(
+            frame, model, base_T_object, max_motion, noise, settings
+        )
+        lifted = lift_stage(frame, region, None, noise, settings.lift, settings.voxel_size)
+        records["lift"] = lifted.record
+        explained = _near_model(
+            model.fine_grid, coarse.poses[0], lifted.points, np.float32(0.01)
+        )
+        coarse = dataclasses.replace(coarse, explained=float(np.mean(explained)))
+        found = refine_stage(
+            frame, model, coarse, lifted, None, settings, noise, symmetry, calibration,
+            np.random.default_rng(0),
+        )  # fmt: skip
+        records["register"] = found.record
+        _check_motion(base_T_object, found, max_motion, max_turn_deg, lifted)
+        return PoseEstimate(
+            found.pose, found.inlier_rmse, found.inlier_fraction, found.budget.total, None,
+            found.reason, _in_order(records), lifted.mask, lifted.points, found.budget, None,
+        )  # fmt: skip
+    except _Failed as failure:
+        records[failure.stage] = failure.record
+        return PoseEstimate(
+            None, float("nan"), float("nan"), np.full((6, 6), np.nan), failure.stage,
+            "lost: " + failure.reason + "; re-detect with estimate_pose", _in_order(records),
+            np.zeros(frame.depth.shape, bool) if failure.mask is None else failure.mask,
+            np.zeros((0, 3), np.float32) if failure.points is None else failure.points,
+        )  # fmt: skip
+
+
+def _previous_pose(previous) -> SE3:
+    """``previous`` as an ``SE3`` (float64 host values), or ``ValueError``."""
+    if isinstance(previous, PoseEstimate):
+        if previous.pose is None:
+            raise ValueError(
+                "the previous estimate holds no pose (it failed at "
+                f"{previous.failed_stage}): re-detect with estimate_pose"
+            )
+        previous = previous.pose
+    if isinstance(previous, SE3):
+        wxyz_xyz = np.asarray(previous.wxyz_xyz, np.float64)
+        if wxyz_xyz.shape != (7,) or not np.all(np.isfinite(wxyz_xyz)):
+            raise ValueError("previous must be one finite pose, without batch axes")
+        return SE3(wxyz_xyz)
+    matrix = np.asarray(previous, np.float64)
+    if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
+        raise ValueError(
+            f"previous must be an SE3, a finite (4, 4) matrix or a PoseEstimate, got shape "
+            f"{matrix.shape}"
+        )
+    if not np.allclose(matrix[:3, :3] @ matrix[:3, :3].T, np.eye(3), atol=1e-4):
+        raise ValueError("previous's (4, 4) matrix must hold a rotation")
+    return SE3.from_matrix(matrix)
+
+
+def _footprint(frame, model, base_T_object: SE3, max_motion, noise, settings):
+    """The pixels to register: the model's footprint at the previous pose grown by
+    ``max_motion`` (at the model's nearest depth), with depth within ``max_motion`` of the
+    model's depths there, on one surface with the largest piece. Returns the region ``(H, W)``,
+    the start as a coarse search result, and the segment record; ``_Failed`` when too few
+    pixels remain."""
+    start = time.perf_counter()
+    depth = np.asarray(frame.depth)
+    h, w = depth.shape
+    points = model.points[np.all(np.isfinite(model.points), axis=1)].astype(np.float64)
+    camera_T_object = frame.base_T_camera.inverse() @ SE3(
+        np.asarray(base_T_object.wxyz_xyz, np.float32)
+    )
+    cam = np.asarray(camera_T_object @ points)
+    ahead = cam[:, 2] > 1e-3
+    footprint = np.zeros((h, w), bool)
+    grow = 1
+    if ahead.any():
+        pixels = np.rint(np.asarray(frame.intrinsics.project(cam[ahead]))).astype(int)
+        inside = np.all((pixels >= 0) & (pixels < (w, h)), axis=1)
+        footprint[pixels[inside, 1], pixels[inside, 0]] = True
+        nearest = float(cam[ahead, 2].min())
+        grow = int(np.ceil(max_motion * float(frame.intrinsics.fx) / max(nearest, 1e-3)))
+        grown = ndimage.binary_dilation(footprint, iterations=max(1, min(grow, 200)))
+        z_low, z_high = cam[ahead, 2].min() - max_motion, cam[ahead, 2].max() + max_motion
+        near = np.isfinite(depth) & (depth >= z_low) & (depth <= z_high)
+        looked = grown & near
+    else:
+        looked = footprint
+    sigma_z = np.asarray(noise.coefficients)
+    surface = mask_surface(depth, looked, sigma_z, float(frame.intrinsics.fx))
+    record = SegmentRecord(
+        ms=0.0, valid_grid_points=int(np.isfinite(depth).sum()), mask_pixels=int(looked.sum()),
+        mask_grid_points=int(surface.sum()),
+    )  # fmt: skip
+    need = settings.lift.min_segment_points
+    if surface.sum() < need:
+        raise _Failed(
+            "segment",
+            f"the model at the previous pose meets {int(surface.sum())} pixels with depth "
+            f"within {max_motion * 1e3:.0f} mm of it (need {need}): it moved farther, left "
+            "the view or is hidden",
+            record.with_ms(start),
+        )
+    object_T_base = np.asarray(base_T_object.inverse().wxyz_xyz, np.float32)[None]
+    register = RegisterRecord(ms=0.0, starts=1, candidates=[], coarse_kept_starts=1)
+    gates = tolerances(model, noise, float(np.median(depth[surface])), settings)
+    coarse = CoarseSearch(surface, object_T_base, 1.0, gates, register)
+    return surface, coarse, record.with_ms(start)
+
+
+def _check_motion(previous: SE3, found, max_motion, max_turn_deg, lifted) -> None:
+    """``_Failed`` (register) when the answer moved more than ``max_motion`` metres or
+    turned more than ``max_turn_deg`` degrees from ``previous``."""
+    moved = float(
+        np.linalg.norm(
+            np.asarray(found.pose.translation()) - np.asarray(previous.translation())
+        )
+    )
+    turned = float(np.degrees(geodesic_angle(found.pose.rotation(), previous.rotation())))
+    if moved > max_motion or turned > max_turn_deg:
+        raise _Failed(
+            "register",
+            f"the answer moved {moved * 1e3:.0f} mm and turned {turned:.0f} deg from the previous "
+            f"pose (at most {max_motion * 1e3:.0f} mm and {max_turn_deg:g} deg)",
+            found.record, mask=lifted.mask, points=lifted.points,
+        )  # fmt: skip
+
