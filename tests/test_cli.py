@@ -169,3 +169,40 @@ def test_pose_on_a_depth_png_exits_0_found_and_1_not_there(tmp_path, capsys, mon
     assert json.loads(capsys.readouterr().out)["pose"] is None
     (view,) = scenes
     assert pages and view.model is None and view.jaws == [] and view.truth is None
+
+
+def test_pose_draws_its_pictures_on_the_colour_image_given_by_rgb(tmp_path, capsys):
+    """``--rgb`` reads the colour image beside a depth PNG: the segmentation and the model
+    overlay are drawn on its pixels (a colour image of another size exits 2, naming both)."""
+    from PIL import Image
+
+    import jaxreg as jr
+    from jaxreg.io import write_frame, write_pcd
+    from jaxreg.synth import tabletop_scene
+
+    scene = tabletop_scene(4, object="box")
+    depth_only = jr.RGBDFrame(scene.frame.depth, scene.frame.intrinsics,
+                              base_T_camera=scene.frame.base_T_camera)  # fmt: skip
+    write_frame(tmp_path / "scene.png", depth_only)
+    write_pcd(tmp_path / "model.pcd", np.asarray(scene.model_points, np.float32))
+    Image.fromarray((255 * scene.mask).astype(np.uint8)).save(tmp_path / "mask.png")
+    # values below 200: the overlay's red (255, 40, 40) cannot come from the colour image
+    colour = np.random.default_rng(0).integers(0, 200, (*scene.mask.shape, 3), dtype=np.uint8)
+    Image.fromarray(colour).save(tmp_path / "colour.png")
+    out = tmp_path / "out"
+    common = ["pose", "--scene", str(tmp_path / "scene.png"), "--model",
+              str(tmp_path / "model.pcd"), "--mask", str(tmp_path / "mask.png"),
+              "--json"]  # fmt: skip
+    assert main([*common, "--rgb", str(tmp_path / "colour.png"), "--out", str(out)]) == 0
+    assert json.loads(capsys.readouterr().out)["failed_stage"] is None
+    overlay = np.asarray(Image.open(out / "model_overlay.png"))
+    drawn = (overlay == (255, 40, 40)).all(-1)
+    assert drawn.sum() > 50 and scene.mask[drawn].mean() > 0.9  # the model lands on the box
+    np.testing.assert_array_equal(overlay[~drawn], colour[~drawn])
+    segmentation = np.asarray(Image.open(out / "segmentation.png"))
+    painted = (segmentation != colour).any(-1)
+    assert painted.sum() > 100 and scene.mask[painted].mean() > 0.9  # green over the segment
+    Image.fromarray(colour[:, :-1]).save(tmp_path / "narrow.png")
+    assert main([*common, "--rgb", str(tmp_path / "narrow.png")]) == 2
+    err = capsys.readouterr().err
+    assert "colour image is 847x480" in err and "848x480" in err

@@ -7,15 +7,17 @@
 * ``jaxreg pose --scene FILE --model FILE [--intrinsics FILE] [--json] [--out DIR]`` does the
   same on your data: an organized PCD, or a 16-bit depth PNG with its intrinsics JSON
   (:func:`jaxreg.io.read_frame`), and a model as points (PCD, PLY) or a mesh (OBJ, STL, PLY),
-  in metres unless ``--model-units mm|cm`` says otherwise. ``--mask PNG`` (nonzero = the
+  in metres unless ``--model-units mm|cm`` says otherwise; ``--rgb FILE`` the colour image
+  registered to the depth (the pictures are drawn on it). ``--mask PNG`` (nonzero = the
   object, from your own segmenter), ``--pixel U V`` or ``--box U0 V0 U1 V1`` name the object;
   ``--symmetry`` and ``--depth-noise`` describe the model and the camera (see ``--help``).
 
 With ``--json`` stdout is one JSON object (the fields of the design's command line section);
 ``--out DIR`` also writes ``report.json`` and the pictures ``depth.png``,
 ``segmentation.png`` (the lifted segment over the image) and ``model_overlay.png`` (the model
-drawn at the estimated pose) to DIR. ``--view`` then serves the scene in 3D to a browser
-(:mod:`jaxreg.cli._view`) at ``--view-port`` until Ctrl-C.
+drawn at the estimated pose) to DIR, over the colour image when the frame has one.
+``--view`` then serves the scene in 3D to a browser (:mod:`jaxreg.cli._view`) at
+``--view-port`` until Ctrl-C.
 
 Exit status: 0 when a pose is found; 1 when the evidence says the object is not there (the
 report, or the JSON, is still printed, with the failed stage and its reason); 2 on bad input
@@ -283,7 +285,10 @@ def _colormap(values: np.ndarray) -> np.ndarray:
 
 
 def write_pictures(folder: Path, frame, estimate, model_points: np.ndarray) -> list[str]:
-    """depth.png, segmentation.png and model_overlay.png in ``folder``; returns the names."""
+    """depth.png (false colour), segmentation.png (the lifted segment in green) and
+    model_overlay.png (every fourth model point at the estimated pose in red) in ``folder``;
+    the last two are drawn on the frame's colour image when it has one, else on grey depth.
+    Returns the names."""
     from PIL import Image
 
     depth = np.asarray(frame.depth)
@@ -453,7 +458,7 @@ def run_pose(args) -> int:
     from jaxreg.pipeline.estimate import estimate_pose
     from jaxreg.uncertainty import DepthNoise
 
-    frame = read_frame(args.scene, args.intrinsics)
+    frame = read_frame(args.scene, args.intrinsics, rgb=args.rgb)
     model = np.asarray(load_points(args.model, n_points=None), np.float32)
     model = model * np.float32(UNITS[args.model_units])
     if len(model) < 10:
@@ -513,6 +518,11 @@ def _add_pose(sub) -> None:
         help="the model file's units (default m; CAD files are often mm)",
     )  # fmt: skip
     pose.add_argument("--intrinsics", type=Path, help="intrinsics JSON of a depth PNG")
+    pose.add_argument(
+        "--rgb", type=Path,
+        help="colour image registered to the depth (same size): the pictures of --out are "
+        "drawn on it",
+    )  # fmt: skip
     which = pose.add_mutually_exclusive_group()
     which.add_argument("--mask", type=Path, help="PNG of the object's pixels (nonzero = object)")
     which.add_argument("--pixel", type=float, nargs=2, metavar=("U", "V"), help="a pixel on it")
