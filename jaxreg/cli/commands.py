@@ -7,15 +7,20 @@
 * ``jaxreg pose --scene FILE --model FILE [--intrinsics FILE] [--json] [--out DIR]`` does the
   same on your data: an organized PCD, or a 16-bit depth PNG with its intrinsics JSON
   (:func:`jaxreg.io.read_frame`), and a model as points (PCD, PLY) or a mesh (OBJ, STL, PLY),
-  in metres unless ``--model-units mm|cm`` says otherwise. ``--mask PNG`` (nonzero = the
+  in metres unless ``--model-units mm|cm`` says otherwise; ``--rgb FILE`` the colour image
+  registered to the depth (the pictures are drawn on it). ``--mask PNG`` (nonzero = the
   object, from your own segmenter), ``--pixel U V`` or ``--box U0 V0 U1 V1`` name the object;
   ``--symmetry`` and ``--depth-noise`` describe the model and the camera (see ``--help``).
+* ``jaxreg pose --ycbv PREFIX --object NAME_OR_INDEX`` does it on a YCB-Video frame, with the
+  dataset's model and label mask, and reports the errors against its truth
+  (:mod:`jaxreg.cli._ycbv`).
 
 With ``--json`` stdout is one JSON object (the fields of the design's command line section);
 ``--out DIR`` also writes ``report.json`` and the pictures ``depth.png``,
 ``segmentation.png`` (the lifted segment over the image) and ``model_overlay.png`` (the model
-drawn at the estimated pose) to DIR. ``--view`` then serves the scene in 3D to a browser
-(:mod:`jaxreg.cli._view`) at ``--view-port`` until Ctrl-C.
+drawn at the estimated pose) to DIR, over the colour image when the frame has one.
+``--view`` then serves the scene in 3D to a browser (:mod:`jaxreg.cli._view`) at
+``--view-port`` until Ctrl-C.
 
 Exit status: 0 when a pose is found; 1 when the evidence says the object is not there (the
 report, or the JSON, is still printed, with the failed stage and its reason); 2 on bad input
@@ -238,7 +243,8 @@ def print_report(report: dict, stages: dict, title: str, out=sys.stdout) -> None
     if report.get("add_s_mm") is not None:
         line(
             f"  error vs truth: translation {report['translation_error_mm']:.2f} mm, rotation "
-            f"{report['rotation_error_deg']:.2f} deg, ADD-S {report['add_s_mm']:.2f} mm"
+            f"{report['rotation_error_deg']:.2f} deg, ADD {report['add_mm']:.2f} mm, ADD-S "
+            f"{report['add_s_mm']:.2f} mm"
         )
     budget = report["error_budget"]
     line("  error budget (1 sigma along the object's x y z): translation mm | rotation deg")
@@ -283,7 +289,10 @@ def _colormap(values: np.ndarray) -> np.ndarray:
 
 
 def write_pictures(folder: Path, frame, estimate, model_points: np.ndarray) -> list[str]:
-    """depth.png, segmentation.png and model_overlay.png in ``folder``; returns the names."""
+    """depth.png (false colour), segmentation.png (the lifted segment in green) and
+    model_overlay.png (every fourth model point at the estimated pose in red) in ``folder``;
+    the last two are drawn on the frame's colour image when it has one, else on grey depth.
+    Returns the names."""
     from PIL import Image
 
     depth = np.asarray(frame.depth)
@@ -355,14 +364,35 @@ def _emit(args, report: dict, title: str, frame, estimate, model_points, truth=N
 
 @persistent_jit
 def _truth_errors(pose, truth, model_points, symmetry):
-    """Translation (m), rotation (rad) and ADD-S (m) error of ``pose`` against ``truth``, and
-    the true object origin in the estimated object frame ``(3,)`` (m), in one compiled program
-    (each eager operation would be a program of its own to load)."""
-    from jaxreg.geometry.metrics import add_s, pose_error
+    """Translation (m), rotation (rad), ADD and ADD-S (m) errors of ``pose`` against ``truth``,
+    and the true object origin in the estimated object frame ``(3,)`` (m), in one compiled
+    program (each eager operation would be a program of its own to load). ADD counts a turn
+    that ``symmetry`` declares as no error; without one, every turn is error."""
+    from jaxreg.geometry.metrics import add, add_s, pose_error
 
     translation, rotation = pose_error(pose, truth, symmetry=symmetry)
     offset = (pose.inverse() @ truth).translation()
-    return translation, rotation, add_s(model_points, pose, truth), offset
+    errors = add(model_points, pose, truth, symmetry=symmetry), add_s(model_points, pose, truth)
+    return translation, rotation, *errors, offset
+
+
+def add_truth_errors(report: dict, estimate, truth, model_points, symmetry) -> None:
+    """Adds the errors of ``estimate`` against the known ``truth`` (``SE3`` base_T_object) to
+    ``report`` (:func:`build_report`): ``translation_error_mm``, ``rotation_error_deg``,
+    ``add_mm``, ``add_s_mm`` (None without a pose), ``truth`` (the ``(4, 4)`` pose) and the
+    grasp's chance with this frame's measured error (:func:`measured_grasp`)."""
+    keys = ("translation_error_mm", "rotation_error_deg", "add_mm", "add_s_mm")
+    report.update(dict.fromkeys(keys))
+    report["truth"] = np.asarray(truth.as_matrix(), np.float64).tolist()
+    if estimate.pose is None:
+        return
+    t_err, r_err, add_m, add_s_m, offset = _truth_errors(
+        estimate.pose, truth, model_points, symmetry
+    )
+    errors = (float(t_err) * 1e3, float(np.degrees(r_err)), float(add_m) * 1e3, add_s_m * 1e3)
+    report.update({key: round(float(value), 3) for key, value in zip(keys, errors, strict=True)})
+    if report["grasp"]["probability"] is not None:
+        report["grasp"].update(measured_grasp(report["grasp"], offset))
 
 
 def run_demo(args) -> int:
@@ -390,16 +420,7 @@ def run_demo(args) -> int:
     )
     progress(None)
     report = build_report(estimate, model, args.gripper_opening)
-    report.update(translation_error_mm=None, rotation_error_deg=None, add_s_mm=None)
-    if estimate.pose is not None:
-        t_err, r_err, add_s_m, offset = _truth_errors(
-            estimate.pose, scene.truth, scene.model_points, symmetry
-        )
-        report["translation_error_mm"] = round(float(t_err) * 1e3, 3)
-        report["rotation_error_deg"] = round(float(np.degrees(r_err)), 3)
-        report["add_s_mm"] = round(float(add_s_m) * 1e3, 3)
-        if report["grasp"]["probability"] is not None:
-            report["grasp"].update(measured_grasp(report["grasp"], offset))
+    add_truth_errors(report, estimate, scene.truth, scene.model_points, symmetry)
     report["scene"] = {"seed": args.seed, "object": args.object, "distractors": 2}
     title = f"jaxreg demo: a {args.object} (seed {args.seed})"
     return _emit(args, report, title, scene.frame, estimate, model, truth=scene.truth)
@@ -448,16 +469,10 @@ def _read_mask(path: Path) -> np.ndarray:
     return values.any(axis=-1) if values.ndim == 3 else values != 0
 
 
-def run_pose(args) -> int:
-    from jaxreg.io import load_points, read_frame
-    from jaxreg.pipeline.estimate import estimate_pose
+def _pose_options(args, frame) -> dict:
+    """``estimate_pose``'s options from ``jaxreg pose``'s arguments."""
     from jaxreg.uncertainty import DepthNoise
 
-    frame = read_frame(args.scene, args.intrinsics)
-    model = np.asarray(load_points(args.model, n_points=None), np.float32)
-    model = model * np.float32(UNITS[args.model_units])
-    if len(model) < 10:
-        raise ValueError(f"{args.model}: the model has {len(model)} points; give a surface")
     options = {"symmetry": _symmetry(args.symmetry)}
     if args.depth_noise is not None:
         options["depth_noise"] = DepthNoise(tuple(args.depth_noise), frame.base_T_camera)
@@ -471,6 +486,28 @@ def run_pose(args) -> int:
         metres, degrees = args.hand_eye_sigma[0] * 1e-3, np.radians(args.hand_eye_sigma[1])
         options["hand_eye_covariance"] = np.diag([metres**2] * 3 + [degrees**2] * 3)
     options["depth_scale_sigma"] = args.depth_scale_sigma
+    return options
+
+
+def run_pose(args) -> int:
+    from jaxreg.io import load_points, read_frame
+    from jaxreg.pipeline.estimate import estimate_pose
+
+    if args.ycbv is not None:
+        from jaxreg.cli._ycbv import run_pose_ycbv
+
+        return run_pose_ycbv(args)
+    for name in ("object", "no_mask"):
+        if getattr(args, name):
+            raise ValueError(f"--{name.replace('_', '-')} is for --ycbv frames")
+    if args.model is None:
+        raise ValueError("--scene needs --model FILE (the object's points or mesh)")
+    frame = read_frame(args.scene, args.intrinsics, rgb=args.rgb)
+    model = np.asarray(load_points(args.model, n_points=None), np.float32)
+    model = model * np.float32(UNITS[args.model_units])
+    if len(model) < 10:
+        raise ValueError(f"{args.model}: the model has {len(model)} points; give a surface")
+    options = _pose_options(args, frame)
     progress = _progress(args.json)
     estimate = estimate_pose(frame, model, progress=progress, **options)
     progress(None)
@@ -506,19 +543,38 @@ def _add_demo(sub) -> None:
 
 def _add_pose(sub) -> None:
     pose = sub.add_parser("pose", help="estimate a model's pose in your depth frame")
-    pose.add_argument("--scene", type=Path, required=True, help="organized PCD or depth PNG")
-    pose.add_argument("--model", type=Path, required=True, help="model points or mesh")
+    frame = pose.add_mutually_exclusive_group(required=True)
+    frame.add_argument("--scene", type=Path, help="organized PCD or depth PNG")
+    frame.add_argument(
+        "--ycbv", type=Path, metavar="PREFIX",
+        help="a YCB-Video frame (e.g. data/0000/000001): its depth, colour, the model of "
+        "--object, the label's mask, and the errors against its truth",
+    )  # fmt: skip
+    pose.add_argument(
+        "--object", metavar="NAME_OR_INDEX",
+        help="with --ycbv: the object, by model name (025_mug) or class index (14)",
+    )  # fmt: skip
+    pose.add_argument("--model", type=Path, help="model points or mesh (with --scene)")
     pose.add_argument(
         "--model-units", choices=tuple(UNITS), default="m",
         help="the model file's units (default m; CAD files are often mm)",
     )  # fmt: skip
     pose.add_argument("--intrinsics", type=Path, help="intrinsics JSON of a depth PNG")
+    pose.add_argument(
+        "--rgb", type=Path,
+        help="colour image registered to the depth (same size): the pictures of --out are "
+        "drawn on it",
+    )  # fmt: skip
     which = pose.add_mutually_exclusive_group()
     which.add_argument("--mask", type=Path, help="PNG of the object's pixels (nonzero = object)")
     which.add_argument("--pixel", type=float, nargs=2, metavar=("U", "V"), help="a pixel on it")
     which.add_argument(
         "--box", type=float, nargs=4, metavar=("U0", "V0", "U1", "V1"), help="a box around it"
     )
+    which.add_argument(
+        "--no-mask", action="store_true",
+        help="with --ycbv: find the object by the table route, not the label's mask",
+    )  # fmt: skip
     pose.add_argument(
         "--symmetry", default="none",
         help="the model's symmetry about its own axes through its origin: none (default), box "
