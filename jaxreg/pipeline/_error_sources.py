@@ -338,12 +338,11 @@ def pose_budget(
         trim: the refinement's trim fraction.
         noise: the camera's :class:`~jaxreg.uncertainty.DepthNoise` in the base frame.
         calibration: :class:`Calibration`.
-        ambiguous: ``((A, 6), (A,), r)`` the answers as good as this one (other refined
+        ambiguous: ``((A, 6), (A,))`` the answers about as good as this one (other refined
             starts, the answer turned and refined again) as right perturbations of ``pose``
-            (object axes, on its symmetry branch), their residuals and the answer's ``r``
-            (metres, as ICP reports them). Each weighs by its
-            likelihood against the answer's: ``exp(-N (r_i^2 - r^2) / (2 r^2))`` with ``N``
-            the segment's independent patches (12 mm blocks) and ``r`` the answer's residual.
+            (object axes, on its symmetry branch), and each one's weight against the
+            answer's 1 (how likely the evidence finds it): their weighted second moment,
+            the answer included, is the ambiguity term.
         symmetry: the model's ``Symmetry`` or ``None``.
         view_free: ``((6,) bool, reason)``: tangent axes the view leaves free (a mug whose
             handle is hidden turns about its body's axis and fits as well), or no axis.
@@ -398,10 +397,7 @@ def pose_budget(
         hand_eye = ad @ calibration.hand_eye @ ad.T
 
     others = np.asarray(ambiguous[0], np.float64).reshape(-1, 6)
-    patches = int(blocks.max()) + 1
-    best = float(ambiguous[2])
-    excess = patches * (np.asarray(ambiguous[1], np.float64) ** 2 - best**2)
-    likelihood = np.exp(-0.5 * np.clip(excess / max(best**2, 1e-12), 0.0, None))
+    likelihood = np.asarray(ambiguous[1], np.float64)
     lift = np.linalg.inv(to_object)
     free, reason = _free(symmetry, lift.T @ hessian @ lift)
     if np.any(view_free[0] & ~free):

@@ -169,3 +169,35 @@ def _judge(frame, plane, object_T_base, model_points, tolerance, sigma_z):
                          sigma_z)  # fmt: skip
 
 
+# Edge (metres) of the cubic patches of a segment whose errors are independent of one
+# another (neighbouring pixels share a stereo camera's matching window, a structured-light
+# camera's pattern, the model's local mismatch); the error budget sums its fit term over them.
+PATCH = 0.012
+
+
+def patch_count(points: np.ndarray) -> int:
+    """The number of ``PATCH`` cubes that base-frame ``points`` ``(N, 3)`` occupy."""
+    cells = np.floor(np.asarray(points, np.float64) / PATCH).astype(np.int64)
+    return len(np.unique(cells, axis=0)) if len(cells) else 0
+
+
+def evidence_gap(scores, rmses, score: float, rmse: float, patches: int) -> np.ndarray:
+    """``(S,)`` how much worse than the answer (``score``, ``rmse``) each fit is (``scores``:
+    explained share times confirmed share, ``rmses``: inlier RMSE in metres, ``(S,)`` each),
+    in standard errors of the difference, judged over ``patches`` independent patches: the
+    larger of the score's shortfall over ``sqrt(2 score (1 - score) / patches)`` (at least
+    that of a share of 0.1) and the mean squared residual's excess over ``2 / sqrt(patches)``
+    of the answer's (two means of ``patches`` squares, each ``sqrt(2 / patches)`` relative).
+    0 for a fit at least as good; NaN residuals count as infinitely worse."""
+    n = max(int(patches), 1)
+    scores, rmses = np.asarray(scores, np.float64), np.asarray(rmses, np.float64)
+    share = (score - scores) / np.sqrt(2 * max(score * (1.0 - score), 0.09) / n)
+    squares = (rmses**2 / max(rmse**2, 1e-12) - 1.0) * np.sqrt(n) / 2
+    gap = np.maximum(np.maximum(share, squares), 0.0)
+    return np.where(np.isfinite(gap), gap, np.inf)
+
+
+def equally_good(scores, rmses, score: float, rmse: float, patches: int) -> np.ndarray:
+    """``(S,)`` bool: the fits the evidence cannot tell from the answer: within two standard
+    errors of it (:func:`evidence_gap`)."""
+    return evidence_gap(scores, rmses, score, rmse, patches) <= 2.0

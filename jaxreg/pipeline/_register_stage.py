@@ -22,14 +22,7 @@ import jax
 import numpy as np
 from jaxlie import SE3
 
-from jaxreg.pipeline._answer import (
-    PROBE_ANGLES_DEG,
-    _distinct,
-    _finish,
-    _probe,
-    _rest,
-    _unfixed_turns,
-)
+from jaxreg.pipeline._answer import _alternatives, _distinct, _rest
 from jaxreg.pipeline._coarse import _coarse_problem, _register_starts, _score_candidates
 from jaxreg.pipeline._error_sources import MISMATCH_SIGMA, pose_budget
 from jaxreg.pipeline._judge import (
@@ -39,8 +32,8 @@ from jaxreg.pipeline._judge import (
     _near_model,
     _support,
     overhang,
+    patch_count,
 )
-from jaxreg.pipeline._model import _bucketed_symmetry
 from jaxreg.pipeline._stages import _Failed, _padded
 from jaxreg.pipeline.records import (
     Candidate,
@@ -226,32 +219,14 @@ def refine_stage(
     fraction, rmse = float(fractions[ranked[0]]), float(rmses[ranked[0]])
     confirmed, contradicted = _support(seen[ranked[0]])
     reach = overhang(model, np.asarray(results.pose.wxyz_xyz[ranked[0]]), points)
-    equal = (scores >= scores[ranked[0]] - 0.02) & (rmses <= rmse * 1.1 + 1e-4)
     answers, contact, lowest = _rest(
         source, model, results, ranked[0], plane, trim, fine_distances, settings
     )
-    padded_symmetry = _bucketed_symmetry(symmetry)
-    wxyz_xyz, spread, tangents = _finish(answers, np.int32(ranked[0]), equal, padded_symmetry)
-    probed = _probe(
-        frame, plane, model, source, answers[ranked[0]], scores[ranked[0]], rmse, trim, noise,
-        fine_distances, settings,
-    )
-    _, _, probe_tangents = _finish(
-        np.concatenate([answers[ranked[0]][None], probed[0]]), np.int32(0),
-        np.concatenate([[False], probed[1]]), padded_symmetry,
+    found = _alternatives(
+        frame, plane, model, source, answers, int(ranked[0]), scores, rmses, patch_count(points),
+        trim, noise, fine_distances, symmetry, settings,
     )  # fmt: skip
-    # a probe that stayed turned (not pulled back to the answer) and fits as well
-    turns = np.radians(np.abs(np.tile(PROBE_ANGLES_DEG, 3)))
-    stayed = np.linalg.norm(np.asarray(probe_tangents)[1:, 3:], axis=1) >= 0.5 * turns
-    view_free, view_reason, turned = _unfixed_turns(model, probed[1] & stayed)
-    kept = probed[1] & ~turned
-    others = equal & (np.arange(len(equal)) != ranked[0])
-    ambiguous = (
-        np.concatenate([np.asarray(tangents)[others], np.asarray(probe_tangents)[1:][kept]]),
-        np.concatenate([rmses[others], probed[2][kept]]),
-        rmse,
-    )
-    spread_mm, spread_deg = (float(x) for x in np.asarray(spread))
+    spread_mm, spread_deg = (float(x) for x in found.spread)
     matched = fraction > 0 and rmse < 1.0  # no match leaves ICP's empty-sum residual
     record = dataclasses.replace(
         coarse.record,
@@ -261,8 +236,8 @@ def refine_stage(
         icp_status=str(best.status_message()),
         inlier_rmse_mm=round(rmse * 1e3, 3) if matched else None,
         inlier_fraction=round(fraction, 3),
-        equally_good_starts=int(equal.sum()),
-        equally_good_probes=int(probed[1].sum()),
+        equally_good_starts=int(found.equal_starts.sum()),
+        equally_good_probes=int(found.equal_probes.sum()),
         start_agreement_mm=round(spread_mm * 1e3, 3),
         start_agreement_deg=round(spread_deg, 3),
         model_confirmed=round(confirmed, 3),
@@ -318,13 +293,16 @@ def refine_stage(
     )
     budget = pose_budget(
         points=points, source_size=s.max_points, model=model,
-        object_T_base=answers[ranked[0]], pose=np.asarray(wxyz_xyz), contact=contact,
+        object_T_base=answers[ranked[0]], pose=found.pose, contact=contact,
         frame=frame, mask=mask, plane=plane, min_height=settings.lift.min_height,
         distances=fine_distances, trim=trim, noise=noise, calibration=calibration,
-        ambiguous=ambiguous, symmetry=symmetry, view_free=(view_free, view_reason),
+        ambiguous=(found.tangents, found.weights), symmetry=symmetry,
+        view_free=(found.view_free, found.view_reason),
         rng=np.random.default_rng(1),
     )  # fmt: skip
-    return Registration(SE3(wxyz_xyz), rmse, fraction, budget, reason, _timed(record, start))
+    return Registration(
+        SE3(found.pose), rmse, fraction, budget, reason, _timed(record, start), found.equivalent
+    )
 
 
 def _timed(record: RegisterRecord, start: float) -> RegisterRecord:

@@ -108,7 +108,7 @@ from jaxreg.pipeline._model import _prepare_model
 from jaxreg.pipeline._register_stage import coarse_search, refine_stage
 from jaxreg.pipeline._segment_stage import segment_stage
 from jaxreg.pipeline._stages import _Failed
-from jaxreg.pipeline.records import LiftRecord, RegisterRecord, SegmentRecord
+from jaxreg.pipeline.records import EquivalentPose, LiftRecord, RegisterRecord, SegmentRecord
 from jaxreg.pipeline.segment import TablePlane
 from jaxreg.pipeline.settings import PipelineSettings
 from jaxreg.uncertainty import DepthNoise
@@ -147,6 +147,11 @@ class PoseEstimate:
             axes), or ``None`` without a pose.
         table: the :class:`~jaxreg.pipeline.segment.TablePlane` the segment stage found
             (base frame), or ``None`` (no table, or the segment stage failed).
+        equivalent_poses: turns of the model that fit the view as well as ``pose``
+            (:class:`~jaxreg.pipeline.records.EquivalentPose`: a box's half turn, a can seen
+            from its side), best first; empty when the view decides, or without a pose. A
+            declared ``symmetry``'s copies are not listed (they are the same pose). The
+            covariance's ambiguity term holds them, weighted by their evidence.
     """
 
     pose: SE3 | None
@@ -160,6 +165,7 @@ class PoseEstimate:
     points: np.ndarray
     budget: PoseBudget | None = None
     table: TablePlane | None = None
+    equivalent_poses: tuple[EquivalentPose, ...] = ()
 
     @property
     def success(self) -> bool:
@@ -264,6 +270,7 @@ def estimate_pose(
         return PoseEstimate(
             found.pose, found.inlier_rmse, found.inlier_fraction, found.budget.total, None,
             found.reason, _in_order(records), lifted.mask, lifted.points, found.budget, plane,
+            found.equivalent_poses,
         )  # fmt: skip
     except _Failed as failure:
         records[failure.stage] = failure.record

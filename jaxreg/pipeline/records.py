@@ -22,8 +22,8 @@ from jaxreg.pipeline.segment import Segmentation, TablePlane
 from jaxreg.uncertainty.budget import PoseBudget
 
 __all__ = [
-    "Candidate", "CoarseSearch", "LiftRecord", "LiftedSegment", "RegisterRecord", "Registration",
-    "SegmentRecord", "Segmented",
+    "Candidate", "CoarseSearch", "EquivalentPose", "LiftRecord", "LiftedSegment",
+    "RegisterRecord", "Registration", "SegmentRecord", "Segmented",
 ]  # fmt: skip
 
 
@@ -169,6 +169,40 @@ class RegisterRecord(_Record):
     contact_shift_mm: float | None = None
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class EquivalentPose:
+    """A turn of the model that fits the view as well as the answer: depth alone cannot tell
+    it from the answer (a box's half turn, a can seen from its side).
+
+    Attributes:
+        pose: ``base_T_object`` of the turned answer, refined.
+        axis: ``(3,)`` the model's principal axis it was turned about (object frame, unit).
+        angle_deg: the turn (degrees) before refinement.
+        score: its explained share times the image's confirmed share (the answer's evidence).
+        inlier_rmse: its residual (metres).
+        weight: how likely it is against the answer (1: the evidence cannot prefer either;
+            ``exp(-gap^2 / 2)`` with ``gap`` its shortfall in standard errors).
+    """
+
+    pose: SE3
+    axis: np.ndarray
+    angle_deg: float
+    score: float
+    inlier_rmse: float
+    weight: float
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready: the pose as a 4x4 list, lengths in millimetres."""
+        return {
+            "pose": np.asarray(self.pose.as_matrix()).tolist(),
+            "axis": [round(float(a), 4) for a in self.axis],
+            "angle_deg": round(self.angle_deg, 1),
+            "score": round(self.score, 3),
+            "inlier_rmse_mm": round(self.inlier_rmse * 1e3, 3),
+            "weight": round(self.weight, 3),
+        }
+
+
 # --------------------------------------------------------------------------------------------
 # What each stage returns.
 
@@ -242,6 +276,7 @@ class Registration:
         budget: the pose's error budget.
         reason: a one-line summary of the success.
         record: the register stage's whole record.
+        equivalent_poses: the turns of the model that fit the view as well.
     """
 
     pose: SE3
@@ -250,3 +285,4 @@ class Registration:
     budget: PoseBudget
     reason: str
     record: RegisterRecord
+    equivalent_poses: tuple[EquivalentPose, ...] = ()

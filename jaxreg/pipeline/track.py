@@ -113,6 +113,7 @@ def track(
         return PoseEstimate(
             found.pose, found.inlier_rmse, found.inlier_fraction, found.budget.total, None,
             found.reason, _in_order(records), lifted.mask, lifted.points, found.budget, None,
+            found.equivalent_poses,
         )  # fmt: skip
     except _Failed as failure:
         records[failure.stage] = failure.record
