@@ -39,8 +39,9 @@ _EXPORTS = {
     "jaxreg.pipeline.batch": ("estimate_poses",),
     "jaxreg.pipeline.estimate": ("PoseEstimate", "estimate_pose"),
     "jaxreg.registration.icp": (
-        "ICPStatus", "RegistrationResult", "best_index", "icp", "icp_covariance", "init_spread",
-        "multistart_icp", "pca_inits", "perturbed_inits", "rotation_inits", "select_best",
+        "ICPOptions", "ICPStatus", "RegistrationResult", "best_index", "icp", "icp_covariance",
+        "init_spread", "multistart_icp", "pca_inits", "perturbed_inits", "rotation_inits",
+        "select_best",
     ),
     "jaxreg.registration.ransac": (
         "RansacResult", "RansacStatus", "ransac_iterations", "ransac_registration",
@@ -160,6 +161,7 @@ if TYPE_CHECKING:  # what type checkers and editors see; the same names as _EXPO
         estimate_pose as estimate_pose,
     )
     from jaxreg.registration.icp import (
+        ICPOptions as ICPOptions,
         ICPStatus as ICPStatus,
         RegistrationResult as RegistrationResult,
         best_index as best_index,
