@@ -43,8 +43,9 @@ _EXPORTS = {
     ),
     "jaxreg.pipeline.track": ("track",),
     "jaxreg.registration.icp": (
-        "ICPStatus", "RegistrationResult", "best_index", "icp", "icp_covariance", "init_spread",
-        "multistart_icp", "pca_inits", "perturbed_inits", "rotation_inits", "select_best",
+        "ICPOptions", "ICPStatus", "RegistrationResult", "best_index", "icp", "icp_covariance",
+        "init_spread", "multistart_icp", "pca_inits", "perturbed_inits", "rotation_inits",
+        "select_best",
     ),
     "jaxreg.registration.ransac": (
         "RansacResult", "RansacStatus", "ransac_iterations", "ransac_registration",
@@ -171,6 +172,7 @@ if TYPE_CHECKING:  # what type checkers and editors see; the same names as _EXPO
     )
     from jaxreg.pipeline.track import track as track
     from jaxreg.registration.icp import (
+        ICPOptions as ICPOptions,
         ICPStatus as ICPStatus,
         RegistrationResult as RegistrationResult,
         best_index as best_index,

@@ -19,9 +19,8 @@ from jaxtyping import Array
 from jaxreg.core._program_cache import persistent_jit
 from jaxreg.pipeline._judge import _confirmed_share, _visibilities
 from jaxreg.pipeline._model import _Model
-from jaxreg.registration._icp_core import _apply, run
-from jaxreg.registration._icp_setup import Settings, prepare
 from jaxreg.registration.icp import multistart_icp, pca_inits, rotation_inits
+from jaxreg.registration.solver import ICPOptions, apply_pose as _apply, prepare, run
 from jaxreg.search.neighbors import query_nearest
 
 
@@ -46,11 +45,12 @@ def _coarse_problem(model: _Model, size: int, distances: np.ndarray, splits: tup
     if key not in model.coarse:
         rounds = []
         for part in np.split(distances, splits):
-            settings = Settings(
-                "point_to_plane", model.normals, part, len(part), 1e-5, None, None, None,
-                model.grid,
+            options = ICPOptions(
+                method="point_to_plane", target_normals=model.normals,
+                max_correspondence_distance=part, max_iterations=len(part), tolerance=1e-5,
+                neighbors=model.grid,
             )  # fmt: skip
-            problem, opts, _ = prepare(np.zeros((size, 3), np.float32), model.points, settings)
+            problem, opts, _ = prepare(np.zeros((size, 3), np.float32), model.points, options)
             rounds.append(opts)
         model.coarse[key] = (problem, *rounds)
     return model.coarse[key]

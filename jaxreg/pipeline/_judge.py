@@ -21,7 +21,7 @@ from jaxreg.camera.model import RGBDFrame
 from jaxreg.core._program_cache import persistent_jit
 from jaxreg.pipeline._model import _Model
 from jaxreg.pipeline.segment import TablePlane
-from jaxreg.registration._icp_core import _apply
+from jaxreg.registration.solver import apply_pose as _apply
 from jaxreg.search.neighbors import query_nearest
 
 __all__ = ["visibility"]
