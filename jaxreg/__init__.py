@@ -52,8 +52,9 @@ _EXPORTS = {
     ),
     "jaxreg.search.normals": ("estimate_normals",),
     "jaxreg.uncertainty": (
-        "DepthNoise", "IsotropicNoise", "PointCovariance", "PoseStatistics", "error_budget",
-        "grasp_margin", "grasp_success_probability", "pose_statistics",
+        "DepthNoise", "GraspPrediction", "IsotropicNoise", "PointCovariance", "PoseStatistics",
+        "error_budget", "grasp_axis", "grasp_margin", "grasp_prediction",
+        "grasp_success_probability", "pose_statistics",
     ),
 }  # fmt: skip
 _SUBPACKAGES = (
@@ -194,11 +195,14 @@ if TYPE_CHECKING:  # what type checkers and editors see; the same names as _EXPO
     from jaxreg.search.normals import estimate_normals as estimate_normals
     from jaxreg.uncertainty import (
         DepthNoise as DepthNoise,
+        GraspPrediction as GraspPrediction,
         IsotropicNoise as IsotropicNoise,
         PointCovariance as PointCovariance,
         PoseStatistics as PoseStatistics,
         error_budget as error_budget,
+        grasp_axis as grasp_axis,
         grasp_margin as grasp_margin,
+        grasp_prediction as grasp_prediction,
         grasp_success_probability as grasp_success_probability,
         pose_statistics as pose_statistics,
     )

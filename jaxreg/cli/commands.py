@@ -73,70 +73,39 @@ def _clean(value):
     return value
 
 
-def _grasp_axis(model_points: np.ndarray, budget):
-    """A parallel-jaw grasp across the model's narrowest principal axis: the axis ``(3,)``
-    (object frame), the model's width along it and the lateral sigma along it (host numpy).
-
-    The jaws close along the axis of least extent; the lateral error along it is Gaussian
-    with the sigma that the whole error budget gives it (the total covariance's translation
-    block, object frame). :func:`_report_numbers` turns them into the margin
-    (:func:`jaxreg.grasp_margin`) and the predicted success; ``axis`` is reported so that a
-    known error can be added as a bias (:func:`measured_grasp`).
-    """
-    from jaxreg.uncertainty.budget import grasp_axis
-
-    centred = model_points - model_points.mean(0)
-    axis = grasp_axis(model_points)
-    along = centred @ axis
-    return axis, float(along.max() - along.min()), budget.lateral_sigma(axis)
-
-
-def _grasp(opening, width, margin, sigma, probability, axis) -> dict:
-    return {
-        "gripper_opening_mm": round(opening * 1e3, 1),
-        "object_width_mm": round(width * 1e3, 1),
-        "margin_per_side_mm": round(margin * 1e3, 2),
-        "lateral_sigma_mm": round(sigma * 1e3, 3),
-        "probability": probability if math.isfinite(sigma) else None,
-        "axis": axis.tolist(),
+def _grasp(prediction, offset=None) -> dict:
+    """The report's grasp: a :class:`jaxreg.uncertainty.grasp.GraspPrediction` in mm, and
+    with a known error ``offset`` (the true object origin in the estimated object frame,
+    ``(3,)`` metres) the chance this frame would have if its error were known."""
+    grasp = {
+        "gripper_opening_mm": round(prediction.opening * 1e3, 1),
+        "object_width_mm": round(prediction.width * 1e3, 1),
+        "margin_per_side_mm": round(prediction.margin * 1e3, 2),
+        "lateral_sigma_mm": round(prediction.lateral_sigma * 1e3, 3),
+        "probability": prediction.probability,
+        "axis": prediction.axis.tolist(),
     }
+    if offset is not None and math.isfinite(prediction.probability):
+        grasp["measured_lateral_error_mm"] = round(prediction.lateral_error(offset) * 1e3, 3)
+        grasp["probability_with_measured_error"] = prediction.probability_with_error(offset)
+    return grasp
 
 
 @persistent_jit
-def _report_numbers(pose, opening, width, sigma):
-    """The pose's ``(4, 4)`` matrix, the grasp margin per side of a gripper ``opening`` around
-    ``width``, and the grasp's predicted success with lateral ``sigma`` and no bias (all
-    metres), as one compiled program (each eager operation would be a program of its own to
-    load)."""
-    from jaxreg.uncertainty import grasp_margin, grasp_success_probability
-
-    margin = grasp_margin(opening, width)
-    return pose.as_matrix(), margin, grasp_success_probability(sigma, 0.0, margin)
+def _pose_matrix(pose):
+    """``(4, 4)`` matrix of ``pose``, as one stored program (each eager operation would be a
+    program of its own to load)."""
+    return pose.as_matrix()
 
 
-@persistent_jit
-def _measured_probability(sigma, bias, margin):
-    """:func:`jaxreg.grasp_success_probability`, as a stored program."""
-    from jaxreg.uncertainty import grasp_success_probability
+def build_report(estimate, model_points: np.ndarray, opening: float, offset=None) -> dict:
+    """The JSON report of a :class:`jaxreg.pipeline.PoseEstimate` whose model is
+    ``model_points`` ``(N, 3)``, with the grasp of a parallel gripper of this ``opening``
+    (metres; :func:`jaxreg.grasp_prediction`) and, where the true pose is known, the grasp's
+    chance with this frame's error ``offset`` (the true object origin in the estimated object
+    frame, ``(3,)`` metres) as a bias."""
+    from jaxreg.uncertainty.grasp import grasp_prediction
 
-    return grasp_success_probability(sigma, bias, margin)
-
-
-def measured_grasp(grasp: dict, offset: np.ndarray) -> dict:
-    """The report's grasp (:func:`build_report`) with this frame's measured error (``offset``, the
-    true object origin in the estimated object frame, ``(3,)`` metres; its component along the
-    jaw axis) as the bias: the chance this frame would have if its error were known."""
-    bias = abs(float(np.asarray(grasp["axis"]) @ np.asarray(offset, np.float64)))
-    sigma, margin = grasp["lateral_sigma_mm"] * 1e-3, grasp["margin_per_side_mm"] * 1e-3
-    probability = _measured_probability(*np.float32([sigma, bias, margin]))
-    return {
-        "measured_lateral_error_mm": round(bias * 1e3, 3),
-        "probability_with_measured_error": float(probability),
-    }
-
-
-def build_report(estimate, model_points: np.ndarray, opening: float) -> dict:
-    """The JSON report of a :class:`jaxreg.pipeline.PoseEstimate`."""
     found = estimate.pose is not None
     report = {
         "pose": None,
@@ -148,11 +117,7 @@ def build_report(estimate, model_points: np.ndarray, opening: float) -> dict:
         "predicted_grasp_success": None,
     }
     if found:
-        axis, width, lateral = _grasp_axis(model_points, estimate.budget)
-        matrix, margin, probability = _report_numbers(
-            estimate.pose, *np.float32([opening, width, lateral])
-        )
-        report["pose"] = np.asarray(matrix).tolist()
+        report["pose"] = np.asarray(_pose_matrix(estimate.pose)).tolist()
         sources = {
             name: {
                 "translation_sigma_mm": (translation * 1e3).round(4).tolist(),
@@ -172,7 +137,7 @@ def build_report(estimate, model_points: np.ndarray, opening: float) -> dict:
             ],
             "free_reason": estimate.budget.free_reason,
         }
-        grasp = _grasp(opening, width, float(margin), lateral, float(probability), axis)
+        grasp = _grasp(grasp_prediction(model_points, estimate.budget, opening), offset)
         report["grasp"] = grasp
         report["predicted_grasp_success"] = grasp["probability"]
     return _clean(report)
@@ -389,17 +354,18 @@ def run_demo(args) -> int:
         scene.frame, model, symmetry=symmetry, depth_noise=noise, progress=progress
     )
     progress(None)
-    report = build_report(estimate, model, args.gripper_opening)
-    report.update(translation_error_mm=None, rotation_error_deg=None, add_s_mm=None)
+    errors = None
     if estimate.pose is not None:
-        t_err, r_err, add_s_m, offset = _truth_errors(
-            estimate.pose, scene.truth, scene.model_points, symmetry
-        )
+        errors = _truth_errors(estimate.pose, scene.truth, scene.model_points, symmetry)
+    report = build_report(
+        estimate, model, args.gripper_opening, None if errors is None else np.asarray(errors[3])
+    )
+    report.update(translation_error_mm=None, rotation_error_deg=None, add_s_mm=None)
+    if errors is not None:
+        t_err, r_err, add_s_m, _ = errors
         report["translation_error_mm"] = round(float(t_err) * 1e3, 3)
         report["rotation_error_deg"] = round(float(np.degrees(r_err)), 3)
         report["add_s_mm"] = round(float(add_s_m) * 1e3, 3)
-        if report["grasp"]["probability"] is not None:
-            report["grasp"].update(measured_grasp(report["grasp"], offset))
     report["scene"] = {"seed": args.seed, "object": args.object, "distractors": 2}
     title = f"jaxreg demo: a {args.object} (seed {args.seed})"
     return _emit(args, report, title, scene.frame, estimate, model, truth=scene.truth)
