@@ -231,11 +231,11 @@ def estimate_normals_with_curvature(
         mask: ``(N,)`` optional validity; masked and non-finite points are neither given
             a normal nor used as anyone's neighbour.
         neighbors: optional precomputed ``(indices (N, K), valid (N, K))`` into ``points``
-            (sentinel ``N`` where invalid), e.g. from ``query_knn`` on a grid of ``points``;
-            ``k`` is then ignored. Default: the exact ``k`` nearest, found on the host
-            when ``points`` (and ``mask``) are concrete arrays, from
-            blocked brute force :func:`~jaxreg.search.neighbors.knn` when traced (under ``jit``,
-            ``vmap`` or ``grad``).
+            (sentinel ``N`` where invalid), e.g. from :func:`~jaxreg.search.neighbors.knn`
+            on a grid of ``points``; ``k`` is then ignored. Default: the exact ``k``
+            nearest, found on the host when ``points`` (and ``mask``) are concrete arrays,
+            by blocked brute force (:func:`~jaxreg.search.neighbors.knn` on the points) when
+            traced (under ``jit``, ``vmap`` or ``grad``).
 
     Returns:
         A :class:`NormalEstimate`.
