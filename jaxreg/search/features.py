@@ -49,7 +49,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg.search.neighbors import radius_search, valid_rows
+from jaxreg.geometry._brute import valid_rows
+from jaxreg.search.neighbors import radius_search
 from jaxreg.search.normals import _host_knn, _is_concrete
 
 __all__ = ["FPFH", "FeatureMatches", "fpfh", "match_features"]

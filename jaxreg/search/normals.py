@@ -28,10 +28,11 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxreg.core._result import select_status
+from jaxreg.geometry._brute import valid_rows
 from jaxreg.geometry._eig3 import eigh3
 from jaxreg.search._host_normals import host_normals
 from jaxreg.search._knn import knn_moments, self_knn
-from jaxreg.search.neighbors import knn, valid_rows
+from jaxreg.search.neighbors import knn
 
 __all__ = ["NormalEstimate", "NormalStatus", "estimate_normals", "estimate_normals_with_curvature"]
 
