@@ -20,7 +20,7 @@ import dataclasses
 import numpy as np
 
 __all__ = [
-    "SOURCES", "PoseBudget", "free_axes", "lateral_sigma", "mahalanobis", "region_contains",
+    "SOURCES", "PoseBudget", "lateral_sigma", "mahalanobis", "region_contains",
 ]
 
 # The sources, in the order reports list them.
