@@ -400,22 +400,8 @@ def _symmetry(spec: str | None):
     )
 
 
-def _read_mask(path: Path) -> np.ndarray:
-    """``(H, W)`` bool of a mask image: True where any channel is nonzero."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as image:
-            values = np.asarray(image)
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such file") from None
-    except OSError as error:
-        raise ValueError(f"{path}: not a readable mask image ({error})") from None
-    return values.any(axis=-1) if values.ndim == 3 else values != 0
-
-
 def run_pose(args) -> int:
-    from jaxreg.io import load_points, read_frame
+    from jaxreg.io import load_points, read_frame, read_mask
     from jaxreg.pipeline.estimate import estimate_pose
     from jaxreg.uncertainty import DepthNoise
 
@@ -428,7 +414,7 @@ def run_pose(args) -> int:
     if args.depth_noise is not None:
         options["depth_noise"] = DepthNoise(tuple(args.depth_noise), frame.base_T_camera)
     if args.mask is not None:
-        options["mask"] = _read_mask(args.mask)
+        options["mask"] = read_mask(args.mask)
     if args.pixel is not None:
         options["pixel"] = tuple(args.pixel)
     if args.box is not None:

@@ -1,6 +1,6 @@
 """Files in and out: PCD (every variant PCL writes, LZF-compressed included), meshes and point
-files through trimesh, RGB-D frames (organized PCD, or a depth PNG with intrinsics JSON), and
-BOP datasets in and BOP result CSVs out.
+files through trimesh, RGB-D frames (organized PCD, or a depth PNG with intrinsics JSON), object
+masks, depth and colour images, and BOP datasets in and BOP result CSVs out.
 
 Readers return metres and raise ``ValueError`` naming the file and what is wrong with it. May
 import :mod:`jaxreg.core`, :mod:`jaxreg.geometry` and :mod:`jaxreg.camera`.
@@ -24,6 +24,12 @@ from jaxreg.io.clouds import (
     write_ply as write_ply,
 )
 from jaxreg.io.frames import read_frame as read_frame, write_frame as write_frame
+from jaxreg.io.images import (
+    read_depth_counts as read_depth_counts,
+    read_image_size as read_image_size,
+    read_mask as read_mask,
+    read_rgb as read_rgb,
+)
 
 
 def __getattr__(name: str):  # jaxreg.io.<module> without importing it first

@@ -36,6 +36,7 @@ from PIL import Image
 from jaxreg.camera.model import Intrinsics, RGBDFrame
 from jaxreg.geometry.lie import se3_to_matrix
 from jaxreg.io.clouds import read_pcd
+from jaxreg.io.images import read_depth_counts, read_rgb
 
 __all__ = ["read_frame", "write_frame"]
 
@@ -109,28 +110,6 @@ def _load_json(path: Path) -> dict:
     return meta
 
 
-def _read_png(path: Path, mode: str) -> np.ndarray:
-    """A 16-bit single-channel (`mode == "depth"`) or 8-bit RGB (`"rgb"`) image as numpy."""
-    try:
-        image = Image.open(path)
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such file") from None
-    except OSError as error:
-        raise ValueError(f"{path}: not a readable image ({error})") from None
-    with image:
-        if mode == "rgb":
-            return np.asarray(image.convert("RGB"))
-        if image.mode not in ("I;16", "I;16B", "I;16L", "I"):
-            raise ValueError(
-                f"{path}: a depth PNG must be one 16-bit channel of counts, got Pillow mode "
-                f"{image.mode!r}; save depth as uint16 (millimetres with depth_scale 0.001)"
-            )
-        counts = np.asarray(image)
-    if counts.min() < 0 or counts.max() > _UINT16_MAX:
-        raise ValueError(f"{path}: depth counts outside 0..65535")
-    return counts.astype(np.uint16)
-
-
 def _frame_from_png(path: Path, intrinsics, depth_scale: float, base_T_camera) -> RGBDFrame:
     rgb = None
     if isinstance(intrinsics, Intrinsics):
@@ -151,8 +130,8 @@ def _frame_from_png(path: Path, intrinsics, depth_scale: float, base_T_camera) -
         if base_T_camera is None and "base_T_camera" in meta:
             base_T_camera = np.asarray(meta["base_T_camera"], dtype=np.float64)
         if "rgb" in meta:
-            rgb = _read_png(json_path.parent / meta["rgb"], "rgb")
-    counts = _read_png(path, "depth")
+            rgb = read_rgb(json_path.parent / meta["rgb"])
+    counts = read_depth_counts(path, "depth PNG")
     if counts.shape != intrinsics.shape:
         raise ValueError(
             f"{path}: the depth image is {counts.shape[1]}x{counts.shape[0]} (width x height) "
