@@ -19,7 +19,9 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["SOURCES", "PoseBudget", "free_axes", "grasp_axis", "mahalanobis", "region_contains"]
+__all__ = [
+    "SOURCES", "PoseBudget", "lateral_sigma", "mahalanobis", "region_contains",
+]
 
 # The sources, in the order reports list them.
 SOURCES = ("depth", "fit", "mismatch", "segmentation", "calibration", "ambiguity")
@@ -44,12 +46,15 @@ def _psd(matrix: np.ndarray) -> np.ndarray:
     return (vectors * np.clip(values, 0.0, None)) @ vectors.T
 
 
-def grasp_axis(model_points: np.ndarray) -> np.ndarray:
-    """``(3,)`` the model's narrowest principal axis (object frame): where a parallel-jaw
-    gripper closes."""
-    points = np.asarray(model_points, np.float64)
-    _, vectors = np.linalg.eigh(np.cov((points - points.mean(0)).T))
-    return vectors[:, 0]
+def lateral_sigma(covariance: np.ndarray, axis: np.ndarray) -> float:
+    """Standard deviation (metres) of the translation error along the unit ``axis`` ``(3,)``
+    (object frame, e.g. across a gripper's jaws) under ``covariance`` ``(6, 6)`` (free axes
+    ``inf``): ``inf`` if a free axis enters."""
+    axis = np.asarray(axis, np.float64)
+    block = np.asarray(covariance, np.float64)[:3, :3]
+    if np.any(~np.isfinite(np.diag(block)) & (np.abs(axis) > 1e-9)):
+        return float("inf")
+    return float(np.sqrt(max(axis @ np.where(np.isfinite(block), block, 0.0) @ axis, 0.0)))
 
 
 def mahalanobis(delta: np.ndarray, covariance: np.ndarray, translation_only: bool = False):
@@ -119,11 +124,7 @@ class PoseBudget:
     def lateral_sigma(self, axis: np.ndarray) -> float:
         """Standard deviation (metres) of the translation error along the object-frame unit
         ``axis`` ``(3,)`` (e.g. across a gripper's jaws): ``inf`` if a free axis enters."""
-        axis = np.asarray(axis, np.float64)
-        block = self.total[:3, :3]
-        if np.any(~np.isfinite(np.diag(block)) & (np.abs(axis) > 1e-9)):
-            return float("inf")
-        return float(np.sqrt(max(axis @ np.where(np.isfinite(block), block, 0.0) @ axis, 0.0)))
+        return lateral_sigma(self.total, axis)
 
 
 def combine(
