@@ -89,6 +89,7 @@ def _grasp(prediction, offset=None) -> dict:
         "lateral_sigma_mm": round(prediction.lateral_sigma * 1e3, 3),
         "probability": prediction.probability,
         "axis": prediction.axis.tolist(),
+        "equivalent_turns_keeping_the_axis": round(prediction.turn_share, 3),
     }
     if offset is not None and math.isfinite(prediction.probability):
         grasp["measured_lateral_error_mm"] = round(prediction.lateral_error(offset) * 1e3, 3)
@@ -142,7 +143,17 @@ def build_report(estimate, model_points: np.ndarray, opening: float, offset=None
             ],
             "free_reason": estimate.budget.free_reason,
         }
-        grasp = _grasp(grasp_prediction(model_points, estimate.budget, opening), offset)
+        report["equivalent_poses"] = [turn.as_dict() for turn in estimate.equivalent_poses]
+        rotation = np.asarray(estimate.pose.rotation().as_matrix(), np.float64)
+        turns = [
+            rotation.T @ np.asarray(turn.pose.rotation().as_matrix(), np.float64)
+            for turn in estimate.equivalent_poses
+        ]
+        weights = [turn.weight for turn in estimate.equivalent_poses]
+        prediction = grasp_prediction(
+            model_points, estimate.budget, opening, turns=turns, turn_weights=weights
+        )
+        grasp = _grasp(prediction, offset)
         report["grasp"] = grasp
         report["predicted_grasp_success"] = grasp["probability"]
     return _clean(report)
@@ -224,6 +235,17 @@ def print_report(report: dict, stages: dict, title: str, out=sys.stdout) -> None
         )
     if budget["free_axes"]:
         line(f"    free ({', '.join(budget['free_axes'])}): {budget['free_reason']}")
+    turns = report.get("equivalent_poses") or []
+    if turns:
+        line(
+            f"  depth cannot decide between this pose and {len(turns)} turn(s) of the model "
+            "that fit as well (in the ambiguity term):"
+        )
+        for turn in turns:
+            line(
+                f"    {turn['angle_deg']:+.0f} deg about {turn['axis']}: weight "
+                f"{turn['weight']:.2f}, residual {turn['inlier_rmse_mm']:.2f} mm"
+            )
     g = report["grasp"]
     if g["probability"] is not None:
         line(
@@ -231,6 +253,11 @@ def print_report(report: dict, stages: dict, title: str, out=sys.stdout) -> None
             f"{g['object_width_mm']:.0f} mm width leaves {g['margin_per_side_mm']:.1f} mm per "
             f"side; lateral sigma {g['lateral_sigma_mm']:.2f} mm (the whole budget) -> "
             f"predicted success {g['probability']:.1%}"
+            + (
+                f" ({g['equivalent_turns_keeping_the_axis']:.0%} of the equally good turns "
+                "keep the jaws' axis)"
+                if turns else ""
+            )
         )
     if g.get("probability_with_measured_error") is not None:
         line(

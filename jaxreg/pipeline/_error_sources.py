@@ -33,7 +33,7 @@ from jaxreg.core._program_cache import persistent_jit
 from jaxreg.pipeline._answer import CONTACT_WEIGHT
 from jaxreg.pipeline._lift_stage import lift_pixels
 from jaxreg.pipeline._surface import depth_step
-from jaxreg.registration.icp import icp
+from jaxreg.registration.icp import ICPStatus, icp
 from jaxreg.uncertainty.budget import combine
 
 __all__ = ["Calibration", "pose_budget"]
@@ -184,12 +184,15 @@ def _calibration_term(calibration, jac, points, frame, inverse):
 
 
 def _pixels(frame, points: np.ndarray) -> np.ndarray:
-    """``(K, 2)`` int (row, col) of base-frame ``points`` in ``frame`` (clipped to it)."""
+    """``(K, 2)`` int (row, col) of base-frame ``points`` in ``frame`` (clipped to it),
+    through the intrinsics' distortion (:meth:`~jaxreg.camera.model.Intrinsics.project`, one
+    program per padded count: the rows padded to a power of two)."""
     camera = frame.base_T_camera
     cam = (points - np.asarray(camera.translation())) @ np.asarray(camera.rotation().as_matrix())
-    k = frame.intrinsics
-    u = float(k.fx) * cam[:, 0] / cam[:, 2] + float(k.cx)
-    v = float(k.fy) * cam[:, 1] / cam[:, 2] + float(k.cy)
+    size = max(1024, 1 << (max(len(cam), 1) - 1).bit_length())
+    padded = np.ones((size, 3), np.float32)  # in front of the camera: a finite projection
+    padded[: len(cam)] = cam
+    u, v = np.asarray(frame.intrinsics.project(padded))[: len(cam)].T
     h, w = frame.depth.shape
     return np.stack(
         [np.clip(np.rint(v), 0, h - 1).astype(int), np.clip(np.rint(u), 0, w - 1).astype(int)], 1
@@ -275,8 +278,8 @@ def _continuing(frame, mask, rows, cols, noise) -> np.ndarray:
 @persistent_jit
 def _perturbed_fits(sources, weights, points, normals, grid, init, distances, trim):
     """Point-to-plane ICP of every perturbed segment ``(P, N, 3)`` (rows weighted by
-    ``weights`` ``(N,)``, NaN rows ignored) from ``init`` (7,): the poses ``(P, 7)`` and
-    whether each converged to a usable answer ``(P,)``."""
+    ``weights`` ``(N,)``, NaN rows ignored) from ``init`` (7,): the poses ``(P, 7)``, their
+    ICP statuses and whether their residuals are finite ``(P,)``."""
 
     def one(source):
         usable = jax.numpy.all(jax.numpy.isfinite(source), axis=1)
@@ -286,7 +289,7 @@ def _perturbed_fits(sources, weights, points, normals, grid, init, distances, tr
             source_weights=jax.numpy.where(usable, weights, 0.0), neighbors=grid,
             tolerance=1e-5,
         )  # fmt: skip
-        return result.pose.wxyz_xyz, jax.numpy.isfinite(result.inlier_rmse)
+        return result.pose.wxyz_xyz, result.status, jax.numpy.isfinite(result.inlier_rmse)
 
     return jax.vmap(one)(sources)
 
@@ -379,11 +382,23 @@ def pose_budget(
             [segments, np.broadcast_to(contact, (len(segments),) + contact.shape)], 1
         )
         weights = np.concatenate([weights, np.full(len(contact), CONTACT_WEIGHT, np.float32)])
-    poses, ok = _perturbed_fits(
+    poses, status, finite = _perturbed_fits(
         segments, weights, model.points, model.normals, model.fine_grid,
         np.asarray(object_T_base, np.float32), np.asarray(distances)[-15:], np.float32(trim),
     )  # fmt: skip
-    moved = (_tangents(object_T_base, np.asarray(poses)) @ to_object.T)[np.asarray(ok)]
+    lift = np.linalg.inv(to_object)
+    free, reason = _free(symmetry, lift.T @ hessian @ lift)
+    usable = (ICPStatus.success, ICPStatus.max_iterations)
+    if free.any():  # a fit degenerate along the free axes still pins the others
+        usable += (ICPStatus.degenerate,)
+    ok = np.asarray(finite) & np.any([np.asarray(status == code) for code in usable], axis=0)
+    moved = (_tangents(object_T_base, np.asarray(poses)) @ to_object.T)[ok]
+    unknown = {}
+    if len(moved) < len(segments) // 2:
+        unknown["segmentation"] = (
+            f"{len(segments) - len(moved)} of the {len(segments)} re-registrations of the "
+            "perturbed segment failed"
+        )
 
     calibration_base = _calibration_term(calibration, jac, pairs_points, frame, inverse)
     hand_eye = np.zeros((6, 6))
@@ -398,8 +413,6 @@ def pose_budget(
 
     others = np.asarray(ambiguous[0], np.float64).reshape(-1, 6)
     likelihood = np.asarray(ambiguous[1], np.float64)
-    lift = np.linalg.inv(to_object)
-    free, reason = _free(symmetry, lift.T @ hessian @ lift)
     if np.any(view_free[0] & ~free):
         free = free | view_free[0]
         reason = "; ".join(r for r in (reason, view_free[1]) if r)
@@ -411,4 +424,4 @@ def pose_budget(
         "calibration": hand_eye + to_object @ calibration_base @ to_object.T,
         "ambiguity": (others.T * likelihood) @ others / (1.0 + likelihood.sum()),
     }
-    return combine(terms, free, reason)
+    return combine(terms, free, reason, unknown=unknown)
