@@ -14,10 +14,4 @@ from jaxreg.pipeline.estimate import (
     PoseEstimate as PoseEstimate,
     estimate_pose as estimate_pose,
 )
-from jaxreg.pipeline.settings import (
-    LiftSettings as LiftSettings,
-    PipelineSettings as PipelineSettings,
-    RegisterSettings as RegisterSettings,
-    SegmentSettings as SegmentSettings,
-)
 from jaxreg.pipeline.track import track as track

@@ -267,25 +267,36 @@ def estimate_pose(
             frame, model, coarse, lifted, plane, settings, noise, symmetry, calibration, rng
         )
         records["register"] = found.record
-        return PoseEstimate(
-            found.pose, found.inlier_rmse, found.inlier_fraction, found.budget.total, None,
-            found.reason, _in_order(records), lifted.mask, lifted.points, found.budget, plane,
-            found.equivalent_poses,
-        )  # fmt: skip
+        return _found(found, lifted, records, plane)
     except _Failed as failure:
-        records[failure.stage] = failure.record
-        return PoseEstimate(
-            None, float("nan"), float("nan"), np.full((6, 6), np.nan), failure.stage,
-            failure.reason, _in_order(records),
-            np.zeros(frame.depth.shape, bool) if failure.mask is None else failure.mask,
-            np.zeros((0, 3), np.float32) if failure.points is None else failure.points,
-            None, plane,
-        )  # fmt: skip
+        return _refused(frame, failure, records, plane)
 
 
 def _in_order(records: dict[str, Any]) -> dict[str, Any]:
     """The stages' records in :data:`STAGES` order."""
     return {name: records[name] for name in STAGES if name in records}
+
+
+def _found(found, lifted, records: dict[str, Any], plane) -> PoseEstimate:
+    """The estimate of a register stage's answer ``found`` on the ``lifted`` segment."""
+    return PoseEstimate(
+        found.pose, found.inlier_rmse, found.inlier_fraction, found.budget.total, None,
+        found.reason, _in_order(records), lifted.mask, lifted.points, found.budget, plane,
+        found.equivalent_poses,
+    )  # fmt: skip
+
+
+def _refused(frame, failure: _Failed, records: dict[str, Any], plane, prefix="") -> PoseEstimate:
+    """The estimate of a stage's ``failure`` (its record joins ``records``): no pose, the
+    stage and ``prefix`` + its reason."""
+    records[failure.stage] = failure.record
+    return PoseEstimate(
+        None, float("nan"), float("nan"), np.full((6, 6), np.nan), failure.stage,
+        prefix + failure.reason, _in_order(records),
+        np.zeros(frame.depth.shape, bool) if failure.mask is None else failure.mask,
+        np.zeros((0, 3), np.float32) if failure.points is None else failure.points,
+        None, plane,
+    )  # fmt: skip
 
 
 def _checked_model(frame, model_points, model_normals):

@@ -2,9 +2,10 @@
 
 :func:`track` needs no segmentation: the model at the ``previous`` pose, projected into the new
 frame, says which pixels to look at (its footprint grown by the motion allowed between frames,
-the depths near the model's), the depth image says which of them lie on one surface with the
-model's (:func:`jaxreg.pipeline._surface.mask_surface`), and the register stage refines the
-previous pose on them alone: no candidates, no coarse search. The same evidence as
+the depths near the model's, on one surface: :func:`jaxreg.pipeline._surface.mask_surface`).
+ICP from the previous pose, trimmed to its better pairs, follows the object there; the pixels
+around the model's footprint at the followed pose are the segment, and the register stage
+refines that pose on them: no candidates, no coarse search. The same evidence as
 :func:`jaxreg.estimate_pose` refuses an answer (the share of the segment the model explains,
 the residual, the image seeing through the model, the segment reaching beyond it), and the
 same error budget gives its covariance. A refusal says the object is lost (it moved farther
@@ -25,14 +26,15 @@ from scipy import ndimage
 from jaxreg.camera.model import RGBDFrame
 from jaxreg.geometry.lie import geodesic_angle
 from jaxreg.geometry.metrics import Symmetry
+from jaxreg.pipeline._coarse import _register_starts
 from jaxreg.pipeline._error_sources import Calibration
 from jaxreg.pipeline._judge import _near_model
-from jaxreg.pipeline._lift_stage import lift_stage
+from jaxreg.pipeline._lift_stage import lift_pixels, lift_stage
 from jaxreg.pipeline._model import _prepare_model
 from jaxreg.pipeline._register_stage import refine_stage, tolerances
-from jaxreg.pipeline._stages import _Failed
+from jaxreg.pipeline._stages import _Failed, _padded
 from jaxreg.pipeline._surface import mask_surface
-from jaxreg.pipeline.estimate import PoseEstimate, _checked_model, _in_order, _noise
+from jaxreg.pipeline.estimate import PoseEstimate, _checked_model, _found, _noise, _refused
 from jaxreg.pipeline.records import CoarseSearch, RegisterRecord, SegmentRecord
 from jaxreg.pipeline.settings import PipelineSettings
 from jaxreg.uncertainty import DepthNoise
@@ -95,7 +97,7 @@ def track(
     noise = _noise(depth_noise, frame)
     records: dict[str, Any] = {}
     try:
-        region, coarse, records["segment"] = _footprint(
+        region, coarse, records["segment"] = _follow(
             frame, model, base_T_object, max_motion, noise, settings
         )
         lifted = lift_stage(frame, region, None, noise, settings.lift, settings.voxel_size)
@@ -110,19 +112,10 @@ def track(
         )  # fmt: skip
         records["register"] = found.record
         _check_motion(base_T_object, found, max_motion, max_turn_deg, lifted)
-        return PoseEstimate(
-            found.pose, found.inlier_rmse, found.inlier_fraction, found.budget.total, None,
-            found.reason, _in_order(records), lifted.mask, lifted.points, found.budget, None,
-            found.equivalent_poses,
-        )  # fmt: skip
+        return _found(found, lifted, records, None)
     except _Failed as failure:
-        records[failure.stage] = failure.record
-        return PoseEstimate(
-            None, float("nan"), float("nan"), np.full((6, 6), np.nan), failure.stage,
-            "lost: " + failure.reason + "; re-detect with estimate_pose", _in_order(records),
-            np.zeros(frame.depth.shape, bool) if failure.mask is None else failure.mask,
-            np.zeros((0, 3), np.float32) if failure.points is None else failure.points,
-        )  # fmt: skip
+        failure.reason += "; re-detect with estimate_pose"
+        return _refused(frame, failure, records, None, prefix="lost: ")
 
 
 def _previous_pose(previous) -> SE3:
@@ -150,13 +143,9 @@ def _previous_pose(previous) -> SE3:
     return SE3.from_matrix(matrix)
 
 
-def _footprint(frame, model, base_T_object: SE3, max_motion, noise, settings):
-    """The pixels to register: the model's footprint at the previous pose grown by
-    ``max_motion`` (at the model's nearest depth), with depth within ``max_motion`` of the
-    model's depths there, on one surface with the largest piece. Returns the region ``(H, W)``,
-    the start as a coarse search result, and the segment record; ``_Failed`` when too few
-    pixels remain."""
-    start = time.perf_counter()
+def _projection(frame, model, base_T_object: SE3):
+    """The model's footprint ``(H, W)`` bool at ``base_T_object`` (its points' pixels) and
+    its points' camera depths (metres, those in front of the camera)."""
     depth = np.asarray(frame.depth)
     h, w = depth.shape
     points = model.points[np.all(np.isfinite(model.points), axis=1)].astype(np.float64)
@@ -164,41 +153,70 @@ def _footprint(frame, model, base_T_object: SE3, max_motion, noise, settings):
         np.asarray(base_T_object.wxyz_xyz, np.float32)
     )
     cam = np.asarray(camera_T_object @ points)
-    ahead = cam[:, 2] > 1e-3
+    cam = cam[cam[:, 2] > 1e-3]
     footprint = np.zeros((h, w), bool)
-    grow = 1
-    if ahead.any():
-        pixels = np.rint(np.asarray(frame.intrinsics.project(cam[ahead]))).astype(int)
+    if len(cam):
+        pixels = np.rint(np.asarray(frame.intrinsics.project(cam))).astype(int)
         inside = np.all((pixels >= 0) & (pixels < (w, h)), axis=1)
         footprint[pixels[inside, 1], pixels[inside, 0]] = True
-        nearest = float(cam[ahead, 2].min())
-        grow = int(np.ceil(max_motion * float(frame.intrinsics.fx) / max(nearest, 1e-3)))
-        grown = ndimage.binary_dilation(footprint, iterations=max(1, min(grow, 200)))
-        z_low, z_high = cam[ahead, 2].min() - max_motion, cam[ahead, 2].max() + max_motion
-        near = np.isfinite(depth) & (depth >= z_low) & (depth <= z_high)
-        looked = grown & near
-    else:
-        looked = footprint
-    sigma_z = np.asarray(noise.coefficients)
-    surface = mask_surface(depth, looked, sigma_z, float(frame.intrinsics.fx))
-    record = SegmentRecord(
-        ms=0.0, valid_grid_points=int(np.isfinite(depth).sum()), mask_pixels=int(looked.sum()),
-        mask_grid_points=int(surface.sum()),
-    )  # fmt: skip
+    return footprint, cam[:, 2]
+
+
+def _around(frame, model, base_T_object: SE3, reach: float, noise) -> np.ndarray:
+    """``(H, W)`` bool: the model's footprint at ``base_T_object`` grown by ``reach`` metres
+    (at its nearest depth), the pixels with depth within ``reach`` of the model's depths,
+    on one surface with the largest piece (:func:`~jaxreg.pipeline._surface.mask_surface`)."""
+    depth = np.asarray(frame.depth)
+    footprint, z = _projection(frame, model, base_T_object)
+    if len(z) == 0:
+        return footprint
+    fx = float(frame.intrinsics.fx)
+    grow = int(np.clip(np.ceil(reach * fx / max(float(z.min()), 1e-3)), 1, 200))
+    grown = ndimage.binary_dilation(footprint, iterations=grow)
+    near = np.isfinite(depth) & (depth >= z.min() - reach) & (depth <= z.max() + reach)
+    return mask_surface(depth, grown & near, np.asarray(noise.coefficients), fx)
+
+
+def _follow(frame, model, base_T_object: SE3, max_motion, noise, settings):
+    """The object followed from the previous pose: ICP (trimmed to the better 60% of its
+    pairs) of the pixels around the previous footprint (:func:`_around`, within
+    ``max_motion``), then the pixels around the footprint at that pose (two voxels): the
+    segment to judge. Returns that segment ``(H, W)``, the followed pose as a coarse search
+    result, and the segment record; ``_Failed`` when too few pixels are found."""
+    start = time.perf_counter()
+    looked = _around(frame, model, base_T_object, max_motion, noise)
     need = settings.lift.min_segment_points
-    if surface.sum() < need:
+    record = SegmentRecord(
+        ms=0.0, valid_grid_points=int(np.isfinite(np.asarray(frame.depth)).sum()),
+        mask_pixels=int(looked.sum()),
+    )  # fmt: skip
+    if looked.sum() < need:
         raise _Failed(
             "segment",
-            f"the model at the previous pose meets {int(surface.sum())} pixels with depth "
+            f"the model at the previous pose meets {int(looked.sum())} pixels with depth "
             f"within {max_motion * 1e3:.0f} mm of it (need {need}): it moved farther, left "
             "the view or is hidden",
             record.with_ms(start),
         )
-    object_T_base = np.asarray(base_T_object.inverse().wxyz_xyz, np.float32)[None]
+    depth = np.asarray(frame.depth)
+    gates = tolerances(model, noise, float(np.median(depth[looked])), settings)
+    rows, cols = np.nonzero(looked)
+    points = lift_pixels(frame, rows, cols)
+    source = _padded(points, settings.register.max_points, np.random.default_rng(0))
+    start_pose = np.asarray(base_T_object.inverse().wxyz_xyz, np.float32)[None]
+    followed = _register_starts(
+        source, model.points, model.normals, model.fine_grid, SE3(start_pose),
+        gates.distances, np.float32(0.6), 30,
+    )  # fmt: skip
+    object_T_base = np.asarray(followed.pose.wxyz_xyz, np.float32)
+    if not np.all(np.isfinite(object_T_base)):
+        object_T_base = start_pose
+    pose = SE3(object_T_base[0].astype(np.float64)).inverse()
+    region = _around(frame, model, pose, 2 * settings.voxel_size, noise)
+    record = dataclasses.replace(record, surface_pixels=int(region.sum()))
     register = RegisterRecord(ms=0.0, starts=1, candidates=[], coarse_kept_starts=1)
-    gates = tolerances(model, noise, float(np.median(depth[surface])), settings)
-    coarse = CoarseSearch(surface, object_T_base, 1.0, gates, register)
-    return surface, coarse, record.with_ms(start)
+    coarse = CoarseSearch(region, object_T_base, 1.0, gates, register)
+    return region, coarse, record.with_ms(start)
 
 
 def _check_motion(previous: SE3, found, max_motion, max_turn_deg, lifted) -> None:
