@@ -132,9 +132,10 @@ class Pairs(eqx.Module):
 def apply_pose(pose: SE3, points: Float[Array, "N 3"]) -> Float[Array, "N 3"]:
     """``pose @ points`` ``(N, 3)`` for one unbatched ``pose`` (vmap for many), as the loop
     computes it: three broadcast multiply-adds with the rotation matrix's columns, which XLA
-    fuses into their consumers (the neighbour query, the Kabsch sums). On XLA's CPU backend ``points @ R.T`` is a separate kernel ~20x slower than that,
-    and jaxlie's quaternion ``apply`` batched over poses is slower still. Differentiated
-    code uses the matmul instead (see :func:`objective`)."""
+    fuses into their consumers (the neighbour query, the Kabsch sums). On XLA's CPU backend
+    ``points @ R.T`` is a separate kernel ~20x slower than that, and jaxlie's quaternion
+    ``apply`` batched over poses is slower still. Differentiated code uses the matmul instead
+    (see :func:`objective`)."""
     r = pose.rotation().as_matrix()
     rotated = points[:, :1] * r[:, 0] + points[:, 1:2] * r[:, 1] + points[:, 2:] * r[:, 2]
     return rotated + pose.translation()
