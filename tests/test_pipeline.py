@@ -307,8 +307,8 @@ def test_a_larger_box_of_a_similar_shape_is_not_taken_for_the_target(scene):
     """Seed 128: beside the 80 x 50 x 120 mm target stands an 89 x 61 x 114 mm box, which the
     box model fits as well by inlier fraction, residual and image support (it was claimed
     before the extent test); only its points reaching beyond the model tell them apart."""
-    from jaxreg.pipeline._model import _prepare_model
     from jaxreg.pipeline._judge import overhang
+    from jaxreg.pipeline._model import _prepare_model
     from jaxreg.synth import tabletop_scene
 
     _, model, symmetry = scene
