@@ -64,3 +64,25 @@ def test_a_mask_off_by_a_few_pixels_still_poses_the_object(mug, change):
     moved = np.asarray(mug.truth.inverse() @ est.points)
     gap = np.min(np.linalg.norm(moved[:, None] - mug.model_points[None, ::4], axis=-1), 1)
     assert np.mean(gap < 0.01) > 0.97
+
+
+def test_on_real_frames_the_surface_drops_what_lies_off_the_object(ycbv_dir):
+    """YCB-Video's label masks, and the same masks grown by 4 pixels: the pixels the surface
+    keeps lie within the object's depth range at the dataset's true pose (2 cm of slack for
+    its truth), and it drops most of the grown ring's pixels that lie beyond it."""
+    frames = jr.io.read_ycbv(ycbv_dir / "data" / "0001" / "000001")
+    frame = frames[0]
+    depth = np.asarray(frame.frame.depth)
+    noise = jr.DepthNoise.structured_light((frame.frame.intrinsics.fx, frame.frame.intrinsics.fy))
+    sigma = np.asarray(noise.coefficients)
+    dropped_off, kept_off = 0, 0
+    for instance in frame.instances:
+        cam = np.asarray(instance.truth @ instance.model_points)  # base = camera here
+        near, far = cam[:, 2].min() - 0.02, cam[:, 2].max() + 0.02
+        for mask in (instance.mask, ndimage.binary_dilation(instance.mask, iterations=4)):
+            surface = mask_surface(depth, mask, sigma, float(frame.frame.intrinsics.fx))
+            off = mask & np.isfinite(depth) & ((depth < near) | (depth > far))
+            assert surface.sum() > 0.9 * (mask & np.isfinite(depth) & ~off).sum() - 200
+            kept_off += int((surface & off).sum())
+            dropped_off += int((off & ~surface).sum())
+    assert dropped_off > 20 * max(kept_off, 1)
