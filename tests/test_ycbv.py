@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from conftest import data_root
 from scipy.io import loadmat, savemat
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, cKDTree
 
 import jaxreg as jr
 
@@ -183,3 +183,30 @@ def test_malformed_input_names_the_file(ycbv_dir, tmp_path):
         jr.io.read_ycbv(tmp_path / "nowhere")
     with pytest.raises(ValueError, match=r"models\.txt: no such file"):
         jr.io.read_ycbv(folder, models=tmp_path)
+
+
+# Instances for the pipeline check: a box and a mug of one frame, whose segments share compiled
+# programs (the first call compiles estimate_pose's programs, as test_pipeline's do; each new
+# segment size compiles more).
+PIPELINE_CASES = [("0000/000001", "009_gelatin_box"), ("0000/000001", "025_mug")]
+
+
+@pytest.mark.parametrize(("name", "model_name"), PIPELINE_CASES)
+def test_estimate_pose_on_real_instances(frames, name, model_name):
+    """``estimate_pose`` with the label mask and default settings on real instances: whatever it
+    reports as found is within 10% of the model's diameter by ADD-S (never a wrong success),
+    and a refusal names its stage and says why in words."""
+    frame = next(f for f in frames if f.name == name)
+    instance = next(i for i in frame.instances if i.model_name == model_name)
+    points = instance.model_points
+    est = jr.estimate_pose(frame.frame, points, mask=instance.mask)
+    assert isinstance(est.reason, str) and len(est.reason.split()) >= 4, est.reason
+    if est.success:
+        hull = points[ConvexHull(points).vertices]
+        diameter = np.sqrt(((hull[:, None] - hull[None]) ** 2).sum(-1).max())
+        adds = float(jr.add_s(points, est.pose, instance.truth))
+        assert adds < 0.1 * diameter, (name, model_name, adds, est.reason)
+        assert np.isfinite(est.inlier_rmse) and not np.isnan(est.covariance).any()
+    else:
+        assert est.pose is None and est.failed_stage in ("segment", "lift", "register")
+        assert not any(ch in est.reason for ch in "{}[]"), est.reason  # words, not a dump
