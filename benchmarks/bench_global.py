@@ -66,7 +66,7 @@ def main():
     distance = 1.5 * voxel
 
     def ours_fpfh():
-        features = [fpfh(p, n, radius=5 * voxel) for p, n in zip(f32, n32, strict=True)]
+        features = [fpfh(p, n, radius=5 * voxel).histograms for p, n in zip(f32, n32, strict=True)]
         return jax.block_until_ready(features)
 
     def o3d_fpfh():

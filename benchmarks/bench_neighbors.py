@@ -31,7 +31,6 @@ from jaxreg.io import load_points
 from jaxreg.search.neighbors import (
     build_grid,
     knn,
-    query_knn,
     query_nearest,
     voxel_downsample,
 )
@@ -165,10 +164,10 @@ def normals_case(points: np.ndarray, repeats: int) -> None:
     radius = 6 * spacing
     grid_ms = timed(lambda: build_grid(points, radius, k=20).origin, 3)
     grid = build_grid(points, radius, k=20)
-    query = jax.jit(query_knn, static_argnums=2)
-    found = float(query(grid, p, 20)[2].all(1).mean())
+    query = jax.jit(knn, static_argnums=2)
+    found = float(query(p, grid, 20)[2].all(1).mean())
     row(case, "grid build k=20", grid_ms, f"r={radius * 1e3:.1f} mm capacity={grid.capacity}")
-    row(case, "grid query_knn (jit)", timed(lambda: query(grid, p, 20), reps), f"{found:.1%} full")
+    row(case, "grid knn (jit)", timed(lambda: query(p, grid, 20), reps), f"{found:.1%} full")
     try:
         from scipy.spatial import cKDTree
     except ImportError:

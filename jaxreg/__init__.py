@@ -17,20 +17,28 @@ from typing import TYPE_CHECKING
 
 # Each module and the public names it defines, re-exported here.
 _EXPORTS = {
-    "jaxreg.camera.model": ("Intrinsics", "RGBDFrame", "project", "reprojection_error"),
+    "jaxreg.camera.model": (
+        "Intrinsics", "RGBDFrame", "apply_intrinsics", "distort", "pose_jacobian", "project",
+        "projection_jacobian", "reprojection_error", "undistort_points",
+    ),
     "jaxreg.camera.pnp": (
         "PlanarPnPResult", "PnPResult", "PnPStatus", "solve_pnp", "solve_pnp_planar",
     ),
     "jaxreg.camera.tags": ("detect_tags", "tag_object_points"),
-    "jaxreg.core.compilation": ("enable_compilation_cache",),
+    "jaxreg.core.compilation": ("default_cache_folder", "enable_compilation_cache"),
     "jaxreg.geometry.alignment": ("Alignment", "AlignmentStatus", "align", "kabsch", "umeyama"),
     "jaxreg.geometry.bop_metrics": (
-        "BopRecall", "average_recall", "bop_symmetry_transforms", "mspd", "mssd", "vsd",
+        "BopRecall", "average_recall", "bop_symmetry_transforms", "correct", "mspd", "mssd", "vsd",
     ),
-    "jaxreg.geometry.kernels": ("L2", "Cauchy", "GemanMcClure", "Huber", "Tukey", "Welsch"),
+    "jaxreg.geometry.kernels": (
+        "L2", "AbstractRobustKernel", "Cauchy", "GemanMcClure", "Huber", "Tukey", "Welsch",
+        "trim_mask",
+    ),
     "jaxreg.geometry.lie": (
-        "SE3", "SO3", "adjoint_transport", "geodesic_angle", "random_rotations", "rotation_grid",
-        "rotation_grid_around", "se3_exp",
+        "SE3", "SO3", "adjoint_transport", "covariance_from_open3d", "covariance_to_open3d",
+        "geodesic_angle", "random_rotations", "rotation_angle", "rotation_grid",
+        "rotation_grid_around", "se3_exp", "se3_from_matrix", "se3_to_matrix", "so3_from_matrix",
+        "tangent_from_open3d", "tangent_to_open3d",
     ),
     "jaxreg.geometry.means": ("chordal_mean", "karcher_mean"),
     "jaxreg.geometry.metrics": (
@@ -38,22 +46,34 @@ _EXPORTS = {
     ),
     "jaxreg.pipeline.batch": ("estimate_poses",),
     "jaxreg.pipeline.estimate": ("PoseEstimate", "estimate_pose"),
+    "jaxreg.pipeline.settings": (
+        "LiftSettings", "PipelineSettings", "RegisterSettings", "SegmentSettings",
+    ),
+    "jaxreg.pipeline.track": ("track",),
     "jaxreg.registration.icp": (
-        "ICPStatus", "RegistrationResult", "best_index", "icp", "icp_covariance", "init_spread",
-        "multistart_icp", "pca_inits", "perturbed_inits", "rotation_inits", "select_best",
+        "ICPOptions", "ICPStatus", "RegistrationResult", "best_index", "icp", "icp_covariance",
+        "init_spread", "multistart_icp", "pca_inits", "perturbed_inits", "rotation_inits",
+        "select_best",
     ),
     "jaxreg.registration.ransac": (
         "RansacResult", "RansacStatus", "ransac_iterations", "ransac_registration",
     ),
     "jaxreg.registration.robust": ("RobustAlignment", "RobustStatus", "robust_kabsch"),
-    "jaxreg.search.features": ("fpfh", "match_features"),
+    "jaxreg.search.features": ("FPFH", "FeatureMatches", "fpfh", "match_features"),
     "jaxreg.search.neighbors": (
-        "NeighborGrid", "build_grid", "pad_grid", "validate_grid", "voxel_downsample",
+        "NeighborGrid", "build_grid", "knn", "pad_grid", "query_nearest", "radius_search",
+        "validate_grid", "voxel_downsample",
     ),
-    "jaxreg.search.normals": ("estimate_normals",),
+    "jaxreg.search.normals": (
+        "NormalEstimate", "NormalStatus", "estimate_normals", "estimate_normals_with_curvature",
+    ),
     "jaxreg.uncertainty": (
-        "DepthNoise", "IsotropicNoise", "PointCovariance", "PoseStatistics", "error_budget",
-        "grasp_margin", "grasp_success_probability", "pose_statistics",
+        "AbstractPointNoise", "DepthNoise", "ErrorBudget", "GraspPrediction", "GroupStatistics",
+        "IsotropicNoise", "PointCovariance", "PoseStatistics", "error_budget", "grasp_axis",
+        "grasp_margin", "grasp_prediction", "grasp_success_probability", "pose_statistics",
+    ),
+    "jaxreg.uncertainty.budget": (
+        "PoseBudget", "lateral_sigma", "mahalanobis", "region_contains",
     ),
 }  # fmt: skip
 _SUBPACKAGES = (
@@ -97,8 +117,13 @@ if TYPE_CHECKING:  # what type checkers and editors see; the same names as _EXPO
     from jaxreg.camera.model import (
         Intrinsics as Intrinsics,
         RGBDFrame as RGBDFrame,
+        apply_intrinsics as apply_intrinsics,
+        distort as distort,
+        pose_jacobian as pose_jacobian,
         project as project,
+        projection_jacobian as projection_jacobian,
         reprojection_error as reprojection_error,
+        undistort_points as undistort_points,
     )
     from jaxreg.camera.pnp import (
         PlanarPnPResult as PlanarPnPResult,
@@ -111,7 +136,10 @@ if TYPE_CHECKING:  # what type checkers and editors see; the same names as _EXPO
         detect_tags as detect_tags,
         tag_object_points as tag_object_points,
     )
-    from jaxreg.core.compilation import enable_compilation_cache as enable_compilation_cache
+    from jaxreg.core.compilation import (
+        default_cache_folder as default_cache_folder,
+        enable_compilation_cache as enable_compilation_cache,
+    )
     from jaxreg.geometry.alignment import (
         Alignment as Alignment,
         AlignmentStatus as AlignmentStatus,
@@ -123,27 +151,38 @@ if TYPE_CHECKING:  # what type checkers and editors see; the same names as _EXPO
         BopRecall as BopRecall,
         average_recall as average_recall,
         bop_symmetry_transforms as bop_symmetry_transforms,
+        correct as correct,
         mspd as mspd,
         mssd as mssd,
         vsd as vsd,
     )
     from jaxreg.geometry.kernels import (
         L2 as L2,
+        AbstractRobustKernel as AbstractRobustKernel,
         Cauchy as Cauchy,
         GemanMcClure as GemanMcClure,
         Huber as Huber,
         Tukey as Tukey,
         Welsch as Welsch,
+        trim_mask as trim_mask,
     )
     from jaxreg.geometry.lie import (
         SE3 as SE3,
         SO3 as SO3,
         adjoint_transport as adjoint_transport,
+        covariance_from_open3d as covariance_from_open3d,
+        covariance_to_open3d as covariance_to_open3d,
         geodesic_angle as geodesic_angle,
         random_rotations as random_rotations,
+        rotation_angle as rotation_angle,
         rotation_grid as rotation_grid,
         rotation_grid_around as rotation_grid_around,
         se3_exp as se3_exp,
+        se3_from_matrix as se3_from_matrix,
+        se3_to_matrix as se3_to_matrix,
+        so3_from_matrix as so3_from_matrix,
+        tangent_from_open3d as tangent_from_open3d,
+        tangent_to_open3d as tangent_to_open3d,
     )
     from jaxreg.geometry.means import chordal_mean as chordal_mean, karcher_mean as karcher_mean
     from jaxreg.geometry.metrics import (
@@ -159,7 +198,15 @@ if TYPE_CHECKING:  # what type checkers and editors see; the same names as _EXPO
         PoseEstimate as PoseEstimate,
         estimate_pose as estimate_pose,
     )
+    from jaxreg.pipeline.settings import (
+        LiftSettings as LiftSettings,
+        PipelineSettings as PipelineSettings,
+        RegisterSettings as RegisterSettings,
+        SegmentSettings as SegmentSettings,
+    )
+    from jaxreg.pipeline.track import track as track
     from jaxreg.registration.icp import (
+        ICPOptions as ICPOptions,
         ICPStatus as ICPStatus,
         RegistrationResult as RegistrationResult,
         best_index as best_index,
@@ -183,22 +230,47 @@ if TYPE_CHECKING:  # what type checkers and editors see; the same names as _EXPO
         RobustStatus as RobustStatus,
         robust_kabsch as robust_kabsch,
     )
-    from jaxreg.search.features import fpfh as fpfh, match_features as match_features
+    from jaxreg.search.features import (
+        FPFH as FPFH,
+        FeatureMatches as FeatureMatches,
+        fpfh as fpfh,
+        match_features as match_features,
+    )
     from jaxreg.search.neighbors import (
         NeighborGrid as NeighborGrid,
         build_grid as build_grid,
+        knn as knn,
         pad_grid as pad_grid,
+        query_nearest as query_nearest,
+        radius_search as radius_search,
         validate_grid as validate_grid,
         voxel_downsample as voxel_downsample,
     )
-    from jaxreg.search.normals import estimate_normals as estimate_normals
+    from jaxreg.search.normals import (
+        NormalEstimate as NormalEstimate,
+        NormalStatus as NormalStatus,
+        estimate_normals as estimate_normals,
+        estimate_normals_with_curvature as estimate_normals_with_curvature,
+    )
     from jaxreg.uncertainty import (
+        AbstractPointNoise as AbstractPointNoise,
         DepthNoise as DepthNoise,
+        ErrorBudget as ErrorBudget,
+        GraspPrediction as GraspPrediction,
+        GroupStatistics as GroupStatistics,
         IsotropicNoise as IsotropicNoise,
         PointCovariance as PointCovariance,
         PoseStatistics as PoseStatistics,
         error_budget as error_budget,
+        grasp_axis as grasp_axis,
         grasp_margin as grasp_margin,
+        grasp_prediction as grasp_prediction,
         grasp_success_probability as grasp_success_probability,
         pose_statistics as pose_statistics,
+    )
+    from jaxreg.uncertainty.budget import (
+        PoseBudget as PoseBudget,
+        lateral_sigma as lateral_sigma,
+        mahalanobis as mahalanobis,
+        region_contains as region_contains,
     )

@@ -111,7 +111,9 @@ def test_the_command_line_exits_2_with_one_line_on_bad_input(tmp_path, capsys):
     cases = {
         "not a readable image": ("--scene", tmp_path / "broken.png", "--intrinsics", json_path),
         "not valid JSON": ("--scene", scene, "--intrinsics", tmp_path / "broken.json"),
-        "not a readable mask image": ("--scene", scene, "--mask", tmp_path / "broken.png"),
+        "the mask image is not a readable image": (
+            "--scene", scene, "--mask", tmp_path / "broken.png"
+        ),
         "mask is empty": ("--scene", scene, "--mask", tmp_path / "empty_mask.png"),
         "mask must be an (H, W)": ("--scene", scene, "--mask", tmp_path / "small_mask.png"),
         "unknown --symmetry": ("--scene", scene, "--symmetry", "turns:0"),

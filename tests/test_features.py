@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from jaxreg.io import load_points
-from jaxreg.search.features import compute_fpfh, fpfh, match_features
+from jaxreg.search.features import fpfh, match_features
 
 
 @pytest.fixture(scope="module")
@@ -23,7 +23,7 @@ def test_fpfh_agrees_with_open3d_per_point(milk_with_normals, max_neighbors, x64
     radius = 0.025
     search = o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_neighbors)
     expected = np.asarray(o3d.pipelines.registration.compute_fpfh_feature(cloud, search).data).T
-    result = compute_fpfh(points, normals, radius=radius, max_neighbors=max_neighbors)
+    result = fpfh(points, normals, radius=radius, max_neighbors=max_neighbors)
     assert result.histograms.shape == expected.shape == (len(points), 33)
     np.testing.assert_allclose(result.histograms, expected, atol=1e-9)
     assert np.all(result.valid)
@@ -36,8 +36,8 @@ def test_fpfh_agrees_with_open3d_per_point(milk_with_normals, max_neighbors, x64
 def test_fpfh_under_jit_matches_the_host_path(milk_with_normals, x64):
     _, _, points, normals = milk_with_normals
     points, normals = points[:600], normals[:600]
-    host = compute_fpfh(points, normals, radius=0.02, max_neighbors=30)
-    traced = jax.jit(lambda p, n: compute_fpfh(p, n, radius=0.02, max_neighbors=30))(
+    host = fpfh(points, normals, radius=0.02, max_neighbors=30)
+    traced = jax.jit(lambda p, n: fpfh(p, n, radius=0.02, max_neighbors=30))(
         points, normals
     )
     np.testing.assert_allclose(traced.histograms, host.histograms, atol=1e-9)
@@ -51,11 +51,11 @@ def test_fpfh_marks_unusable_points_and_rejects_bad_arguments():
     normals[3] = 0.0  # undefined normal
     points[4] = np.nan
     points[5] = [1.0, 1.0, 1.0]  # isolated: no neighbour within the radius
-    result = compute_fpfh(points, normals, radius=0.05, max_neighbors=50)
+    result = fpfh(points, normals, radius=0.05, max_neighbors=50)
     valid = np.asarray(result.valid)
     assert not np.any(valid[[3, 4, 5]]) and np.all(valid[6:])
     assert np.all(np.asarray(result.histograms)[[3, 4, 5]] == 0)
-    assert fpfh(points, normals, radius=0.05).shape == (40, 33)
+    assert fpfh(points, normals, radius=0.05).histograms.shape == (40, 33)
     with pytest.raises(ValueError, match="radius"):
         fpfh(points, normals, radius=0.0)
     with pytest.raises(ValueError, match="max_neighbors"):

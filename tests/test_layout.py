@@ -132,3 +132,56 @@ def test_design_names_resolve():
         assert value is not None, dotted
     for module in ("jaxreg.io", "jaxreg.synth", "jaxreg.studies", "jaxreg.cli"):
         importlib.import_module(module)
+
+
+# Where README says each public name resolves: a library package's at the top level
+# (``jaxreg.icp``), a namespace package's through the package (``jaxreg.io.read_pcd``).
+LIBRARY = ("core", "geometry", "search", "registration", "camera", "uncertainty", "pipeline")
+NAMESPACES = ("io", "synth", "studies")
+PUBLIC_MODULES = sorted(
+    _module_name(p)
+    for p in SOURCES
+    if len(p.relative_to(ROOT).parts) > 1
+    and p.relative_to(ROOT).parts[0] in LIBRARY + NAMESPACES
+    and not any(part.startswith("_") for part in _module_name(p).split("."))
+)
+# The pipeline's stage modules list names the top level does not carry (issue 35's restructuring
+# of the pipeline decides them); strict, so the mark goes when they resolve.
+UNSETTLED = {"jaxreg.pipeline.estimate", "jaxreg.pipeline.segment"}
+
+
+@pytest.mark.parametrize(
+    "module",
+    [
+        pytest.param(m, marks=pytest.mark.xfail(strict=True, reason="names not re-exported"))
+        if m in UNSETTLED
+        else m
+        for m in PUBLIC_MODULES
+    ],
+)
+def test_public_names_resolve_where_readme_says(module):
+    """Every function and type in a public module's ``__all__`` is the same object at its
+    documented home (constants stay in their module)."""
+    loaded = importlib.import_module(module)
+    package = module.split(".")[1]
+    home = jaxreg if package in LIBRARY else importlib.import_module(f"jaxreg.{package}")
+    values = {name: getattr(loaded, name) for name in getattr(loaded, "__all__", ())}
+    missing = [
+        name
+        for name, value in values.items()
+        if callable(value) and getattr(home, name, None) is not value
+    ]
+    assert not missing, f"{module}: {missing} do not resolve as {home.__name__}.<name>"
+
+
+def test_type_checkers_see_the_exported_names():
+    """``jaxreg/__init__.py``'s ``TYPE_CHECKING`` imports name exactly ``_EXPORTS``."""
+    tree = ast.parse((ROOT / "__init__.py").read_text())
+    block = next(n for n in tree.body if isinstance(n, ast.If) and "TYPE_CHECKING" in ast.dump(n))
+    seen = {
+        (node.module, alias.name)
+        for node in block.body
+        if isinstance(node, ast.ImportFrom) and node.module != "jaxreg"
+        for alias in node.names
+    }
+    assert seen == {(m, n) for m, names in jaxreg._EXPORTS.items() for n in names}

@@ -11,9 +11,7 @@ from jaxreg.search.neighbors import (
     build_grid,
     knn,
     pad_grid,
-    query_knn,
     query_nearest,
-    query_radius,
     radius_search,
     validate_grid,
     voxel_downsample,
@@ -168,7 +166,7 @@ def test_lattice_target_with_points_on_cell_boundaries_is_exact():
     check_distances(grid, queries, points, 0.02)
 
 
-def test_query_radius_argument_tightens_and_is_clipped():
+def test_nearest_max_distance_tightens_and_is_clipped():
     rng = np.random.default_rng(2)
     points = rng.uniform(0, 1, (400, 3)).astype(np.float32)
     queries = rng.uniform(0, 1, (300, 3)).astype(np.float32)
@@ -297,14 +295,14 @@ def test_grid_knn_matches_ckdtree_within_radius(max_depth):
     queries = (points[:400] + rng.normal(0, 0.004, (400, 3))).astype(np.float32)
     grid = build_grid(points, 0.015, k=6, max_depth=max_depth, capacity=None)
     assert (grid.depth > 0) == (max_depth > 0)
-    _, d2, valid = jax.jit(query_knn, static_argnums=2)(grid, queries, 6)
+    _, d2, valid = jax.jit(knn, static_argnums=2)(queries, grid, 6)
     ref_d, _ = spatial.cKDTree(points).query(queries, 6, distance_upper_bound=0.015)
     assert np.array_equal(np.asarray(valid), np.isfinite(ref_d))
     ok = np.isfinite(ref_d)
     np.testing.assert_allclose(np.sqrt(np.asarray(d2))[ok], ref_d[ok], rtol=1e-5, atol=1e-9)
     assert (~ok).any() and ok.any()
     with pytest.raises(ValueError, match="built for k <= 6"):
-        query_knn(grid, queries, 7)
+        knn(queries, grid, 7)
 
 
 @pytest.mark.parametrize("engine", ["brute", "grid", "refined grid"])
@@ -319,7 +317,8 @@ def test_radius_search_matches_ckdtree(engine):
     else:
         grid = build_grid(points, radius, k=None, max_depth=2 if engine == "refined grid" else 0)
         assert (grid.depth > 0) == (engine == "refined grid")
-        idx, d2, mask, overflow = jax.jit(query_radius, static_argnums=2)(grid, queries, capacity)
+        search = jax.jit(radius_search, static_argnums=3)
+        idx, d2, mask, overflow = search(queries, grid, radius, capacity)
     lists = spatial.cKDTree(points).query_ball_point(queries, radius)
     counts = np.array([len(x) for x in lists])
     assert (counts > capacity).any() and (counts <= capacity).any()
@@ -336,10 +335,15 @@ def test_radius_search_matches_ckdtree(engine):
         assert np.all(idx[i][~mask[i]] == len(points))
 
 
-def test_query_radius_needs_an_unpruned_grid():
+def test_grid_searches_need_the_right_grid_and_no_point_options():
     points = np.random.default_rng(10).uniform(0, 1, (50, 3))
+    pruned = build_grid(points, 0.3)
     with pytest.raises(ValueError, match="k=None"):
-        query_radius(build_grid(points, 0.3), points, 8)
+        radius_search(points, pruned, 0.3, 8)
+    with pytest.raises(ValueError, match="grid holds the points"):
+        knn(points, pruned, 1, mask=np.ones(50, bool))
+    with pytest.raises(ValueError, match="grid holds the points"):
+        radius_search(points, build_grid(points, 0.3, k=None), 0.3, 8, block=8)
 
 
 def test_build_grid_rejects_bad_input():

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from jaxreg.io import load_points
-from jaxreg.search.neighbors import build_grid, query_knn, voxel_downsample
+from jaxreg.search.neighbors import build_grid, knn, voxel_downsample
 from jaxreg.search.normals import NormalStatus, estimate_normals, estimate_normals_with_curvature
 
 # One compiled function per shape (eager dispatch would compile every primitive instead).
@@ -95,7 +95,7 @@ def test_grid_neighbours_give_the_same_normals():
     points, _ = plane_cloud(np.random.default_rng(3), 500)
     points = points.astype(np.float32)
     grid = build_grid(points, 0.02, k=10, max_depth=1)
-    idx, _, ok = query_knn(grid, points, 10)
+    idx, _, ok = knn(points, grid, 10)
     assert bool(ok.all())
     a = normals_of(points, neighbors=(idx, ok))  # k is then unused
     b = normals_of(points, 10)

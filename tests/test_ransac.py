@@ -154,7 +154,9 @@ def test_fpfh_ransac_icp_recovers_the_carton_in_the_kinect_scene_like_open3d(pcl
     source_fine, target_fine = voxel_downsample(model, fine), voxel_downsample(scene, fine)
     fine_normals = estimate_normals(target_fine, k=30)
 
-    features = [fpfh(c, estimate_normals(c, k=30), radius=5 * voxel) for c in (source, target)]
+    features = [
+        fpfh(c, estimate_normals(c, k=30), radius=5 * voxel).histograms for c in (source, target)
+    ]
     coarse = ransac_registration(
         source,
         target,

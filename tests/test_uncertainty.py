@@ -15,13 +15,16 @@ from jaxreg.search.neighbors import build_grid, voxel_downsample
 from jaxreg.search.normals import estimate_normals
 from jaxreg.uncertainty import (
     DepthNoise,
+    GraspPrediction,
     IsotropicNoise,
     PointCovariance,
     error_budget,
     grasp_margin,
+    grasp_prediction,
     grasp_success_probability,
     pose_statistics,
 )
+from jaxreg.uncertainty.budget import SOURCES, combine
 
 DEG = 180 / np.pi
 
@@ -597,6 +600,57 @@ def test_grasp_success_probability_matches_the_normal_distribution():
     assert all(np.isfinite(g) for g in grads)
     d_sigma = jax.grad(grasp_success_probability)(3.0, 0.0, 7.5)
     assert float(d_sigma) < 0  # more noise, fewer grasps
+
+
+def test_grasp_prediction_across_the_narrowest_axis():
+    """A 60 x 40 x 30 mm box turned about x by 30 degrees: the jaws close along its 30 mm
+    side (the turned z axis); each number checked against one computed here."""
+    c, s = np.cos(np.radians(30)), np.sin(np.radians(30))
+    turn = np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+    lattice = np.stack(np.meshgrid(*(np.linspace(-1, 1, 9),) * 3, indexing="ij"), -1)
+    lattice = lattice.reshape(-1, 3)
+    surface = lattice[np.abs(lattice).max(1) == 1]  # symmetric: the box's axes are principal
+    points = (surface * [0.03, 0.02, 0.015]) @ turn.T
+    jaw = turn[:, 2]
+    block = np.array([[4.0, 1.0, 0.5], [1.0, 9.0, 2.0], [0.5, 2.0, 16.0]]) * 1e-5
+    covariance = np.zeros((6, 6))
+    covariance[:3, :3] = block
+    covariance[3:, 3:] = np.eye(3) * 1e-4
+    grasp = grasp_prediction(points, covariance, opening=0.045)
+    assert isinstance(grasp, GraspPrediction)
+    assert abs(grasp.axis @ jaw) == pytest.approx(1.0, abs=1e-6)
+    assert grasp.width == pytest.approx(0.03, abs=1e-9)
+    assert grasp.margin == pytest.approx(0.0075, abs=1e-8)
+    sigma = math.sqrt(jaw @ block @ jaw)
+    assert grasp.lateral_sigma == pytest.approx(sigma, rel=1e-9)
+    normal = NormalDist(0.0, sigma)
+    assert grasp.probability == pytest.approx(normal.cdf(0.0075) - normal.cdf(-0.0075), abs=1e-6)
+    # A known error: its component along the jaws is the bias.
+    offset = 0.004 * jaw + np.array([0.01, 0.0, 0.0])  # the x part is along the jaws' faces
+    assert grasp.lateral_error(offset) == pytest.approx(0.004, abs=1e-9)
+    biased = NormalDist(0.004, sigma)
+    expected = biased.cdf(0.0075) - biased.cdf(-0.0075)
+    assert grasp.probability_with_error(offset) == pytest.approx(expected, abs=1e-6)
+    # A friction allowance takes from the margin; a budget gives its total's numbers.
+    assert grasp_prediction(points, covariance, 0.045, 0.002).margin == pytest.approx(0.0055)
+    terms = {name: np.zeros((6, 6)) for name in SOURCES}
+    terms["depth"], terms["fit"] = 0.25 * covariance, 0.75 * covariance
+    from_budget = grasp_prediction(points, combine(terms, np.zeros(6, bool), None), 0.045)
+    assert from_budget.lateral_sigma == pytest.approx(sigma, rel=1e-9)
+    # A free translation across the jaws: no finite sigma, no claimed probability.
+    free = covariance.copy()
+    free[2, :] = free[:, 2] = 0.0
+    free[2, 2] = np.inf
+    unknown = grasp_prediction(points, free, 0.045)
+    assert unknown.lateral_sigma == np.inf and math.isnan(unknown.probability)
+    assert math.isnan(unknown.probability_with_error(offset))
+    for bad, match in (
+        ((points[:2], covariance, 0.045), "shape"),
+        ((points, covariance[:3, :3], 0.045), "shape"),
+        ((points, covariance, 0.0), "opening"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            grasp_prediction(*bad)
 
 
 def test_error_budget_root_sum_square():

@@ -10,7 +10,6 @@ from jaxreg.camera.model import (
     Intrinsics as Intrinsics,
     RGBDFrame as RGBDFrame,
     apply_intrinsics as apply_intrinsics,
-    canonical_dist_coeffs as canonical_dist_coeffs,
     distort as distort,
     pose_jacobian as pose_jacobian,
     project as project,

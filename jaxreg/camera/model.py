@@ -35,7 +35,6 @@ __all__ = [
     "Intrinsics",
     "RGBDFrame",
     "apply_intrinsics",
-    "canonical_dist_coeffs",
     "distort",
     "pose_jacobian",
     "project",

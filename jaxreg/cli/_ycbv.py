@@ -12,7 +12,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from jaxreg.cli.commands import _emit, _pose_options, _progress, add_truth_errors, build_report
+from jaxreg.cli.commands import (
+    _emit,
+    _pose_options,
+    _progress,
+    add_truth_errors,
+    build_report,
+    truth_offset,
+)
 from jaxreg.io.ycbv import read_ycbv
 from jaxreg.pipeline.estimate import estimate_pose
 
@@ -68,7 +75,9 @@ def run_pose_ycbv(args) -> int:
     progress = _progress(args.json)
     estimate = estimate_pose(frame, model, progress=progress, **options)
     progress(None)
-    report = build_report(estimate, model, args.gripper_opening)
+    report = build_report(
+        estimate, model, args.gripper_opening, truth_offset(estimate, instance.truth)
+    )
     add_truth_errors(report, estimate, instance.truth, model, options["symmetry"])
     report["scene"] = str(args.ycbv)
     report["ycbv"] = {

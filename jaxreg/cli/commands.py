@@ -85,70 +85,40 @@ def _clean(value):
     return value
 
 
-def _grasp_axis(model_points: np.ndarray, budget):
-    """A parallel-jaw grasp across the model's narrowest principal axis: the axis ``(3,)``
-    (object frame), the model's width along it and the lateral sigma along it (host numpy).
-
-    The jaws close along the axis of least extent; the lateral error along it is Gaussian
-    with the sigma that the whole error budget gives it (the total covariance's translation
-    block, object frame). :func:`_report_numbers` turns them into the margin
-    (:func:`jaxreg.grasp_margin`) and the predicted success; ``axis`` is reported so that a
-    known error can be added as a bias (:func:`measured_grasp`).
-    """
-    from jaxreg.uncertainty.budget import grasp_axis
-
-    centred = model_points - model_points.mean(0)
-    axis = grasp_axis(model_points)
-    along = centred @ axis
-    return axis, float(along.max() - along.min()), budget.lateral_sigma(axis)
-
-
-def _grasp(opening, width, margin, sigma, probability, axis) -> dict:
-    return {
-        "gripper_opening_mm": round(opening * 1e3, 1),
-        "object_width_mm": round(width * 1e3, 1),
-        "margin_per_side_mm": round(margin * 1e3, 2),
-        "lateral_sigma_mm": round(sigma * 1e3, 3),
-        "probability": probability if math.isfinite(sigma) else None,
-        "axis": axis.tolist(),
+def _grasp(prediction, offset=None) -> dict:
+    """The report's grasp: a :class:`jaxreg.uncertainty.grasp.GraspPrediction` in mm, and
+    with a known error ``offset`` (the true object origin in the estimated object frame,
+    ``(3,)`` metres) the chance this frame would have if its error were known."""
+    grasp = {
+        "gripper_opening_mm": round(prediction.opening * 1e3, 1),
+        "object_width_mm": round(prediction.width * 1e3, 1),
+        "margin_per_side_mm": round(prediction.margin * 1e3, 2),
+        "lateral_sigma_mm": round(prediction.lateral_sigma * 1e3, 3),
+        "probability": prediction.probability,
+        "axis": prediction.axis.tolist(),
+        "equivalent_turns_keeping_the_axis": round(prediction.turn_share, 3),
     }
+    if offset is not None and math.isfinite(prediction.probability):
+        grasp["measured_lateral_error_mm"] = round(prediction.lateral_error(offset) * 1e3, 3)
+        grasp["probability_with_measured_error"] = prediction.probability_with_error(offset)
+    return grasp
 
 
 @persistent_jit
-def _report_numbers(pose, opening, width, sigma):
-    """The pose's ``(4, 4)`` matrix, the grasp margin per side of a gripper ``opening`` around
-    ``width``, and the grasp's predicted success with lateral ``sigma`` and no bias (all
-    metres), as one compiled program (each eager operation would be a program of its own to
-    load)."""
-    from jaxreg.uncertainty import grasp_margin, grasp_success_probability
-
-    margin = grasp_margin(opening, width)
-    return pose.as_matrix(), margin, grasp_success_probability(sigma, 0.0, margin)
+def _pose_matrix(pose):
+    """``(4, 4)`` matrix of ``pose``, as one stored program (each eager operation would be a
+    program of its own to load)."""
+    return pose.as_matrix()
 
 
-@persistent_jit
-def _measured_probability(sigma, bias, margin):
-    """:func:`jaxreg.grasp_success_probability`, as a stored program."""
-    from jaxreg.uncertainty import grasp_success_probability
+def build_report(estimate, model_points: np.ndarray, opening: float, offset=None) -> dict:
+    """The JSON report of a :class:`jaxreg.pipeline.PoseEstimate` whose model is
+    ``model_points`` ``(N, 3)``, with the grasp of a parallel gripper of this ``opening``
+    (metres; :func:`jaxreg.grasp_prediction`) and, where the true pose is known, the grasp's
+    chance with this frame's error ``offset`` (the true object origin in the estimated object
+    frame, ``(3,)`` metres) as a bias."""
+    from jaxreg.uncertainty.grasp import grasp_prediction
 
-    return grasp_success_probability(sigma, bias, margin)
-
-
-def measured_grasp(grasp: dict, offset: np.ndarray) -> dict:
-    """The report's grasp (:func:`build_report`) with this frame's measured error (``offset``, the
-    true object origin in the estimated object frame, ``(3,)`` metres; its component along the
-    jaw axis) as the bias: the chance this frame would have if its error were known."""
-    bias = abs(float(np.asarray(grasp["axis"]) @ np.asarray(offset, np.float64)))
-    sigma, margin = grasp["lateral_sigma_mm"] * 1e-3, grasp["margin_per_side_mm"] * 1e-3
-    probability = _measured_probability(*np.float32([sigma, bias, margin]))
-    return {
-        "measured_lateral_error_mm": round(bias * 1e3, 3),
-        "probability_with_measured_error": float(probability),
-    }
-
-
-def build_report(estimate, model_points: np.ndarray, opening: float) -> dict:
-    """The JSON report of a :class:`jaxreg.pipeline.PoseEstimate`."""
     found = estimate.pose is not None
     report = {
         "pose": None,
@@ -160,11 +130,7 @@ def build_report(estimate, model_points: np.ndarray, opening: float) -> dict:
         "predicted_grasp_success": None,
     }
     if found:
-        axis, width, lateral = _grasp_axis(model_points, estimate.budget)
-        matrix, margin, probability = _report_numbers(
-            estimate.pose, *np.float32([opening, width, lateral])
-        )
-        report["pose"] = np.asarray(matrix).tolist()
+        report["pose"] = np.asarray(_pose_matrix(estimate.pose)).tolist()
         sources = {
             name: {
                 "translation_sigma_mm": (translation * 1e3).round(4).tolist(),
@@ -184,7 +150,17 @@ def build_report(estimate, model_points: np.ndarray, opening: float) -> dict:
             ],
             "free_reason": estimate.budget.free_reason,
         }
-        grasp = _grasp(opening, width, float(margin), lateral, float(probability), axis)
+        report["equivalent_poses"] = [turn.as_dict() for turn in estimate.equivalent_poses]
+        rotation = np.asarray(estimate.pose.rotation().as_matrix(), np.float64)
+        turns = [
+            rotation.T @ np.asarray(turn.pose.rotation().as_matrix(), np.float64)
+            for turn in estimate.equivalent_poses
+        ]
+        weights = [turn.weight for turn in estimate.equivalent_poses]
+        prediction = grasp_prediction(
+            model_points, estimate.budget, opening, turns=turns, turn_weights=weights
+        )
+        grasp = _grasp(prediction, offset)
         report["grasp"] = grasp
         report["predicted_grasp_success"] = grasp["probability"]
     return _clean(report)
@@ -215,7 +191,8 @@ def print_report(report: dict, stages: dict, title: str, out=sys.stdout) -> None
             f"({seg.plane_inlier_fraction:.0%}); {len(seg.cluster_sizes)} clusters above it "
             f"(sizes {seg.cluster_sizes})"
         )
-    for c in (seg.candidates if seg is not None else None) or []:
+    reg = stages.get("register")
+    for c in (reg.candidates if reg is not None else None) or []:
         line(
             f"           candidate {c.clusters or 'mask'}: score {c.score:.2f} (model explains "
             f"{c.explained:.0%}, image contradicts {c.contradicted:.0%})"
@@ -230,8 +207,7 @@ def print_report(report: dict, stages: dict, title: str, out=sys.stdout) -> None
                 f"{lift.points} points"
             )
         line(text)
-    reg = stages.get("register")
-    if reg is not None:
+    if reg is not None and reg.refined_starts is not None:
         residual = "none" if reg.inlier_rmse_mm is None else f"{reg.inlier_rmse_mm:.2f} mm"
         line(
             f"  register {reg.ms:8.1f} ms  {reg.starts} starts, best {reg.refined_starts} "
@@ -266,6 +242,17 @@ def print_report(report: dict, stages: dict, title: str, out=sys.stdout) -> None
         )
     if budget["free_axes"]:
         line(f"    free ({', '.join(budget['free_axes'])}): {budget['free_reason']}")
+    turns = report.get("equivalent_poses") or []
+    if turns:
+        line(
+            f"  depth cannot decide between this pose and {len(turns)} turn(s) of the model "
+            "that fit as well (in the ambiguity term):"
+        )
+        for turn in turns:
+            line(
+                f"    {turn['angle_deg']:+.0f} deg about {turn['axis']}: weight "
+                f"{turn['weight']:.2f}, residual {turn['inlier_rmse_mm']:.2f} mm"
+            )
     g = report["grasp"]
     if g["probability"] is not None:
         line(
@@ -273,6 +260,11 @@ def print_report(report: dict, stages: dict, title: str, out=sys.stdout) -> None
             f"{g['object_width_mm']:.0f} mm width leaves {g['margin_per_side_mm']:.1f} mm per "
             f"side; lateral sigma {g['lateral_sigma_mm']:.2f} mm (the whole budget) -> "
             f"predicted success {g['probability']:.1%}"
+            + (
+                f" ({g['equivalent_turns_keeping_the_axis']:.0%} of the equally good turns "
+                "keep the jaws' axis)"
+                if turns else ""
+            )
         )
     if g.get("probability_with_measured_error") is not None:
         line(
@@ -371,35 +363,37 @@ def _emit(args, report: dict, title: str, frame, estimate, model_points, truth=N
 
 @persistent_jit
 def _truth_errors(pose, truth, model_points, symmetry):
-    """Translation (m), rotation (rad), ADD and ADD-S (m) errors of ``pose`` against ``truth``,
-    and the true object origin in the estimated object frame ``(3,)`` (m), in one compiled
-    program (each eager operation would be a program of its own to load). ADD counts a turn
-    that ``symmetry`` declares as no error; without one, every turn is error."""
+    """Translation (m), rotation (rad), ADD and ADD-S (m) errors of ``pose`` against
+    ``truth``. ADD counts a turn that ``symmetry`` declares as no error; without one, every
+    turn is error."""
     from jaxreg.geometry.metrics import add, add_s, pose_error
 
     translation, rotation = pose_error(pose, truth, symmetry=symmetry)
-    offset = (pose.inverse() @ truth).translation()
     errors = add(model_points, pose, truth, symmetry=symmetry), add_s(model_points, pose, truth)
-    return translation, rotation, *errors, offset
+    return translation, rotation, *errors
+
+
+def truth_offset(estimate, truth) -> np.ndarray | None:
+    """The true object origin in the estimated object frame ``(3,)`` (metres): the error a
+    grasp planned on the estimate meets (:func:`build_report`'s ``offset``); ``None``
+    without a pose."""
+    if estimate.pose is None:
+        return None
+    return np.asarray((estimate.pose.inverse() @ truth).translation(), np.float64)
 
 
 def add_truth_errors(report: dict, estimate, truth, model_points, symmetry) -> None:
     """Adds the errors of ``estimate`` against the known ``truth`` (``SE3`` base_T_object) to
     ``report`` (:func:`build_report`): ``translation_error_mm``, ``rotation_error_deg``,
-    ``add_mm``, ``add_s_mm`` (None without a pose), ``truth`` (the ``(4, 4)`` pose) and the
-    grasp's chance with this frame's measured error (:func:`measured_grasp`)."""
+    ``add_mm``, ``add_s_mm`` (None without a pose) and ``truth`` (the ``(4, 4)`` pose)."""
     keys = ("translation_error_mm", "rotation_error_deg", "add_mm", "add_s_mm")
     report.update(dict.fromkeys(keys))
     report["truth"] = np.asarray(truth.as_matrix(), np.float64).tolist()
     if estimate.pose is None:
         return
-    t_err, r_err, add_m, add_s_m, offset = _truth_errors(
-        estimate.pose, truth, model_points, symmetry
-    )
+    t_err, r_err, add_m, add_s_m = _truth_errors(estimate.pose, truth, model_points, symmetry)
     errors = (float(t_err) * 1e3, float(np.degrees(r_err)), float(add_m) * 1e3, add_s_m * 1e3)
     report.update({key: round(float(value), 3) for key, value in zip(keys, errors, strict=True)})
-    if report["grasp"]["probability"] is not None:
-        report["grasp"].update(measured_grasp(report["grasp"], offset))
 
 
 def run_demo(args) -> int:
@@ -426,7 +420,9 @@ def run_demo(args) -> int:
         scene.frame, model, symmetry=symmetry, depth_noise=noise, progress=progress
     )
     progress(None)
-    report = build_report(estimate, model, args.gripper_opening)
+    report = build_report(
+        estimate, model, args.gripper_opening, truth_offset(estimate, scene.truth)
+    )
     add_truth_errors(report, estimate, scene.truth, scene.model_points, symmetry)
     report["scene"] = {"seed": args.seed, "object": args.object, "distractors": 2}
     title = f"jaxreg demo: a {args.object} (seed {args.seed})"
@@ -462,29 +458,16 @@ def _symmetry(spec: str | None):
     )
 
 
-def _read_mask(path: Path) -> np.ndarray:
-    """``(H, W)`` bool of a mask image: True where any channel is nonzero."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as image:
-            values = np.asarray(image)
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such file") from None
-    except OSError as error:
-        raise ValueError(f"{path}: not a readable mask image ({error})") from None
-    return values.any(axis=-1) if values.ndim == 3 else values != 0
-
-
 def _pose_options(args, frame) -> dict:
     """``estimate_pose``'s options from ``jaxreg pose``'s arguments."""
+    from jaxreg.io import read_mask
     from jaxreg.uncertainty import DepthNoise
 
     options = {"symmetry": _symmetry(args.symmetry)}
     if args.depth_noise is not None:
         options["depth_noise"] = DepthNoise(tuple(args.depth_noise), frame.base_T_camera)
     if args.mask is not None:
-        options["mask"] = _read_mask(args.mask)
+        options["mask"] = read_mask(args.mask)
     if args.pixel is not None:
         options["pixel"] = tuple(args.pixel)
     if args.box is not None:

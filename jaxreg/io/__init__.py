@@ -1,7 +1,7 @@
 """Files in and out: PCD (every variant PCL writes, LZF-compressed included), meshes and point
-files through trimesh, RGB-D frames (organized PCD, or a depth PNG with intrinsics JSON),
-BOP datasets in and BOP result CSVs out, and YCB-Video frames with their annotated objects
-(and written as a BOP split).
+files through trimesh, RGB-D frames (organized PCD, or a depth PNG with intrinsics JSON), object
+masks, depth and colour images, BOP datasets in and BOP result CSVs out, and YCB-Video frames
+with their annotated objects (and written as a BOP split).
 
 Readers return metres and raise ``ValueError`` naming the file and what is wrong with it. May
 import :mod:`jaxreg.core`, :mod:`jaxreg.geometry` and :mod:`jaxreg.camera`.
@@ -26,6 +26,12 @@ from jaxreg.io.clouds import (
     write_ply as write_ply,
 )
 from jaxreg.io.frames import read_frame as read_frame, write_frame as write_frame
+from jaxreg.io.images import (
+    read_depth_counts as read_depth_counts,
+    read_image_size as read_image_size,
+    read_mask as read_mask,
+    read_rgb as read_rgb,
+)
 from jaxreg.io.ycbv import (
     YcbvFrame as YcbvFrame,
     YcbvInstance as YcbvInstance,

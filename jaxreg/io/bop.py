@@ -31,16 +31,10 @@ from pathlib import Path
 import numpy as np
 
 from jaxreg.camera.model import Intrinsics, RGBDFrame
-from jaxreg.io._bop_files import (
-    load_json,
-    numbers,
-    read_counts,
-    read_image_size,
-    read_mask,
-    read_rgb,
-)
+from jaxreg.io._bop_files import load_json, numbers
 from jaxreg.io._bop_models import MM, BopModel, read_models
 from jaxreg.io._bop_results import BopResult, read_bop_results, write_bop_results
+from jaxreg.io.images import read_depth_counts, read_image_size, read_mask, read_rgb
 
 __all__ = [
     "BopModel",
@@ -200,7 +194,8 @@ class BopSplit:
     def intrinsics(self, scene_id: int, im_id: int) -> Intrinsics:
         """The image's pinhole `Intrinsics` (size from camera.json, else the depth PNG)."""
         K = self._camera(scene_id, im_id).K
-        height, width = self._size or read_image_size(self._depth_path(scene_id, im_id), "depth")
+        depth = self._depth_path(scene_id, im_id)
+        height, width = self._size or read_image_size(depth, "depth image")
         return Intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height)
 
     def _depth_path(self, scene_id: int, im_id: int) -> Path:
@@ -215,7 +210,7 @@ class BopSplit:
                 f"{self._folder(scene_id) / 'scene_camera.json'}: image {im_id} has no "
                 "depth_scale (millimetres per depth count)"
             )
-        counts = read_counts(path)
+        counts = read_depth_counts(path, "BOP depth image")
         if self._size is not None and counts.shape != self._size:
             raise ValueError(
                 f"{path}: the image is {counts.shape} (height, width) but camera.json says "
@@ -251,7 +246,7 @@ class BopSplit:
             return None
         mask = read_mask(path)
         expected = self._size or read_image_size(
-            self._depth_path(target.scene_id, target.im_id), "depth"
+            self._depth_path(target.scene_id, target.im_id), "depth image"
         )
         if mask.shape != tuple(expected):
             raise ValueError(f"{path}: {mask.shape} pixels, the depth image {tuple(expected)}")

@@ -38,6 +38,7 @@ from PIL import Image
 from jaxreg.camera.model import Intrinsics, RGBDFrame
 from jaxreg.geometry.lie import se3_to_matrix
 from jaxreg.io.clouds import read_pcd
+from jaxreg.io.images import read_depth_counts, read_rgb
 
 __all__ = ["read_frame", "write_frame"]
 
@@ -111,33 +112,11 @@ def _load_json(path: Path) -> dict:
     return meta
 
 
-def _read_png(path: Path, mode: str) -> np.ndarray:
-    """A 16-bit single-channel (`mode == "depth"`) or 8-bit RGB (`"rgb"`) image as numpy."""
-    try:
-        image = Image.open(path)
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such file") from None
-    except OSError as error:
-        raise ValueError(f"{path}: not a readable image ({error})") from None
-    with image:
-        if mode == "rgb":
-            return np.asarray(image.convert("RGB"))
-        if image.mode not in ("I;16", "I;16B", "I;16L", "I"):
-            raise ValueError(
-                f"{path}: a depth PNG must be one 16-bit channel of counts, got Pillow mode "
-                f"{image.mode!r}; save depth as uint16 (millimetres with depth_scale 0.001)"
-            )
-        counts = np.asarray(image)
-    if counts.min() < 0 or counts.max() > _UINT16_MAX:
-        raise ValueError(f"{path}: depth counts outside 0..65535")
-    return counts.astype(np.uint16)
-
-
 def _checked_rgb(path: Path, rgb, shape: tuple[int, int]) -> np.ndarray:
     """The colour image `rgb` (a file or an `(H, W, 3)` array) as uint8, checked to have the
     depth image's `(H, W)` `shape`; `path` is the depth's file, named in the error."""
     if isinstance(rgb, str | Path):
-        source, image = Path(rgb), _read_png(Path(rgb), "rgb")
+        source, image = Path(rgb), read_rgb(Path(rgb))
     else:
         source, image = "the rgb array", np.asarray(rgb)
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
@@ -175,8 +154,8 @@ def _frame_from_png(
         if base_T_camera is None and "base_T_camera" in meta:
             base_T_camera = np.asarray(meta["base_T_camera"], dtype=np.float64)
         if "rgb" in meta and rgb_file is None:
-            rgb = _read_png(json_path.parent / meta["rgb"], "rgb")
-    counts = _read_png(path, "depth")
+            rgb = read_rgb(json_path.parent / meta["rgb"])
+    counts = read_depth_counts(path, "depth PNG")
     if counts.shape != intrinsics.shape:
         raise ValueError(
             f"{path}: the depth image is {counts.shape[1]}x{counts.shape[0]} (width x height) "

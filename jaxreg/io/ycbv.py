@@ -32,7 +32,7 @@ import numpy as np
 
 from jaxreg.camera.model import Intrinsics, RGBDFrame
 from jaxreg.geometry.lie import SE3
-from jaxreg.io._bop_files import _open, read_counts, read_rgb
+from jaxreg.io.images import _open, read_depth_counts, read_rgb
 
 __all__ = ["YcbvFrame", "YcbvInstance", "read_ycbv", "read_ycbv_models"]
 
@@ -200,7 +200,7 @@ def _read_meta(path: Path):
 def _read_frame(prefix: Path, name: str, models: dict[str, np.ndarray] | None) -> YcbvFrame:
     K, factor, classes, poses = _read_meta(Path(f"{prefix}-meta.mat"))
     depth_path = Path(f"{prefix}-depth.png")
-    counts = read_counts(depth_path)
+    counts = read_depth_counts(depth_path)
     height, width = counts.shape
     rgb_path, label_path = Path(f"{prefix}-color.png"), Path(f"{prefix}-label.png")
     rgb, label = read_rgb(rgb_path), _read_label(label_path)

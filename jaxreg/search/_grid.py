@@ -55,7 +55,8 @@ class NeighborGrid(eqx.Module):
         overflow: ``()`` True when some leaf had more candidates than ``capacity`` at the
             maximum depth and was truncated: queries may then be inexact.
         k: static: the grid answers kNN queries for up to ``k`` neighbours; ``None`` keeps
-            every point within ``max_distance`` (needed by :func:`query_radius`).
+            every point within ``max_distance`` (radius queries need it:
+            :func:`~jaxreg.search.neighbors.radius_search`).
     """
 
     origin: Float[Array, "3"]
@@ -224,9 +225,9 @@ def build_grid(
         max_distance: radius within which queries are exact (ICP: the largest
             ``max_correspondence_distance`` of its schedule). Larger radii cost build time
             and memory, not query time.
-        k: the largest ``k`` that :func:`query_knn` will ask for (1 for ICP, the default);
-            ``None`` keeps every point within ``max_distance`` of a leaf, as
-            :func:`query_radius` needs.
+        k: the largest ``k`` that :func:`~jaxreg.search.neighbors.knn` will ask for (1 for
+            ICP, the default); ``None`` keeps every point within ``max_distance`` of a leaf, as
+            :func:`~jaxreg.search.neighbors.radius_search` needs.
         capacity: candidate slots per leaf. ``None``: refine leaves to at most 48
             candidates for ``k == 1`` (``max(32, 2 k)`` otherwise) and size the capacity on
             the host (the longest list rounded up to a multiple of 16) so nothing is

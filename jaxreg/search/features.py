@@ -49,17 +49,18 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg.search.neighbors import radius_search, valid_rows
+from jaxreg.geometry._brute import valid_rows
+from jaxreg.search.neighbors import radius_search
 from jaxreg.search.normals import _host_knn, _is_concrete
 
-__all__ = ["FPFH", "FeatureMatches", "compute_fpfh", "fpfh", "match_features"]
+__all__ = ["FPFH", "FeatureMatches", "fpfh", "match_features"]
 
 BINS = 11
 DIM = 3 * BINS
 
 
 class FPFH(eqx.Module):
-    """Result of :func:`compute_fpfh` for ``N`` points.
+    """Result of :func:`fpfh` for ``N`` points.
 
     Attributes:
         histograms: ``(N, 33)`` descriptors (theta, alpha, phi; 11 bins each); zero rows
@@ -162,7 +163,7 @@ def _histograms(points, normals, ok, idx, nbr_ok, overflow) -> FPFH:
     return FPFH(histograms, valid, count.astype(jnp.int32), overflow & valid)
 
 
-def compute_fpfh(
+def fpfh(
     points: Float[ArrayLike, "N 3"],
     normals: Float[ArrayLike, "N 3"],
     *,
@@ -222,21 +223,6 @@ def compute_fpfh(
     # The point itself is not its own neighbour (a duplicate of it is, at zero distance).
     nbr_ok = jnp.asarray(nbr_ok) & (idx != jnp.arange(n)[:, None])
     return _histograms(points, normals, ok, idx, nbr_ok, jnp.asarray(overflow))
-
-
-def fpfh(
-    points: Float[ArrayLike, "N 3"],
-    normals: Float[ArrayLike, "N 3"],
-    *,
-    radius: float,
-    max_neighbors: int = 100,
-    mask: Bool[ArrayLike, " N"] | None = None,
-) -> Float[Array, "N 33"]:
-    """``(N, 33)`` FPFH descriptors (zero rows where undefined); see :func:`compute_fpfh`
-    for the arguments, validity and overflow flags."""
-    return compute_fpfh(
-        points, normals, radius=radius, max_neighbors=max_neighbors, mask=mask
-    ).histograms
 
 
 class FeatureMatches(eqx.Module):
@@ -320,7 +306,7 @@ def match_features(
     ``ratio`` times the second nearest (Lowe's test; 0.8-0.95 suits FPFH).
 
     Args:
-        source_features: ``(N, D)`` descriptors (e.g. :func:`fpfh`).
+        source_features: ``(N, D)`` descriptors (e.g. :func:`fpfh`'s ``histograms``).
         target_features: ``(M, D)`` descriptors of the same kind.
         mutual: keep mutual nearest neighbours only.
         ratio: optional ratio-test threshold in ``(0, 1]``.

@@ -4,8 +4,11 @@ Two engines, one contract (jax-md's neighbour lists): capacities are fixed on th
 missing neighbours are the sentinel index ``M`` (the number of target rows) with ``inf``
 distance and a False mask, and overflow is reported, never silently dropped.
 
+Both are reached through the same entry points, :func:`knn` and :func:`radius_search`, whose
+target is either the points or a grid built on them; :func:`query_nearest` is the grid's 1-NN.
+
 * **The grid** (:class:`NeighborGrid`; :func:`build_grid` on the host, then the jittable
-  :func:`query_nearest`, :func:`query_knn`, :func:`query_radius`). A target indexed once
+  :func:`query_nearest`, :func:`knn` and :func:`radius_search` on it). A target indexed once
   and passed into ``jit`` / ``vmap`` as a pytree: the structure ICP queries every iteration
   while the source moves, and that many starts share. A uniform grid of cells at least
   ``max_distance`` wide covers the target's bounding box grown by ``max_distance``; each
@@ -37,8 +40,9 @@ distance and a False mask, and overflow is reported, never silently dropped.
   rotated) give grids of identical shapes, so a jitted function taking the grid as an
   argument compiles once for all of them.
 
-* **Blocked brute force** (:func:`knn`, :func:`radius_search`): exact and jittable with the
-  target traced (no host step); the reference the grid is tested against.
+* **Blocked brute force** (:func:`knn`, :func:`radius_search` on the points,
+  :mod:`jaxreg.geometry._brute`): exact and jittable with the target traced (no host step);
+  the reference the grid is tested against.
 
 Which to use (``benchmarks/bench_neighbors.py`` on milk.pcd, 13.7k points and its 4 mm
 downsample of 3.7k, radius 2 cm, on the project's shared 2-core CPU, where timings vary up
@@ -53,11 +57,11 @@ to ~2x between runs):
   exact ``k`` nearest of a concrete cloud with compiled host loops
   (:func:`jaxreg.search._knn.self_knn`, about twice as fast as scipy's cKDTree build + query on
   the full milk.pcd), and falls back to brute
-  force when the cloud is traced. A ``k``-NN grid (``build_grid(k=20)`` then
-  :func:`query_knn`) serves jitted code that queries one target repeatedly.
+  force when the cloud is traced. A ``k``-NN grid (``build_grid(k=20)`` then :func:`knn` on
+  it) serves jitted code that queries one target repeatedly.
 * Radius neighbourhoods (features): on a concrete cloud FPFH uses ``self_knn`` capped at the
   radius (the nearest ``max_neighbors`` within it, Open3D's hybrid search); jitted code a
-  radius grid (``k=None``) and :func:`query_radius`.
+  radius grid (``k=None``) and :func:`radius_search` on it.
 * On GPUs brute force's distance matrix is one cheap matrix product.
 
 A kd-tree in JAX was not written: its traversal is a data-dependent loop per query, which
@@ -78,13 +82,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg.geometry._brute import (
-    check_queries,
-    knn as knn,
-    pad_slots,
-    radius_search as radius_search,
-    valid_rows as valid_rows,
-)
+from jaxreg.geometry import _brute
+from jaxreg.geometry._brute import check_queries, pad_slots
 from jaxreg.search._grid import (
     NeighborGrid as NeighborGrid,
     build_grid as build_grid,
@@ -97,11 +96,8 @@ __all__ = [
     "build_grid",
     "knn",
     "pad_grid",
-    "query_knn",
     "query_nearest",
-    "query_radius",
     "radius_search",
-    "valid_rows",
     "validate_grid",
     "voxel_downsample",
 ]
@@ -196,26 +192,8 @@ def query_nearest(
     return index, sq, valid
 
 
-def query_knn(
-    grid: NeighborGrid, queries: ArrayLike, k: int, max_distance: ArrayLike | None = None
-) -> tuple[Int[Array, "N k"], Float[Array, "N k"], Bool[Array, "N k"]]:
-    """The ``k`` nearest target points of each query within ``max_distance`` (jittable).
-
-    Args:
-        grid: from :func:`build_grid` with ``grid.k >= k`` (or ``k=None``).
-        queries: ``(N, 3)`` points in the target's frame.
-        k: static number of neighbours.
-        max_distance: ``()`` acceptance radius, default and maximum ``grid.max_distance``.
-
-    Returns:
-        ``indices (N, k)``, ``sq_dists (N, k)`` sorted nearest first, and ``mask (N, k)``;
-        neighbours beyond ``max_distance`` (or missing) are the sentinel ``grid.num_points``
-        with ``inf`` distance. Exact within ``max_distance`` unless ``grid.overflow``.
-
-    Raises:
-        ValueError: ``k`` exceeds what the grid was built for.
-    """
-    queries = check_queries(queries)
+def _grid_knn(grid: NeighborGrid, queries: Array, k: int, max_distance) -> tuple:
+    """:func:`knn` on a grid (``queries`` checked)."""
     if grid.k is not None and k > grid.k:
         raise ValueError(f"grid was built for k <= {grid.k}; rebuild with k={k} or more")
     leaf, inside = _leaf(grid, queries)
@@ -230,29 +208,10 @@ def query_knn(
     return pad_slots(index, sq, mask, k, grid.num_points)
 
 
-def query_radius(
-    grid: NeighborGrid, queries: ArrayLike, capacity: int, radius: ArrayLike | None = None
-) -> tuple[Int[Array, "N c"], Float[Array, "N c"], Bool[Array, "N c"], Bool[Array, " N"]]:
-    """All target points within ``radius`` of each query, up to ``capacity`` (jittable).
-
-    Args:
-        grid: from :func:`build_grid` with ``k=None``.
-        queries: ``(N, 3)`` points in the target's frame.
-        capacity: static neighbour slots per query.
-        radius: ``()`` search radius, default and maximum ``grid.max_distance``.
-
-    Returns:
-        ``indices (N, capacity)`` and ``sq_dists (N, capacity)`` sorted nearest first,
-        ``mask (N, capacity)``, and ``overflow (N,)``: more than ``capacity`` points lie
-        within ``radius`` (the nearest ``capacity`` are kept). Padding is the sentinel
-        ``grid.num_points`` with ``inf`` distance.
-
-    Raises:
-        ValueError: the grid was built with ``k`` set (its lists are pruned).
-    """
-    queries = check_queries(queries)
+def _grid_radius(grid: NeighborGrid, queries: Array, radius, capacity: int) -> tuple:
+    """:func:`radius_search` on a grid (``queries`` checked)."""
     if grid.k is not None:
-        raise ValueError("query_radius needs a grid built with k=None (unpruned lists)")
+        raise ValueError("radius_search needs a grid built with k=None (unpruned lists)")
     leaf, inside = _leaf(grid, queries)
     d2 = _candidate_sq_dists(grid, queries, leaf)
     within = inside[:, None] & (d2 <= _radius2(grid, radius, d2.dtype))
@@ -264,6 +223,96 @@ def query_radius(
     out_dtype = jnp.result_type(queries.dtype, grid.candidate_points.dtype)
     sq = jnp.where(mask, -neg, jnp.inf).astype(out_dtype)
     return *pad_slots(index, sq, mask, capacity, grid.num_points), count > capacity
+
+
+# --------------------------------------------------------------------------------------------
+# kNN and radius search, on points (brute force) or on a grid.
+
+
+def knn(
+    queries: ArrayLike,
+    target: ArrayLike | NeighborGrid,
+    k: int,
+    *,
+    max_distance: ArrayLike | None = None,
+    mask: ArrayLike | None = None,
+    block: int | None = None,
+) -> tuple[Int[Array, "N k"], Float[Array, "N k"], Bool[Array, "N k"]]:
+    """The ``k`` nearest target points of each query (jittable).
+
+    Args:
+        queries: ``(N, 3)`` in the target's frame; non-finite rows get no neighbours.
+        target: the ``(M, 3)`` target points, searched by blocked brute force (exact; they
+            may be traced), or a :class:`NeighborGrid` built on them with ``k`` or more
+            (or ``k=None``), exact within ``max_distance`` unless ``grid.overflow``.
+        k: static number of neighbours (a query that is a target point counts itself).
+        max_distance: optional ``()`` radius: neighbours beyond it are masked out. On a grid
+            it defaults to, and is clipped to, ``grid.max_distance``.
+        mask: ``(M,)`` optional validity of target points (non-finite points are invalid
+            too); brute force only (a grid holds the points it was built on).
+        block: static queries per brute-force block; ``block * M`` distances are held at
+            once (default: about 4M, 16 MB in float32).
+
+    Returns:
+        ``indices (N, k)``, ``sq_dists (N, k)`` nearest first, ``mask (N, k)``. Missing
+        neighbours (fewer than ``k`` valid points, beyond ``max_distance``) have the sentinel
+        index ``M`` and ``inf`` distance. Distances are exact; brute force screens candidates
+        with a matrix product, so neighbours whose distances tie to ~1e-4 relative (float32)
+        may come in either order.
+
+    Raises:
+        ValueError: ``queries`` not ``(N, 3)``, ``k`` above the grid's, or ``mask`` or
+            ``block`` with a grid.
+    """
+    if isinstance(target, NeighborGrid):
+        _grid_only(mask, block)
+        return _grid_knn(target, check_queries(queries), k, max_distance)
+    return _brute.knn(queries, target, k, max_distance=max_distance, mask=mask, block=block)
+
+
+def radius_search(
+    queries: ArrayLike,
+    target: ArrayLike | NeighborGrid,
+    radius: ArrayLike,
+    capacity: int,
+    *,
+    mask: ArrayLike | None = None,
+    block: int | None = None,
+) -> tuple[Int[Array, "N c"], Float[Array, "N c"], Bool[Array, "N c"], Bool[Array, " N"]]:
+    """All target points within ``radius`` of each query, up to ``capacity`` (jittable).
+
+    Args:
+        queries: ``(N, 3)`` in the target's frame; non-finite rows get no neighbours.
+        target: the ``(M, 3)`` target points (blocked brute force; they may be traced), or a
+            :class:`NeighborGrid` built on them with ``k=None`` (its lists unpruned).
+        radius: ``()`` search radius (may be traced); on a grid clipped to
+            ``grid.max_distance``.
+        capacity: static neighbour slots per query.
+        mask: ``(M,)`` optional validity of target points; brute force only.
+        block: static queries per brute-force block (see :func:`knn`).
+
+    Returns:
+        ``indices (N, capacity)`` and ``sq_dists (N, capacity)`` nearest first,
+        ``mask (N, capacity)``, and ``overflow (N,)``: more than ``capacity`` points lie
+        within ``radius`` (the nearest ``capacity`` are kept). Padding is the sentinel ``M``
+        with ``inf`` distance.
+
+    Raises:
+        ValueError: ``queries`` not ``(N, 3)``, a grid built with ``k`` set, or ``mask`` or
+            ``block`` with a grid.
+    """
+    if isinstance(target, NeighborGrid):
+        _grid_only(mask, block)
+        return _grid_radius(target, check_queries(queries), radius, capacity)
+    return _brute.radius_search(queries, target, radius, capacity, mask=mask, block=block)
+
+
+def _grid_only(mask, block) -> None:
+    if mask is not None or block is not None:
+        raise ValueError(
+            "mask and block apply to a target given as points; a grid holds the points it "
+            "was built on (build it on the valid ones)"
+        )
 
 
 # --------------------------------------------------------------------------------------------

@@ -28,10 +28,11 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxreg.core._result import select_status
+from jaxreg.geometry._brute import valid_rows
 from jaxreg.geometry._eig3 import eigh3
 from jaxreg.search._host_normals import host_normals
 from jaxreg.search._knn import knn_moments, self_knn
-from jaxreg.search.neighbors import knn, valid_rows
+from jaxreg.search.neighbors import knn
 
 __all__ = ["NormalEstimate", "NormalStatus", "estimate_normals", "estimate_normals_with_curvature"]
 
@@ -231,11 +232,11 @@ def estimate_normals_with_curvature(
         mask: ``(N,)`` optional validity; masked and non-finite points are neither given
             a normal nor used as anyone's neighbour.
         neighbors: optional precomputed ``(indices (N, K), valid (N, K))`` into ``points``
-            (sentinel ``N`` where invalid), e.g. from ``query_knn`` on a grid of ``points``;
-            ``k`` is then ignored. Default: the exact ``k`` nearest, found on the host
-            when ``points`` (and ``mask``) are concrete arrays, from
-            blocked brute force :func:`~jaxreg.search.neighbors.knn` when traced (under ``jit``,
-            ``vmap`` or ``grad``).
+            (sentinel ``N`` where invalid), e.g. from :func:`~jaxreg.search.neighbors.knn`
+            on a grid of ``points``; ``k`` is then ignored. Default: the exact ``k``
+            nearest, found on the host when ``points`` (and ``mask``) are concrete arrays,
+            by blocked brute force (:func:`~jaxreg.search.neighbors.knn` on the points) when
+            traced (under ``jit``, ``vmap`` or ``grad``).
 
     Returns:
         A :class:`NormalEstimate`.

@@ -26,8 +26,8 @@ from scipy.stats import chi2
 from jaxreg.geometry.metrics import canonicalise
 from jaxreg.pipeline import estimate_pose
 from jaxreg.synth import OBJECTS, StereoSensor, tabletop_scene
-from jaxreg.uncertainty import grasp_success_probability
-from jaxreg.uncertainty.budget import grasp_axis, mahalanobis
+from jaxreg.uncertainty.budget import mahalanobis
+from jaxreg.uncertainty.grasp import grasp_axis, grasp_success_probability
 
 __all__ = ["CalibrationStudy", "FrameOutcome", "calibration_study"]
 

@@ -9,7 +9,11 @@ core, geometry, uncertainty and camera.
 from jaxreg.core._lazy import submodule as _submodule
 from jaxreg.synth._depth_noise import StereoSensor as StereoSensor
 from jaxreg.synth._meshes import OBJECTS as OBJECTS, object_mesh as object_mesh
-from jaxreg.synth.bop import write_bop_split as write_bop_split
+from jaxreg.synth.bop import (
+    image_scene as image_scene,
+    obj_id as obj_id,
+    write_bop_split as write_bop_split,
+)
 from jaxreg.synth.scenes import (
     Rendering as Rendering,
     TabletopScene as TabletopScene,

@@ -1,5 +1,6 @@
 """Pose uncertainty: measurement noise models (isotropic, per-point, depth-camera), statistics
-of repeated pose estimates, the error budget and the grasp success probability.
+of repeated pose estimates, the error budget, and a parallel-jaw grasp's predicted success
+(:mod:`jaxreg.uncertainty.grasp`).
 
 Covariances are of the right perturbation ``T_true = T_est @ exp(delta)``, tangent order
 ``(v, w)``. May import :mod:`jaxreg.core` and :mod:`jaxreg.geometry`.
@@ -11,6 +12,13 @@ from jaxreg.uncertainty._pose_statistics import (
     PoseStatistics as PoseStatistics,
     pose_statistics as pose_statistics,
 )
+from jaxreg.uncertainty.grasp import (
+    GraspPrediction as GraspPrediction,
+    grasp_axis as grasp_axis,
+    grasp_margin as grasp_margin,
+    grasp_prediction as grasp_prediction,
+    grasp_success_probability as grasp_success_probability,
+)
 from jaxreg.uncertainty.noise import (
     AbstractPointNoise as AbstractPointNoise,
     DepthNoise as DepthNoise,
@@ -18,8 +26,6 @@ from jaxreg.uncertainty.noise import (
     IsotropicNoise as IsotropicNoise,
     PointCovariance as PointCovariance,
     error_budget as error_budget,
-    grasp_margin as grasp_margin,
-    grasp_success_probability as grasp_success_probability,
 )
 
 

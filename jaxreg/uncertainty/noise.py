@@ -1,18 +1,12 @@
-"""Pose uncertainty: measurement noise models, repeatability statistics, grasp success.
-
-Three pieces that turn a registered pose into a grasp decision:
+"""Measurement noise models and the root-sum-square of independent error contributions.
 
 * Noise models (:class:`IsotropicNoise`, :class:`PointCovariance`, :class:`DepthNoise` for
   points lifted from a depth image through the hand-eye transform) give each point's
   covariance and draw noisy copies for Monte Carlo studies. :func:`jaxreg.icp_covariance`
   (in :mod:`jaxreg.registration.icp`, beside the solver whose Hessian it shares) propagates them to
   the covariance of a registered pose.
-* :func:`pose_statistics` measures the spread of repeated pose estimates: Karcher mean,
-  per-axis sigma and bias, rotation spread as geodesic angles, symmetry canonicalisation,
-  and the per-viewpoint clustering that betrays a hand-eye bias (defined in
-  :mod:`jaxreg.uncertainty._pose_statistics`).
-* :func:`grasp_success_probability`, :func:`grasp_margin` and :func:`error_budget` turn
-  sigma and bias into the probability that the gripper closes around the object.
+* :func:`error_budget` combines independent per-stage sigmas into one (its result feeds
+  :func:`jaxreg.uncertainty.grasp.grasp_success_probability`).
 
 Conventions (those of :mod:`jaxreg.geometry.lie`): a pose maps source/model coordinates into
 target/scene/base coordinates; tangents are jaxlie's ``(vx, vy, vz, wx, wy, wz)``;
@@ -41,8 +35,6 @@ __all__ = [
     "IsotropicNoise",
     "PointCovariance",
     "error_budget",
-    "grasp_margin",
-    "grasp_success_probability",
 ]
 
 
@@ -161,6 +153,20 @@ class DepthNoise(AbstractPointNoise):
             floating = np.issubdtype(focal.dtype, np.floating)
             self.focal_length = as_leaf(focal, None if floating else jnp.result_type(float))
 
+    @classmethod
+    def structured_light(
+        cls, focal_length: Float[ArrayLike, " 2"], base_T_camera: SE3 | None = None
+    ) -> DepthNoise:
+        """A structured-light camera of the Kinect v1 / PrimeSense class (Kinect for Xbox
+        360, Asus Xtion Pro Live, PrimeSense Carmine), from Nguyen, Izadi and Lovell,
+        "Modeling Kinect Sensor Noise for Improved 3D Reconstruction and Tracking" (3DIMPVT
+        2012), measured for surfaces within 60 degrees of the ray: axial
+        ``sigma_z = 0.0012 + 0.0019 (z - 0.4)^2`` metres (1.2 mm at 0.5 m, 1.9 mm at 1 m,
+        4.2 mm at 1.6 m) and 0.8 pixels of lateral noise. ``focal_length``: ``(fx, fy)``
+        in pixels of the depth image the points come from."""
+        coefficients = (0.0012 + 0.0019 * 0.16, -0.0019 * 0.8, 0.0019)
+        return cls(coefficients, base_T_camera, 0.8, focal_length)
+
     def axial_sigma(self, depth: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
         """``sigma_z`` (metres) at camera depth ``depth`` (metres)."""
         depth = jnp.asarray(depth)
@@ -204,57 +210,7 @@ class DepthNoise(AbstractPointNoise):
 
 
 # --------------------------------------------------------------------------------------------
-# From pose error to grasp success.
-
-
-@jax.jit
-def grasp_success_probability(
-    sigma: Float[ArrayLike, "..."],
-    bias: Float[ArrayLike, "..."],
-    margin: Float[ArrayLike, "..."],
-) -> Float[Array, "..."]:
-    """``P(|e| < margin)`` for a lateral pose error ``e ~ N(bias, sigma^2)``.
-
-    A parallel-jaw grasp closes around the object when the error across the jaws stays
-    inside the mechanical margin (:func:`grasp_margin`):
-
-        ``P = (erf((margin - bias) / s) + erf((margin + bias) / s)) / 2``,  ``s = sqrt(2) sigma``
-
-    ``sigma = 0`` gives the limit: 1 when ``|bias| < margin``, 0 outside, 1/2 on the edge; a
-    negative margin gives 0. Arguments broadcast (same units, e.g. metres); gradients are
-    finite everywhere. For independent errors along several axes, multiply the per-axis
-    probabilities. A bias shifts the error distribution and eats the margin on one side;
-    unlike noise it does not average away over repeated grasps.
-    """
-    sigma, bias, margin = jnp.broadcast_arrays(
-        *(jnp.asarray(x, jnp.result_type(float)) for x in (sigma, bias, margin))
-    )
-    sigma = jnp.abs(sigma)
-    zero = sigma == 0
-    scale = jnp.sqrt(2.0) * jnp.where(zero, 1.0, sigma)
-    spread = 0.5 * (
-        jax.scipy.special.erf((margin - bias) / scale)
-        + jax.scipy.special.erf((margin + bias) / scale)
-    )
-    exact = 0.5 * (jnp.sign(margin - bias) + jnp.sign(margin + bias))
-    return jnp.where(margin > 0, jnp.clip(jnp.where(zero, exact, spread), 0.0, 1.0), 0.0)
-
-
-def grasp_margin(
-    opening: Float[ArrayLike, "..."],
-    width: Float[ArrayLike, "..."],
-    friction_allowance: Float[ArrayLike, "..."] = 0.0,
-) -> Float[Array, "..."]:
-    """Lateral clearance per side: ``(opening - width) / 2 - friction_allowance``.
-
-    A 40 mm opening around a 25 mm box leaves 7.5 mm per side; the friction allowance is the
-    part of it a closing jaw needs to drag the object without losing the grasp. Units as
-    given (all the same); broadcasts.
-    """
-    opening, width, friction_allowance = (
-        jnp.asarray(x, jnp.result_type(float)) for x in (opening, width, friction_allowance)
-    )
-    return (opening - width) / 2 - friction_allowance
+# Independent error contributions.
 
 
 class ErrorBudget(eqx.Module):
