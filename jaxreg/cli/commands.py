@@ -1,4 +1,5 @@
-"""Command line: ``jaxreg demo | pose | basin | bop`` (``python -m jaxreg`` is the same).
+"""Command line: ``jaxreg demo | pose | basin | bop | convert-ycbv`` (``python -m jaxreg`` is
+the same).
 
 * ``jaxreg demo [--out DIR] [--json] [--seed N] [--object NAME]`` renders a synthetic tabletop
   frame (:func:`jaxreg.synth.tabletop_scene`), estimates the object's pose
@@ -35,7 +36,8 @@ set ``JAXREG_CACHE_DIR=""`` to turn both off. Deleting the folder is always safe
 
 Subcommands are added by functions taking the subparsers object (``_add_demo``,
 ``_add_pose``, ``jaxreg basin``'s ``add_basin_parser`` from :mod:`jaxreg.cli._basin` and
-``jaxreg bop``'s ``add_bop_parser`` from :mod:`jaxreg.cli._bop`); each sets ``run`` to a
+``jaxreg bop``'s ``add_bop_parser`` and ``jaxreg convert-ycbv``'s ``add_convert_ycbv_parser``
+from :mod:`jaxreg.cli._bop`); each sets ``run`` to a
 function of the parsed arguments returning the exit status.
 """
 
@@ -51,7 +53,12 @@ from pathlib import Path
 import numpy as np
 
 from jaxreg.cli._basin import add_basin_parser, run_basin
-from jaxreg.cli._bop import add_bop_parser, run_bop_command
+from jaxreg.cli._bop import (
+    add_bop_parser,
+    add_convert_ycbv_parser,
+    run_bop_command,
+    run_convert_ycbv,
+)
 from jaxreg.core._program_cache import persistent_jit
 from jaxreg.core.compilation import enable_compilation_cache
 
@@ -594,6 +601,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]
     _add_pose(sub)
     add_basin_parser(sub).set_defaults(run=run_basin)
     add_bop_parser(sub).set_defaults(run=run_bop_command)
+    add_convert_ycbv_parser(sub).set_defaults(run=run_convert_ycbv)
     return parser, sub
 
 
