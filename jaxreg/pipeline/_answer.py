@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxlie import SE3, SO3
+from scipy.spatial.transform import Rotation
 
 from jaxreg.core._program_cache import persistent_jit
 from jaxreg.geometry.lie import geodesic_angle
@@ -294,6 +295,28 @@ class _Alternatives:
     equivalent: tuple[EquivalentPose, ...]
 
 
+def _pivoted(tangents: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """``tangents`` ``(A, 6)`` (right perturbations ``(v, w)``, object axes) with their
+    translations replaced so that the linear map ``v + w x centre`` gives the exact
+    displacement of the model's ``centre`` ``(3,)`` (object frame) under ``exp(v, w)``: a
+    large turn's effect on the model is linearised at its centre, not at its frame's origin
+    (a mug turned half round its body moves its handle's side of the box, not its body)."""
+    tangents = np.asarray(tangents, np.float64).reshape(-1, 6)
+    v, w = tangents[:, :3], tangents[:, 3:]
+    theta = np.linalg.norm(w, axis=1)
+    small = theta < 1e-6
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 0.5, (1 - np.cos(safe)) / safe**2)[:, None, None]
+    b = np.where(small, 1 / 6, (safe - np.sin(safe)) / safe**3)[:, None, None]
+    skew = np.zeros((len(w), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    skew -= skew.transpose(0, 2, 1)
+    rotation = Rotation.from_rotvec(w).as_matrix() if len(w) else np.zeros((0, 3, 3))
+    left = np.eye(3) + a * skew + b * skew @ skew  # SO(3)'s left Jacobian
+    moved = rotation @ centre + np.einsum("aij,aj->ai", left, v) - centre
+    return np.concatenate([moved - np.cross(w, centre), w], axis=1)
+
+
 def _alternatives(
     frame, plane, model, source, answers, best, scores, rmses, patches, trim, noise, distances,
     symmetry, settings,
@@ -326,7 +349,9 @@ def _alternatives(
     view_free, view_reason, turned = _unfixed_turns(model, equal_probes & stayed)
     kept = equal_probes & ~turned
     others = equal & (np.arange(len(equal)) != best)
-    tangents = np.concatenate([np.asarray(tangents)[others], probe_tangents[kept]])
+    tangents = _pivoted(
+        np.concatenate([np.asarray(tangents)[others], probe_tangents[kept]]), model.centre
+    )
     weights = np.exp(-0.5 * np.concatenate([gaps[others], probe_gaps[kept]]) ** 2)
     listed = np.flatnonzero(kept & stayed)
     listed = listed[np.argsort(probe_gaps[listed], kind="stable")]

@@ -32,6 +32,7 @@ class _Model:
     bounds: np.ndarray  # (2, 3) least and greatest coordinate along each axis (given points)
     screen: np.ndarray  # (R1, 3) voxelled at 3 voxels: the coarse starts' first judgement
     sampling: tuple[float, float]  # (rms, gap) metres: see _sampling
+    centre: np.ndarray  # (3,) the centre of the given points' bounding box (object frame)
     # _coarse_problem's, per schedule (not in the repr that keys stored programs)
     coarse: dict = dataclasses.field(default_factory=dict, repr=False)
 
@@ -154,6 +155,7 @@ def _prepare_model(
         bounds=np.stack([given.min(0), given.max(0)]),
         screen=_padded_rows(voxel_downsample(points, 3 * voxel_size), _SCREEN_ROWS, np.nan),
         sampling=_sampling(points),
+        centre=0.5 * (model_points.min(0) + model_points.max(0)).astype(np.float64),
     )
     if len(_MODELS) > 8:
         _MODELS.clear()
