@@ -332,8 +332,7 @@ def _truth_errors(pose, truth, model_points, symmetry):
 
 def run_demo(args) -> int:
     from jaxreg.pipeline.estimate import estimate_pose
-    from jaxreg.synth._meshes import surface_points
-    from jaxreg.synth.scenes import OBJECTS, StereoSensor, tabletop_scene
+    from jaxreg.synth import OBJECTS, StereoSensor, surface_points, tabletop_scene
 
     if args.object not in OBJECTS:
         raise ValueError(f"unknown object {args.object!r}: choose one of {', '.join(OBJECTS)}")

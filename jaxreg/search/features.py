@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg.geometry._brute import pad_slots, valid_rows
+from jaxreg.core._brute import pad_slots, valid_rows
 from jaxreg.search.neighbors import radius_search
 from jaxreg.search.normals import _host_knn, _is_concrete
 

@@ -5,7 +5,11 @@
 jitted function, the reference the grid is tested against, and the natural choice on GPUs.
 Memory is bounded by mapping ``lax.map`` over blocks of queries (``block * M`` distances live
 at once). Distances are screened with one matrix product on clouds centred at the target's
-valid mean, and the kept ones recomputed exactly. Re-exported by :mod:`jaxreg.search.neighbors`.
+valid mean, and the kept ones recomputed exactly.
+
+Users call them as :func:`jaxreg.search.neighbors.knn` and
+:func:`~jaxreg.search.neighbors.radius_search` with the target given as points; they live in
+``core`` so that :mod:`jaxreg.geometry.metrics` (ADD-S) shares them.
 """
 
 from __future__ import annotations
