@@ -27,6 +27,7 @@ _EXPORTS = {
     "jaxreg.camera.tags": ("detect_tags", "tag_object_points"),
     "jaxreg.core.compilation": ("default_cache_folder", "enable_compilation_cache"),
     "jaxreg.geometry.alignment": ("Alignment", "AlignmentStatus", "align", "kabsch", "umeyama"),
+    "jaxreg.geometry.eigen": ("eigh3", "jacobi_eigh"),
     "jaxreg.geometry.bop_metrics": (
         "BopRecall", "average_recall", "bop_symmetry_transforms", "correct", "mspd", "mssd", "vsd",
     ),
@@ -156,6 +157,7 @@ if TYPE_CHECKING:  # what type checkers and editors see; the same names as _EXPO
         mssd as mssd,
         vsd as vsd,
     )
+    from jaxreg.geometry.eigen import eigh3 as eigh3, jacobi_eigh as jacobi_eigh
     from jaxreg.geometry.kernels import (
         L2 as L2,
         AbstractRobustKernel as AbstractRobustKernel,

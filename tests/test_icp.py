@@ -555,7 +555,7 @@ def test_point_to_point_step_is_align_of_the_pairs():
 def test_the_loop_calls_no_lapack_kernel(method):
     """jaxlib's batched LAPACK eigh splits a large batch over XLA's intra-op pool and waits
     on a thread of it, which deadlocked a 1,280-start sweep on 2 forced host devices: the
-    compiled multi-start loop must contain no LAPACK custom call (jaxreg.geometry._eig4 instead)."""
+    compiled multi-start loop must contain no LAPACK custom call (jaxreg.geometry.eigen instead)."""
     from jaxreg.registration.solver import ICPOptions, as_pose, prepare, run
 
     rng = np.random.default_rng(0)

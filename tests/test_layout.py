@@ -90,6 +90,32 @@ def test_packages_import_only_those_below_them(path):
         assert other in ALLOWED[package], f"{path.relative_to(ROOT)} imports {module}"
 
 
+# Modules that still reach into another package's private module (issue 35's ICP options type
+# makes what they use public); strict, so each mark goes when its imports do.
+PRIVATE_REACH = {"pipeline/_register_stage.py", "studies/basin.py"}
+
+
+@pytest.mark.parametrize(
+    "path",
+    [
+        pytest.param(p, marks=pytest.mark.xfail(strict=True, reason="private ICP modules"))
+        if str(p.relative_to(ROOT)) in PRIVATE_REACH
+        else p
+        for p in SOURCES
+    ],
+    ids=lambda p: str(p.relative_to(ROOT)),
+)
+def test_no_private_module_of_another_package(path):
+    """A package uses another's public modules; ``core``'s private modules serve everyone."""
+    package = path.relative_to(ROOT).parts[0]
+    for module in _imports(path, top_level_only=False):
+        parts = module.split(".")
+        if len(parts) > 2 and parts[1] not in (package, "core"):
+            assert not any(p.startswith("_") for p in parts[2:]), (
+                f"{path.relative_to(ROOT)} imports {module}"
+            )
+
+
 def test_no_import_cycles():
     graph = {_module_name(p): _imports(p, top_level_only=True) for p in SOURCES}
     graph = {m: {t for t in targets if t in graph and t != m} for m, targets in graph.items()}

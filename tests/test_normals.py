@@ -192,7 +192,7 @@ def test_closed_form_eigensolver_matches_eigh_and_differentiates(x64):
     where the two larger eigenvalues repeat (a round patch of a plane)."""
     from jax.test_util import check_grads
 
-    from jaxreg.geometry._eig3 import eigh3
+    from jaxreg.geometry.eigen import eigh3
     from jaxreg.search.normals import _smallest_eigenpair
 
     rng = np.random.default_rng(6)
@@ -222,7 +222,7 @@ def test_host_eigensolver_is_the_closed_form_one(x64):
     smallest eigenvector's axis of `eigh3`, the traced path's, on random, planar, collinear,
     isotropic, zero and nearly planar matrices (a unit vector in the eigenspace where the
     smallest eigenvalue repeats)."""
-    from jaxreg.geometry._eig3 import eigh3
+    from jaxreg.geometry.eigen import eigh3
     from jaxreg.search._host_normals import _eigh3_smallest
 
     rng = np.random.default_rng(7)

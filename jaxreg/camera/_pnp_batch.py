@@ -18,7 +18,7 @@ from jaxreg.camera._pnp_covariance import covariances as pose_covariances
 from jaxreg.camera._pnp_refine import refine_poses
 from jaxreg.camera.model import _canonical_dist
 from jaxreg.core._leaves import as_array
-from jaxreg.core._sizes import bucket
+from jaxreg.core._sizes import bucket, pad_rows, power_of_two
 
 __all__ = ["checked_inputs", "solve_batch", "solve_padded"]
 
@@ -117,9 +117,7 @@ def _padded_count(count: int) -> int:
     """Problems a batch of ``count`` runs as: a power of two up to 64 (a tag tracker that
     sees 1-30 tags frame by frame meets six sizes), then :func:`jaxreg.core._sizes.bucket`'s
     steps of an eighth."""
-    if count <= 64:
-        return 1 << (count - 1).bit_length()
-    return bucket(count)
+    return power_of_two(count) if count <= 64 else bucket(count)
 
 
 def solve_padded(program, arrays, sigma_px, batch, **static):
@@ -143,7 +141,7 @@ def solve_padded(program, arrays, sigma_px, batch, **static):
         if a is not None and a.ndim > k:
             core = a.shape[a.ndim - k :]
             rows = np.broadcast_to(np.asarray(a), batch + core).reshape(size, *core)
-            flat[i] = np.concatenate([rows, np.repeat(rows[-1:], padded - size, axis=0)])
+            flat[i] = pad_rows(rows, padded)
     result = program(flat, sigma_px, batch=(padded,), **static)
     return result if (padded,) == batch else _trim(result, batch)
 

@@ -34,8 +34,8 @@ from jaxlie import SE3, SO3
 from jaxtyping import Array, Float
 
 from jaxreg.camera._pnp_linalg import matmul
-from jaxreg.geometry._eig3 import eigh3
 from jaxreg.geometry.alignment import align
+from jaxreg.geometry.eigen import eigh3
 
 __all__ = ["general_starts", "image_spread", "ippe_candidates", "weighted_pca"]
 

@@ -398,8 +398,7 @@ def add_truth_errors(report: dict, estimate, truth, model_points, symmetry) -> N
 
 def run_demo(args) -> int:
     from jaxreg.pipeline.estimate import estimate_pose
-    from jaxreg.synth._meshes import surface_points
-    from jaxreg.synth.scenes import OBJECTS, StereoSensor, tabletop_scene
+    from jaxreg.synth import OBJECTS, StereoSensor, surface_points, tabletop_scene
 
     if args.object not in OBJECTS:
         raise ValueError(f"unknown object {args.object!r}: choose one of {', '.join(OBJECTS)}")

@@ -1,6 +1,8 @@
 """Building blocks every other package uses: the result base class and its status selection,
-scalar leaves for configuration Modules, the on-disk store of compiled programs, and the
-opt-in switch (``enable_compilation_cache``) that keeps compiled programs between processes.
+scalar leaves for configuration Modules, padded sizes, the host thread pool, exact
+brute-force nearest neighbours (geometry's ADD-S and search's queries share them), the on-disk
+store of compiled programs, and the opt-in switch (``enable_compilation_cache``) that keeps
+compiled programs between processes.
 
 Imports nothing from the rest of jaxreg.
 """

@@ -19,6 +19,8 @@ from collections.abc import Callable, Iterable
 import jax
 import numpy as np
 
+from jaxreg.core._sizes import pad_rows
+
 __all__ = ["CORES", "in_pieces", "lane_pieces", "num_pieces", "split_lanes"]
 
 CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
@@ -68,7 +70,7 @@ def split_lanes(fn: Callable, lanes: np.ndarray, pieces: int):
     function)."""
     count = len(lanes)
     size = -(-count // pieces)
-    padded = np.concatenate([lanes, np.repeat(lanes[-1:], size * pieces - count, axis=0)])
+    padded = pad_rows(lanes, size * pieces)
     parts = in_pieces(
         lambda i: jax.block_until_ready(fn(padded[i * size : (i + 1) * size])),
         [(i,) for i in range(pieces)],

@@ -1,6 +1,6 @@
 """Geometry core: SE(3)/SO(3) utilities on jaxlie's types (geodesic angles, means, sampling,
 adjoint transport, ``se3_exp``), weighted Kabsch/Umeyama and ``align``, robust kernels,
-closed-form small eigensolvers, brute-force nearest neighbours, the pose metrics
+small eigensolvers (:mod:`jaxreg.geometry.eigen`), the pose metrics
 (pose error, ADD/ADD-S, ``Symmetry``, canonicalisation) and the BOP benchmark's (VSD, MSSD,
 MSPD, Average Recall).
 

@@ -31,7 +31,7 @@ import numpy as np
 from jaxlie import SE3, SO3
 from jaxtyping import Array, ArrayLike, Float
 
-from jaxreg.geometry._brute import knn
+from jaxreg.core._brute import knn
 from jaxreg.geometry.lie import rotation_angle, so3_from_matrix
 
 __all__ = ["Symmetry", "add", "add_s", "canonicalise", "pose_error", "rotation_error"]

@@ -21,8 +21,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from jaxreg.core._program_cache import persistent_jit
 from jaxreg.core._result import AbstractResult
-from jaxreg.geometry._eig4 import jacobi_eigh
 from jaxreg.geometry.alignment import _fit
+from jaxreg.geometry.eigen import jacobi_eigh
 from jaxreg.geometry.kernels import AbstractRobustKernel, trim_mask
 from jaxreg.geometry.lie import se3_exp
 from jaxreg.search.neighbors import NeighborGrid, knn, query_nearest
@@ -224,7 +224,7 @@ def _plane_step(problem: Problem, moved: Array, pairs: Pairs) -> tuple[SE3, Arra
 
 def pseudo_inverse(a: Float[Array, "6 6"]) -> tuple[Array, Array, Array]:
     """Pseudo-inverse of the symmetric PSD ``a`` by its eigendecomposition
-    (:func:`jaxreg.geometry._eig4.jacobi_eigh`: no LAPACK call in the loop), eigenvalues below
+    (:func:`jaxreg.geometry.eigen.jacobi_eigh`: no LAPACK call in the loop), eigenvalues below
     ``1e-5`` (float32; ``1e-6`` float64) of the largest counted as zero.
 
     Returns the ``(6, 6)`` pseudo-inverse, the ``(6, 6)`` projector onto the discarded
@@ -245,8 +245,8 @@ def _jacobi_top(a: Float[Array, "4 4"]) -> tuple[Array, Array]:
 def _horn_step(moved: Array, matched: Array, w: Array) -> tuple[SE3, Array]:
     """Weighted Kabsch of ``moved`` onto ``matched`` and its degeneracy flag: the closed
     form and tests of :func:`jaxreg.geometry.alignment.align` (its ``_fit``), with Horn's quaternion
-    eigenproblem solved by :func:`jaxreg.geometry._eig4.jacobi_eigh` rather than LAPACK, whose
-    batched CPU kernel deadlocks on several host devices (see :mod:`jaxreg.geometry._eig4`). Rows
+    eigenproblem solved by :func:`jaxreg.geometry.eigen.jacobi_eigh` rather than LAPACK, whose
+    batched CPU kernel deadlocks on several host devices (see :mod:`jaxreg.geometry.eigen`). Rows
     with ``w == 0`` are ignored whatever their values."""
     fit = _fit(moved, matched, w, top_eigen=_jacobi_top)
     translation = fit.mu_dst - fit.rotation @ fit.mu_src

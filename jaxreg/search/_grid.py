@@ -20,6 +20,7 @@ import jax
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from jaxreg.core._sizes import power_of_two
 from jaxreg.core._threads import in_pieces, num_pieces
 from jaxreg.search import _knn, _octree
 
@@ -109,10 +110,10 @@ _LEAF_TARGET = 48
 _GRAIN = 30_000
 
 
-def _bucket(n: int) -> int:
+def _table_rows(n: int) -> int:
     """Table length for ``n`` rows: the next power of two (at least 64), so that similar
     targets give identically shaped grids and a jitted caller does not recompile."""
-    return 1 << max(6, max(0, int(n) - 1).bit_length())
+    return power_of_two(n, 64)
 
 
 def _split_plan(node_top, counts, level, map_size, leaf_target, max_depth, max_map, max_pairs):
@@ -319,7 +320,7 @@ def build_grid(
     # of the cube around the bounding sphere (any rotation of the target fits in it); the
     # map to 8 entries per table row unless it needs more (it depends on how many cells
     # refine one level deeper, a threshold effect).
-    n_table = _bucket(1 + np.count_nonzero(leaf_counts))
+    n_table = _table_rows(1 + np.count_nonzero(leaf_counts))
     cells, leaf_map, cand_index, cand_points = _octree.leaf_tables(
         nodes,
         counts,
@@ -338,8 +339,8 @@ def build_grid(
         sphere = min(math.ceil((2 * (radius + r + margin)) / h + 1) ** 3, max_cells)
     else:
         sphere = 1
-    cells = np.pad(cells, ((0, _bucket(max(len(cells), sphere)) - len(cells)), (0, 0)))
-    leaf_map = np.pad(leaf_map, (0, max(_bucket(len(leaf_map)), 8 * n_table) - len(leaf_map)))
+    cells = np.pad(cells, ((0, _table_rows(max(len(cells), sphere)) - len(cells)), (0, 0)))
+    leaf_map = np.pad(leaf_map, (0, max(_table_rows(len(leaf_map)), 8 * n_table) - len(leaf_map)))
     arrays = jax.device_put(  # one transfer for all leaves
         (
             np.asarray(lo, dtype),

@@ -1,7 +1,7 @@
 """Normals of a concrete cloud from its neighbourhood moments, by compiled host loops (numba).
 
 The host twin of :func:`jaxreg.search.normals._from_moments`: the same eigen solver
-(:func:`jaxreg.geometry._eig3.eigh3`'s closed form, written per point in float64), the same
+(:func:`jaxreg.geometry.eigen.eigh3`'s closed form, written per point in float64), the same
 orientation, curvature and status rules, so that a concrete cloud is answered without a JAX
 program (whose fixed cost, padding and transfers outweigh ~0.1 us of arithmetic per point).
 Status codes are :class:`jaxreg.search.normals.NormalStatus`'s, passed in as integers.
@@ -72,7 +72,7 @@ def _rayleigh(a, x0, x1, x2):
 @numba.njit(inline="always")
 def _eigh3_smallest(c):
     """Eigenvalues ``(l0, l1, l2)`` and the unit eigenvector of ``l0`` of the symmetric matrix
-    with entries ``c = (a00, a01, a02, a11, a12, a22)``: :func:`jaxreg.geometry._eig3.eigh3`'s
+    with entries ``c = (a00, a01, a02, a11, a12, a22)``: :func:`jaxreg.geometry.eigen.eigh3`'s
     scheme step by step (scaled matrix, trigonometric roots, the isolated root's vector as the
     longest row cross product, the middle one from the 2x2 problem orthogonal to it, Rayleigh
     quotients for the eigenvalues)."""

@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg.geometry._brute import valid_rows
+from jaxreg.core._brute import pad_slots, valid_rows
 from jaxreg.search.neighbors import radius_search
 from jaxreg.search.normals import _host_knn, _is_concrete
 
@@ -282,11 +282,9 @@ def _nearest(a, a_ok, b, b_ok, second: bool):
     if second and m > 1:  # the exact distances may swap a near tie
         order = jnp.argsort(d2, axis=-1)
         index, d2 = jnp.take_along_axis(index, order, -1), jnp.take_along_axis(d2, order, -1)
-    width = 2 if second else 1
-    pad_cols = ((0, 0), (0, width - index.shape[1]))
-    index = jnp.pad(index, pad_cols, constant_values=m)
-    d2 = jnp.pad(d2, pad_cols, constant_values=jnp.inf)
-    return jnp.where(jnp.isfinite(d2), index, m), d2
+    found = jnp.isfinite(d2)
+    index, d2, _ = pad_slots(jnp.where(found, index, m), d2, found, 2 if second else 1, m)
+    return index, d2
 
 
 def match_features(

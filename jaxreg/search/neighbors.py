@@ -41,7 +41,7 @@ target is either the points or a grid built on them; :func:`query_nearest` is th
   argument compiles once for all of them.
 
 * **Blocked brute force** (:func:`knn`, :func:`radius_search` on the points,
-  :mod:`jaxreg.geometry._brute`): exact and jittable with the target traced (no host step);
+  :mod:`jaxreg.core._brute`): exact and jittable with the target traced (no host step);
   the reference the grid is tested against.
 
 Which to use (``benchmarks/bench_neighbors.py`` on milk.pcd, 13.7k points and its 4 mm
@@ -82,8 +82,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from jaxreg.geometry import _brute
-from jaxreg.geometry._brute import check_queries, pad_slots
+from jaxreg.core import _brute
+from jaxreg.core._brute import check_queries, pad_slots
 from jaxreg.search._grid import (
     NeighborGrid as NeighborGrid,
     build_grid as build_grid,

@@ -15,7 +15,7 @@ Neighbours are the exact ``k`` nearest: from compiled host loops over a hash gri
 cloud is a concrete array (which also sum each neighbourhood's covariance, in float64), from
 blocked brute force :func:`jaxreg.search.neighbors.knn` when it is traced (under ``jit``, ``vmap``
 or ``grad``), or passed in. The 3x3 eigenproblems are solved in closed form, elementwise
-over the points (:func:`jaxreg.geometry._eig3.eigh3`), in one compiled function. Timings:
+over the points (:func:`jaxreg.geometry.eigen.eigh3`), in one compiled function. Timings:
 ``benchmarks/bench_neighbors.py``.
 """
 
@@ -27,9 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from jaxreg.core._brute import valid_rows
 from jaxreg.core._result import select_status
-from jaxreg.geometry._brute import valid_rows
-from jaxreg.geometry._eig3 import eigh3
+from jaxreg.geometry.eigen import eigh3
 from jaxreg.search._host_normals import host_normals
 from jaxreg.search._knn import knn_moments, self_knn
 from jaxreg.search.neighbors import knn
@@ -69,7 +69,7 @@ class NormalEstimate(eqx.Module):
 @jax.custom_jvp
 def _smallest_eigenpair(c: Float[Array, "... 6"]) -> tuple[Array, Array]:
     """Eigenvalues ``(..., 3)`` and the unit eigenvector ``(..., 3)`` of the smallest, from
-    :func:`~jaxreg.geometry._eig3.eigh3`, with a derivative that is finite where the larger two
+    :func:`~jaxreg.geometry.eigen.eigh3`, with a derivative that is finite where the larger two
     repeat (a round patch of a plane) and zero along a repeated smallest one (collinear
     neighbours)."""
     evals, vecs = eigh3(c)

@@ -23,9 +23,9 @@ import numpy as np
 
 from jaxreg.io.bop import BopResult, BopSplit
 from jaxreg.pipeline.estimate import estimate_pose
-from jaxreg.synth._meshes import MODEL_SAMPLES, surface_points
+from jaxreg.synth import surface_points
 
-__all__ = ["MODEL_SAMPLES", "gather_bop_results", "run_bop"]
+__all__ = ["gather_bop_results", "run_bop"]
 
 _FIELDS = 17  # scene_id, im_id, obj_id, score, R (9), t (3), time: float64 each
 

@@ -8,7 +8,13 @@ core, geometry, uncertainty and camera.
 
 from jaxreg.core._lazy import submodule as _submodule
 from jaxreg.synth._depth_noise import StereoSensor as StereoSensor
-from jaxreg.synth._meshes import OBJECTS as OBJECTS, object_mesh as object_mesh
+from jaxreg.synth._meshes import (
+    MODEL_SAMPLES as MODEL_SAMPLES,
+    OBJECTS as OBJECTS,
+    distractor_mesh as distractor_mesh,
+    object_mesh as object_mesh,
+    surface_points as surface_points,
+)
 from jaxreg.synth.bop import (
     image_scene as image_scene,
     obj_id as obj_id,

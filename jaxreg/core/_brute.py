@@ -5,7 +5,11 @@
 jitted function, the reference the grid is tested against, and the natural choice on GPUs.
 Memory is bounded by mapping ``lax.map`` over blocks of queries (``block * M`` distances live
 at once). Distances are screened with one matrix product on clouds centred at the target's
-valid mean, and the kept ones recomputed exactly. Re-exported by :mod:`jaxreg.search.neighbors`.
+valid mean, and the kept ones recomputed exactly.
+
+Users call them as :func:`jaxreg.search.neighbors.knn` and
+:func:`~jaxreg.search.neighbors.radius_search` with the target given as points; they live in
+``core`` so that :mod:`jaxreg.geometry.metrics` (ADD-S) shares them.
 """
 
 from __future__ import annotations
@@ -99,24 +103,8 @@ def knn(
     mask: ArrayLike | None = None,
     block: int | None = None,
 ) -> tuple[Int[Array, "N k"], Float[Array, "N k"], Bool[Array, "N k"]]:
-    """The ``k`` nearest points of each query by blocked brute force (exact, jittable).
-
-    Args:
-        queries: ``(N, 3)``; non-finite rows get no neighbours.
-        points: ``(M, 3)`` in the same frame; may be traced.
-        k: static number of neighbours (the query itself counts when it is a point).
-        max_distance: optional ``()`` radius: neighbours beyond it are masked out.
-        mask: ``(M,)`` optional validity of ``points``; non-finite points are invalid too.
-        block: static queries per block; ``block * M`` distances are held at once
-            (default: about 4M, 16 MB in float32).
-
-    Returns:
-        ``indices (N, k)``, ``sq_dists (N, k)`` nearest first, ``mask (N, k)``. Missing
-        neighbours (fewer than ``k`` valid points, beyond ``max_distance``) have the sentinel
-        index ``M`` and ``inf`` distance. Distances are exact; candidates are screened with a
-        matrix product, so neighbours whose distances tie to ~1e-4 relative (float32) may
-        come in either order.
-    """
+    """:func:`jaxreg.search.neighbors.knn` with the target given as ``points`` ``(M, 3)``
+    (see it for the arguments and results): blocked brute force, exact, jittable."""
     q, p, ok, q_ok, qb, n = _brute_setup(queries, points, mask, block)
     m = p.shape[0]
     kk = min(k, m)
@@ -152,22 +140,8 @@ def radius_search(
     mask: ArrayLike | None = None,
     block: int | None = None,
 ) -> tuple[Int[Array, "N c"], Float[Array, "N c"], Bool[Array, "N c"], Bool[Array, " N"]]:
-    """All points within ``radius`` of each query, up to ``capacity`` (brute force, jittable).
-
-    Args:
-        queries: ``(N, 3)``; non-finite rows get no neighbours.
-        points: ``(M, 3)`` in the same frame; may be traced.
-        radius: ``()`` search radius (may be traced).
-        capacity: static neighbour slots per query.
-        mask: ``(M,)`` optional validity of ``points``.
-        block: static queries per block (see :func:`knn`).
-
-    Returns:
-        ``indices (N, capacity)`` and ``sq_dists (N, capacity)`` nearest first,
-        ``mask (N, capacity)``, and ``overflow (N,)``: more than ``capacity`` points lie
-        within ``radius`` (the nearest ``capacity`` are kept). Padding is the sentinel ``M``
-        with ``inf`` distance.
-    """
+    """:func:`jaxreg.search.neighbors.radius_search` with the target given as ``points``
+    ``(M, 3)`` (see it for the arguments and results): blocked brute force, jittable."""
     q, p, ok, q_ok, qb, n = _brute_setup(queries, points, mask, block)
     m = p.shape[0]
     kk = min(capacity, m)
