@@ -1,7 +1,7 @@
 """Do the error bars cover the real error? ``jaxreg.studies.calibration_study`` on synthetic
 tabletop frames that nothing in the project tunes on (seeds 5000 onward, every object).
 
-Usage: python benchmarks/bench_calibration.py [--seeds 30]
+Usage: python benchmarks/bench_calibration.py [--seeds 30] [--first 5000]
 
 Each frame: ``tabletop_scene(seed, object=...)`` with a RealSense D435's depth noise at
 848x480, ``estimate_pose`` with the sensor's noise model and the object's symmetry. The goals
@@ -28,13 +28,17 @@ SEED0 = 5000
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", type=int, default=30, help="scenes per object")
+    parser.add_argument(
+        "--first", type=int, default=SEED0, help="the first seed (fresh seeds for a check)"
+    )
     args = parser.parse_args()
     start = time.perf_counter()
-    study = calibration_study(seeds=range(SEED0, SEED0 + args.seeds))
+    first = args.first
+    study = calibration_study(seeds=range(first, first + args.seeds))
     seconds = time.perf_counter() - start
     found = study.found()
     print(
-        f"\n{len(study.frames)} frames (seeds {SEED0}-{SEED0 + args.seeds - 1} x "
+        f"\n{len(study.frames)} frames (seeds {first}-{first + args.seeds - 1} x "
         f"{len({f.object for f in study.frames})} objects), {len(found)} poses found, "
         f"{seconds:.0f} s in all"
     )

@@ -30,7 +30,7 @@ import numpy as np
 from _timing import DATA, print_table
 
 import jaxreg as jr
-from jaxreg.registration import _icp_core, _icp_setup
+from jaxreg.registration.solver import ICPOptions, apply_pose, prepare
 from jaxreg.search.neighbors import query_nearest
 
 
@@ -82,7 +82,7 @@ def _case(problem, inits, repeats: int) -> list[list[str]]:
     """Rows of one grid and batch of starts: every contender's time per query."""
     grid = problem.grid
     query = jax.jit(jax.vmap(lambda g, q, d: query_nearest(g, q, d)[0], (None, 0, 0)))
-    queries = jax.vmap(lambda p: _icp_core._apply(p, problem.source))(inits)
+    queries = jax.vmap(lambda p: apply_pose(p, problem.source))(inits)
     radii = jnp.full(queries.shape[0], 0.02, jnp.float32)
     fields = ("origin", "cell_size", "max_distance", "dims", "cells", "leaf_map",
               "candidate_index", "candidate_points", "num_points")  # fmt: skip
@@ -127,11 +127,11 @@ def main():
     turn = np.array([[1, -0.05, 0], [0.05, 1, 0], [0, 0, 1]], np.float32)
     moved = points @ turn.T + np.float32(0.005)
     inits = jr.rotation_inits(points, moved, 64, around=jr.SE3.identity(), max_angle=0.5236)
-    settings = _icp_setup.Settings("point_to_point", None, 0.02, 40, 0.0, None, None, None, None)
+    options = ICPOptions(tolerance=0.0)
     rows = []
     for capacity, starts in ((None, 1), (24, 64)):  # jr.icp's grid; jr.multistart_icp's
         extra = {} if capacity is None else dict(grid_capacity=capacity)
-        problem, _, _ = _icp_setup.prepare(points, moved, settings, **extra)
+        problem, _, _ = prepare(points, moved, options, **extra)
         rows += _case(problem, jr.SE3(inits.wxyz_xyz[:starts]), args.repeats)
     print_table(
         f"Grid 1-NN query, milk.pcd @ 4 mm; jax {jax.__version__}, numba {numba.__version__}, "

@@ -47,9 +47,14 @@ _EXPORTS = {
     ),
     "jaxreg.pipeline.batch": ("estimate_poses",),
     "jaxreg.pipeline.estimate": ("PoseEstimate", "estimate_pose"),
+    "jaxreg.pipeline.settings": (
+        "LiftSettings", "PipelineSettings", "RegisterSettings", "SegmentSettings",
+    ),
+    "jaxreg.pipeline.track": ("track",),
     "jaxreg.registration.icp": (
-        "ICPStatus", "RegistrationResult", "best_index", "icp", "icp_covariance", "init_spread",
-        "multistart_icp", "pca_inits", "perturbed_inits", "rotation_inits", "select_best",
+        "ICPOptions", "ICPStatus", "RegistrationResult", "best_index", "icp", "icp_covariance",
+        "init_spread", "multistart_icp", "pca_inits", "perturbed_inits", "rotation_inits",
+        "select_best",
     ),
     "jaxreg.registration.ransac": (
         "RansacResult", "RansacStatus", "ransac_iterations", "ransac_registration",
@@ -195,7 +200,15 @@ if TYPE_CHECKING:  # what type checkers and editors see; the same names as _EXPO
         PoseEstimate as PoseEstimate,
         estimate_pose as estimate_pose,
     )
+    from jaxreg.pipeline.settings import (
+        LiftSettings as LiftSettings,
+        PipelineSettings as PipelineSettings,
+        RegisterSettings as RegisterSettings,
+        SegmentSettings as SegmentSettings,
+    )
+    from jaxreg.pipeline.track import track as track
     from jaxreg.registration.icp import (
+        ICPOptions as ICPOptions,
         ICPStatus as ICPStatus,
         RegistrationResult as RegistrationResult,
         best_index as best_index,

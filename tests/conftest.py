@@ -105,6 +105,18 @@ def pcl_dir() -> Path:
     return root / "pcl"
 
 
+@pytest.fixture(scope="session")
+def ycbv_dir() -> Path:
+    """`<data>/ycbv` (YCB-Video frames and models), or skip with the reason when absent."""
+    root = data_root()
+    if root is None or not (root / "ycbv" / "data").is_dir():
+        pytest.skip(
+            "YCB-Video frames not found: set JAXREG_DATA or place ../shared/data (with ycbv/) "
+            "beside the repo"
+        )
+    return root / "ycbv"
+
+
 @pytest.fixture(params=["float32", "float64"])
 def dtype(request):
     """Runs a test once in float32 and once with `jax_enable_x64` on, yielding the numpy dtype."""

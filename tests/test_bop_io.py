@@ -233,3 +233,76 @@ def test_a_result_with_a_bad_pose_is_not_written(tmp_path):
     bad = jr.io.BopResult(1, 0, 1, 1.0, np.eye(4), np.zeros(3))
     with pytest.raises(ValueError, match=r"result 0: R must be \(3, 3\)"):
         jr.io.write_bop_results(tmp_path / "bad.csv", [bad])
+
+
+# ------------------------------------------------------------------------------------------
+# YCB-Video frames written as a BOP split (jr.io.ycbv_to_bop)
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def ycbv_split(ycbv_dir, tmp_path_factory):
+    """The shipped YCB-Video frames converted: (their read_ycbv frames, the BOP root)."""
+    root = tmp_path_factory.mktemp("ycbv") / "ycbv_bop"
+    assert jr.io.ycbv_to_bop(ycbv_dir, root) == root / "test"
+    return jr.io.read_ycbv(ycbv_dir), root
+
+
+def test_ycbv_frames_read_back_through_read_bop(ycbv_dir, ycbv_split):
+    """Counts, ids, depth counts, colour, intrinsics, truth, masks and point models."""
+    frames, root = ycbv_split
+    split = jr.io.read_bop(root)
+    expected = [(int(f.name[:4]), int(f.name[5:])) for f in frames]
+    assert split.images == expected and len(expected) == 10
+    targets = split.targets()
+    assert len(targets) == sum(len(f.instances) for f in frames) == 35
+    assert sorted(split.models) == sorted({i.class_index for f in frames for i in f.instances})
+    for frame, key in zip(frames, expected, strict=True):
+        rows = split.targets(*key)
+        assert [t.obj_id for t in rows] == [i.class_index for i in frame.instances]
+        bop_frame = split.frame(*key)
+        np.testing.assert_array_equal(bop_frame.rgb, frame.frame.rgb)
+        np.testing.assert_array_equal(bop_frame.intrinsics.K, frame.frame.intrinsics.K)
+        # BOP's depth unit is YCB-Video's (0.1 mm): the dataset's counts, unchanged
+        with Image.open(ycbv_dir / "data" / f"{frame.name}-depth.png") as image:
+            counts = np.asarray(image).astype(np.float64)
+        np.testing.assert_allclose(split.depth(*key), counts * 1e-4, rtol=1e-12)
+        for target, instance in zip(rows, frame.instances, strict=True):
+            truth = np.asarray(instance.truth.as_matrix(), np.float64)
+            np.testing.assert_allclose(target.camera_T_object, truth, atol=1e-9)
+            np.testing.assert_array_equal(split.mask(target), frame.label == instance.class_index)
+            model = split.models[target.obj_id]
+            assert model.mesh is None  # points only: VSD cannot render it
+            np.testing.assert_allclose(model.points, instance.model_points, atol=1e-9)
+    for model in split.models.values():
+        gaps = np.linalg.norm(model.points[:, None] - model.points[None], axis=-1)
+        assert model.diameter == pytest.approx(gaps.max(), abs=1e-9)
+        info = json.loads((root / "models" / "models_info.json").read_text())[str(model.obj_id)]
+        np.testing.assert_allclose(
+            [info[f"min_{a}"] for a in "xyz"], 1e3 * model.points.min(0), atol=1e-9
+        )
+        np.testing.assert_allclose(
+            [info[f"size_{a}"] for a in "xyz"], 1e3 * np.ptp(model.points, axis=0), atol=1e-9
+        )
+
+
+def test_ycbv_conversion_adds_frames_to_a_split(ycbv_dir, ycbv_split, tmp_path):
+    """One sequence, then one frame of the other: the split holds both; converting a frame
+    again replaces it."""
+    frames, whole = ycbv_split
+    root = tmp_path / "grown"
+    jr.io.ycbv_to_bop(ycbv_dir / "data" / "0000", root)
+    for _ in range(2):
+        jr.io.ycbv_to_bop(ycbv_dir / "data" / "0001" / "000003", root)
+    split = jr.io.read_bop(root)
+    assert split.images == [(0, k) for k in range(1, 6)] + [(1, 3)]
+    reference = jr.io.read_bop(whole)
+    for key in split.images:
+        assert [t.obj_id for t in split.targets(*key)] == [
+            t.obj_id for t in reference.targets(*key)
+        ]
+    with pytest.raises(ValueError, match="depth_scale must be positive"):
+        jr.io.ycbv_to_bop(ycbv_dir / "data" / "0000", root, depth_scale=0)
+    with pytest.raises(ValueError, match="larger depth_scale"):
+        jr.io.ycbv_to_bop(ycbv_dir / "data" / "0000" / "000001", tmp_path / "x", depth_scale=0.01)
+    assert not (tmp_path / "x").exists()  # checked before anything is written

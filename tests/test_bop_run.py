@@ -4,6 +4,7 @@ CSV with an estimate near the truth for each target and prints the recall per ob
 AR; two processes joined by ``jax.distributed`` write the same rows (times excepted)."""
 
 import contextlib
+import dataclasses
 import io
 import os
 import socket
@@ -137,3 +138,72 @@ def test_two_processes_write_the_same_rows(split_root, one_process, tmp_path):
         _, stderr = run.communicate(timeout=600)
         assert run.returncode == 0, stderr[-3000:]
     assert _rows(out) == _rows(expected)
+
+
+# ------------------------------------------------------------------------------------------
+# A YCB-Video split (jaxreg convert-ycbv): point models, so VSD is not scored
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def ycbv_root(ycbv_dir, tmp_path_factory):
+    """One shipped YCB-Video frame (0000/000001: three objects) converted by the command."""
+    root = tmp_path_factory.mktemp("ycbv") / "ycbv_bop"
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        assert main(["convert-ycbv", str(ycbv_dir / "data" / "0000" / "000001"), str(root)]) == 0
+    assert "1 images, 3 targets and the point models of objects [8, 14, 21]" in stdout.getvalue()
+    return root
+
+
+def test_point_models_score_mssd_and_mspd_and_say_why_vsd_is_not_scored(ycbv_root):
+    """The truth as the estimates: MSSD and MSPD recall 1, VSD NaN with its reason."""
+    split = jr.io.read_bop(ycbv_root)
+    results = [
+        jr.io.BopResult(t.scene_id, t.im_id, t.obj_id, 1.0, t.camera_T_object[:3, :3],
+                        t.camera_T_object[:3, 3], 1.0)
+        for t in split.targets()
+    ]  # fmt: skip
+    scores = jr.studies.bop_scores(split, results)
+    assert scores.ar_mssd == 1.0 and scores.ar_mspd == 1.0 and scores.ar == 1.0
+    assert np.isnan(scores.ar_vsd) and np.isnan(np.asarray(scores.recall.recall_vsd)).all()
+    assert "[8, 14, 21] are point models" in scores.vsd_unavailable
+    assert all(np.isnan(e.vsd).all() and e.mssd < 1e-6 for e in scores.errors)
+    for row in scores.per_object.values():
+        assert np.isnan(row["ar_vsd"]) and row["ar"] == 1.0
+    # an estimate 5 cm off is a miss for both
+    shifted = [dataclasses.replace(r, t=r.t + np.array([0.05, 0.0, 0.0])) for r in results]
+    scores = jr.studies.bop_scores(split, shifted)
+    assert scores.ar_mssd < 0.5 and scores.ar_mspd < 0.5 and scores.ar < 0.5
+
+
+@pytest.mark.slow
+def test_bop_command_on_a_ycbv_split_prints_vsd_as_unavailable(ycbv_root, tmp_path, capsys):
+    """`jaxreg bop` on the converted frame, one object (a mug): the pipeline runs on the point
+    model, the estimate is scored by MSSD and MSPD (the printed AR is theirs, recomputed here
+    from the estimate, the truth and the points), and VSD is reported as not scored. Compiles
+    the pipeline for 640x480 frames (~4 min on a busy 2-core machine)."""
+    from jaxreg.geometry.bop_metrics import MSPD_THRESHOLDS, MSSD_THRESHOLDS
+
+    out = tmp_path / "ycbv.csv"
+    assert main(["bop", str(ycbv_root), "--objects", "14", "--out", str(out)]) == 0
+    stdout, stderr = capsys.readouterr()
+    assert "objects [14] are point models (no mesh): VSD" in stderr
+    lines = stdout.splitlines()
+    assert lines[0] == f"wrote 1 estimates to {out}"
+    assert lines[2].split()[:3] == ["14", "1", "n/a"]
+    assert "VSD not scored: objects [14] are point models" in lines[-1]
+    (result,) = jr.io.read_bop_results(out)
+    split = jr.io.read_bop(ycbv_root, objects=[14])
+    (target,) = split.targets()
+    assert np.linalg.norm(result.t - target.camera_T_object[:3, 3]) < 0.02
+    # MSSD and MSPD without symmetries: the largest distance and pixel offset of a model point
+    model, K = split.models[14], np.asarray(split.intrinsics(0, 1).K, np.float64)
+    at_est = model.points @ result.R.T + result.t
+    truth = target.camera_T_object
+    at_truth = model.points @ truth[:3, :3].T + truth[:3, 3]
+    mssd = np.linalg.norm(at_est - at_truth, axis=1).max() / model.diameter
+    pixels = [(p @ K.T)[:, :2] / (p @ K.T)[:, 2:] for p in (at_est, at_truth)]
+    mspd = np.linalg.norm(pixels[0] - pixels[1], axis=1).max()  # 640 pixels wide: no scaling
+    ar = ((mssd < MSSD_THRESHOLDS).mean() + (mspd < MSPD_THRESHOLDS).mean()) / 2
+    assert float(lines[-1].split()[1]) == pytest.approx(ar, abs=1e-3)

@@ -190,7 +190,7 @@ def _box_points(rng, n=1500):
 
 def test_the_depth_term_is_icp_covariance_of_the_same_pairs():
     import jaxreg as jr
-    from jaxreg.pipeline import _budget
+    from jaxreg.pipeline import _error_sources as _budget
     from jaxreg.uncertainty import DepthNoise
 
     rng = np.random.default_rng(0)
@@ -216,7 +216,7 @@ def test_the_depth_term_is_icp_covariance_of_the_same_pairs():
 
 
 def test_the_fit_term_sees_residuals_shared_by_neighbouring_points():
-    from jaxreg.pipeline import _budget
+    from jaxreg.pipeline import _error_sources as _budget
 
     rng = np.random.default_rng(1)
     model, normals = _box_points(rng, 3000)
@@ -235,7 +235,7 @@ def test_the_fit_term_sees_residuals_shared_by_neighbouring_points():
 
 
 def test_perturbed_segments_erode_grow_and_drop_pieces(box):
-    from jaxreg.pipeline._budget import perturbed_segments
+    from jaxreg.pipeline._error_sources import perturbed_segments
 
     scene, _ = box
     frame, mask = scene.frame, scene.mask
@@ -282,3 +282,26 @@ def test_the_region_covers_the_truth_on_most_unseen_frames_of_every_object():
     assert inside("mismatch") < inside() and inside("ambiguity") < inside()
     text = study.table()
     assert text.count("\n") == 2 + 4 + 1 - 1 and "| all | 8/8 |" in text
+
+
+def test_a_term_that_cannot_be_computed_is_unknown_never_zero():
+    """A non-finite term, or one its caller could not compute, is named in the budget's
+    `unknown` and makes every axis of the total infinite: the bars bound nothing rather than
+    leaving the term out (narrower) as a zero would."""
+    from jaxreg.uncertainty.budget import SOURCES, combine
+
+    terms = {name: np.eye(6) * 1e-6 for name in SOURCES}
+    known = combine(terms, np.zeros(6, bool), None)
+    assert known.unknown == {} and np.all(np.isfinite(known.total))
+    terms["fit"] = np.full((6, 6), np.nan)
+    broken = combine(terms, np.zeros(6, bool), None)
+    assert set(broken.unknown) == {"fit"}
+    assert np.all(np.isinf(np.diag(broken.total)))
+    terms["fit"] = np.eye(6) * 1e-6
+    failed = combine(terms, np.zeros(6, bool), None, unknown={"segmentation": "no fit"})
+    assert failed.unknown == {"segmentation": "no fit"}
+    assert np.all(np.isinf(np.diag(failed.total)))
+    # inf on a free axis is the free axis, not an unknown term
+    free = np.array([False] * 5 + [True])
+    terms["ambiguity"] = np.diag([1e-6] * 5 + [np.inf])
+    assert combine(terms, free, "symmetry").unknown == {}

@@ -5,7 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from jaxlie import SE3, SO3
+from PIL import Image
 
+import jaxreg as jr
 from jaxreg.cli import main
 
 KEYS = (
@@ -169,3 +171,97 @@ def test_pose_on_a_depth_png_exits_0_found_and_1_not_there(tmp_path, capsys, mon
     assert json.loads(capsys.readouterr().out)["pose"] is None
     (view,) = scenes
     assert pages and view.model is None and view.jaws == [] and view.truth is None
+
+
+def test_pose_draws_its_pictures_on_the_colour_image_given_by_rgb(tmp_path, capsys):
+    """``--rgb`` reads the colour image beside a depth PNG: the segmentation and the model
+    overlay are drawn on its pixels (a colour image of another size exits 2, naming both)."""
+    from jaxreg.io import write_frame, write_pcd
+    from jaxreg.synth import tabletop_scene
+
+    scene = tabletop_scene(4, object="box")
+    depth_only = jr.RGBDFrame(scene.frame.depth, scene.frame.intrinsics,
+                              base_T_camera=scene.frame.base_T_camera)  # fmt: skip
+    write_frame(tmp_path / "scene.png", depth_only)
+    write_pcd(tmp_path / "model.pcd", np.asarray(scene.model_points, np.float32))
+    Image.fromarray((255 * scene.mask).astype(np.uint8)).save(tmp_path / "mask.png")
+    # values below 200: the overlay's red (255, 40, 40) cannot come from the colour image
+    colour = np.random.default_rng(0).integers(0, 200, (*scene.mask.shape, 3), dtype=np.uint8)
+    Image.fromarray(colour).save(tmp_path / "colour.png")
+    out = tmp_path / "out"
+    common = ["pose", "--scene", str(tmp_path / "scene.png"), "--model",
+              str(tmp_path / "model.pcd"), "--mask", str(tmp_path / "mask.png"),
+              "--json"]  # fmt: skip
+    assert main([*common, "--rgb", str(tmp_path / "colour.png"), "--out", str(out)]) == 0
+    assert json.loads(capsys.readouterr().out)["failed_stage"] is None
+    overlay = np.asarray(Image.open(out / "model_overlay.png"))
+    drawn = (overlay == (255, 40, 40)).all(-1)
+    assert drawn.sum() > 50 and scene.mask[drawn].mean() > 0.9  # the model lands on the box
+    np.testing.assert_array_equal(overlay[~drawn], colour[~drawn])
+    segmentation = np.asarray(Image.open(out / "segmentation.png"))
+    painted = (segmentation != colour).any(-1)
+    assert painted.sum() > 100 and scene.mask[painted].mean() > 0.9  # green over the segment
+    Image.fromarray(colour[:, :-1]).save(tmp_path / "narrow.png")
+    assert main([*common, "--rgb", str(tmp_path / "narrow.png")]) == 2
+    err = capsys.readouterr().err
+    assert "colour image is 847x480" in err and "848x480" in err
+
+
+YCBV_OBJECT = ("0000/000001", "025_mug", 14)  # frame, model, class index: an instance posed
+
+
+def test_pose_on_a_ycbv_frame_reports_errors_against_its_truth(ycbv_dir, capsys, tmp_path):
+    """``--ycbv PREFIX --object NAME_OR_INDEX``: the dataset's frame, model and label mask; the
+    report's ADD, ADD-S and errors agree with its own pose and truth."""
+    frame_name, model_name, class_index = YCBV_OBJECT
+    prefix = str(ycbv_dir / "data" / frame_name)
+    args = ["pose", "--ycbv", prefix, "--object", str(class_index), "--json"]
+    assert main([*args, "--out", str(tmp_path)]) == 0
+    report = json.loads(capsys.readouterr().out)
+    for key in (*KEYS, "translation_error_mm", "rotation_error_deg", "add_mm", "add_s_mm"):
+        assert report[key] is not None or key == "failed_stage", key
+    assert report["ycbv"] == {
+        "frame": frame_name, "object": model_name, "class_index": class_index,
+        "segment": "the label's mask", "model_points": 2621,
+    }  # fmt: skip
+    (ycbv,) = jr.io.read_ycbv(prefix)
+    (instance,) = [i for i in ycbv.instances if i.class_index == class_index]
+    truth, pose = np.array(report["truth"]), np.array(report["pose"])
+    np.testing.assert_allclose(truth, np.asarray(instance.truth.as_matrix()), atol=1e-6)
+    model = np.asarray(instance.model_points, np.float64)
+    at_pose, at_truth = model @ pose[:3, :3].T + pose[:3, 3], model @ truth[:3, :3].T + truth[:3, 3]
+    add_mm = 1e3 * np.linalg.norm(at_pose - at_truth, axis=1).mean()
+    gaps = np.linalg.norm(at_pose[:, None] - at_truth[None], axis=-1)
+    add_s_mm = 1e3 * gaps.min(axis=1).mean()
+    assert report["add_mm"] == pytest.approx(add_mm, abs=0.01)
+    assert report["add_s_mm"] == pytest.approx(add_s_mm, abs=0.01)
+    shift = 1e3 * np.linalg.norm(pose[:3, 3] - truth[:3, 3])
+    assert report["translation_error_mm"] == pytest.approx(shift, abs=0.01)
+    diameter = 1e3 * np.linalg.norm(model[:, None] - model[None], axis=-1).max()
+    assert report["add_s_mm"] < 0.1 * diameter  # a pose reported as found is right
+    assert 0 <= report["grasp"]["probability_with_measured_error"] <= 1
+    # the pictures are drawn on the frame's colour image
+    overlay = np.asarray(Image.open(tmp_path / "model_overlay.png"))
+    colour = np.asarray(ycbv.frame.rgb)
+    untouched = (overlay != (255, 40, 40)).any(-1)
+    assert untouched.mean() > 0.9
+    np.testing.assert_array_equal(overlay[untouched], colour[untouched])
+    # the model's name names the same instance
+    assert main(["pose", "--ycbv", prefix, "--object", model_name, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["pose"] == report["pose"]
+
+
+def test_pose_on_a_ycbv_frame_refuses_an_object_not_in_it(ycbv_dir, capsys):
+    prefix = str(ycbv_dir / "data" / "0000" / "000001")
+    for wanted in ("1", "002_master_chef_can", "teapot"):
+        assert main(["pose", "--ycbv", prefix, "--object", wanted]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1
+        assert f"--object {wanted!r} is not in frame 0000/000001" in err
+        assert "009_gelatin_box (8), 025_mug (14), 061_foam_brick (21)" in err
+    assert main(["pose", "--ycbv", prefix]) == 2
+    assert "needs --object" in capsys.readouterr().err
+    assert main(["pose", "--ycbv", prefix, "--object", "14", "--model", prefix]) == 2
+    assert "--model cannot be given with --ycbv" in capsys.readouterr().err
+    assert main(["pose", "--ycbv", str(ycbv_dir / "data" / "0000"), "--object", "14"]) == 2
+    assert "names 5 frames" in capsys.readouterr().err

@@ -255,3 +255,44 @@ def test_malformed_png_frames_raise(tmp_path):
         read_frame(tmp_path / "d.jpg")
     with pytest.raises(ValueError, match="larger depth_scale"):
         write_frame(tmp_path / "far.png", frame, depth_scale=1e-5)
+
+
+def test_a_colour_image_beside_a_depth_png_is_read_into_the_frame(tmp_path):
+    """`rgb=` names the colour image of a depth PNG (or replaces the JSON's); a file or an array
+    of another size is refused, naming both sizes."""
+    frame = small_frame()
+    bare = jr.RGBDFrame(frame.depth, frame.intrinsics, base_T_camera=frame.base_T_camera)
+    write_frame(tmp_path / "d.png", bare)
+    assert read_frame(tmp_path / "d.png").rgb is None
+    colour = np.asarray(frame.rgb)
+    Image.fromarray(colour).save(tmp_path / "colour.png")
+    Image.fromarray(colour).save(tmp_path / "colour.jpg", quality=100)
+    assert_same_frame(frame, read_frame(tmp_path / "d.png", rgb=tmp_path / "colour.png"))
+    np.testing.assert_array_equal(read_frame(tmp_path / "d.png", rgb=colour).rgb, colour)
+    jpeg = np.asarray(read_frame(tmp_path / "d.png", rgb=tmp_path / "colour.jpg").rgb)
+    assert jpeg.dtype == np.uint8 and jpeg.shape == (6, 8, 3)
+    # with Intrinsics given (no JSON read) too, and over the JSON's own colour image
+    given = read_frame(tmp_path / "d.png", frame.intrinsics, rgb=tmp_path / "colour.png")
+    np.testing.assert_array_equal(given.rgb, colour)
+    write_frame(tmp_path / "c.png", frame)
+    flipped = np.ascontiguousarray(colour[::-1])
+    np.testing.assert_array_equal(read_frame(tmp_path / "c.png", rgb=flipped).rgb, flipped)
+    Image.fromarray(np.zeros((6, 9, 3), np.uint8)).save(tmp_path / "wide.png")
+    with pytest.raises(ValueError, match=r"colour image is 9x6 .* is 8x6"):
+        read_frame(tmp_path / "d.png", rgb=tmp_path / "wide.png")
+    with pytest.raises(ValueError, match="no such file"):
+        read_frame(tmp_path / "d.png", rgb=tmp_path / "missing.png")
+    with pytest.raises(ValueError, match=r"\(H, W, 3\) uint8"):
+        read_frame(tmp_path / "d.png", rgb=colour.astype(np.float32))
+
+
+def test_a_colour_image_replaces_an_organized_clouds_colours(pcl_dir, tmp_path):
+    name = pcl_dir / "milk_cartoon_all_small_clorox.pcd"
+    colour = np.random.default_rng(1).integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    Image.fromarray(colour).save(tmp_path / "colour.png")
+    frame = read_frame(name, rgb=tmp_path / "colour.png")
+    np.testing.assert_array_equal(frame.rgb, colour)
+    np.testing.assert_array_equal(np.asarray(frame.valid), np.asarray(read_frame(name).valid))
+    Image.fromarray(colour[:240]).save(tmp_path / "half.png")
+    with pytest.raises(ValueError, match="640x240"):
+        read_frame(name, rgb=tmp_path / "half.png")

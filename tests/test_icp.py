@@ -480,7 +480,7 @@ def test_implicit_gradient_matches_finite_differences(method, x64):
 
 
 def test_results_are_unpadded_and_similar_clouds_share_one_compilation():
-    from jaxreg.registration._icp_setup import Settings, prepare
+    from jaxreg.registration.solver import ICPOptions, prepare
 
     model, scene, _ = lesson_cube(5.0)
     result = icp(model[:787], scene, max_correspondence_distance=0.02)
@@ -490,7 +490,7 @@ def test_results_are_unpadded_and_similar_clouds_share_one_compilation():
     np.testing.assert_array_equal(far.correspondences, len(scene))  # the sentinel is M
 
     def signature(source, target):
-        problem, opts, _ = prepare(source, target, Settings())
+        problem, opts, _ = prepare(source, target, ICPOptions())
         leaves = jax.tree.leaves((problem, opts))
         return jax.tree.structure((problem, opts)), [(x.shape, x.dtype) for x in leaves]
 
@@ -505,16 +505,16 @@ def test_point_to_point_step_is_align_of_the_pairs():
     degenerate and weightless cases (no unique minimiser) a pose of align()'s cost."""
     from jaxreg.geometry.alignment import align
     from jaxreg.registration._icp_core import Pairs, _increment, fill_gather
-    from jaxreg.registration._icp_setup import Settings, prepare
+    from jaxreg.registration.solver import ICPOptions, prepare
 
     rng = np.random.default_rng(3)
     source = rng.normal(size=(37, 3)).astype(np.float32) * [0.05, 0.03, 0.02]
     target = rng.normal(size=(50, 3)).astype(np.float32) * 0.04 + [0.3, -0.1, 0.8]
-    problem, opts, (n, m) = prepare(source, target, Settings())
+    problem, opts, (n, m) = prepare(source, target, ICPOptions())
     moved = problem.source  # a step is taken from whatever pose moved the source
     m_pad = problem.target.shape[0]
     line = np.outer(np.linspace(-0.05, 0.05, m), [1.0, 0.5, 0.2]).astype(np.float32)
-    problem_line, _, _ = prepare(source, line, Settings())
+    problem_line, _, _ = prepare(source, line, ICPOptions())
 
     index = rng.integers(0, m, moved.shape[0])
     index[::7] = m_pad  # no match: the sentinel one past the last row
@@ -556,14 +556,13 @@ def test_the_loop_calls_no_lapack_kernel(method):
     """jaxlib's batched LAPACK eigh splits a large batch over XLA's intra-op pool and waits
     on a thread of it, which deadlocked a 1,280-start sweep on 2 forced host devices: the
     compiled multi-start loop must contain no LAPACK custom call (jaxreg.geometry.eigen instead)."""
-    from jaxreg.registration._icp_core import run
-    from jaxreg.registration._icp_setup import Settings, as_pose, prepare
+    from jaxreg.registration.solver import ICPOptions, as_pose, prepare, run
 
     rng = np.random.default_rng(0)
     cloud = rng.uniform(-0.03, 0.03, (64, 3)).astype(np.float32)
     normals = np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (64, 1))
-    settings = Settings(method=method, target_normals=normals, max_iterations=3)
-    problem, opts, _ = prepare(cloud, cloud, settings)
+    options = ICPOptions(method=method, target_normals=normals, max_iterations=3)
+    problem, opts, _ = prepare(cloud, cloud, options)
     inits = as_pose(np.tile(np.eye(4, dtype=np.float32), (4, 1, 1)), jnp.float32)
     many = jax.jit(jax.vmap(run, in_axes=(None, None, 0)))
     hlo = many.lower(problem, opts, inits).compile().as_text()

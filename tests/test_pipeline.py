@@ -126,7 +126,7 @@ def test_a_batch_of_poses_is_judged_as_each_pose_alone(scene):
     pixels do not hide one another's points."""
     from jaxlie import SE3
 
-    from jaxreg.pipeline._register_stage import _judge
+    from jaxreg.pipeline._judge import _judge
     from jaxreg.pipeline.estimate import visibility
     from jaxreg.pipeline.segment import segment_frame
 
@@ -156,7 +156,7 @@ def test_a_failed_final_registration_fails_the_register_stage(scene, monkeypatch
     the ICP status's message."""
     import equinox as eqx
 
-    from jaxreg.pipeline import _refine as stage
+    from jaxreg.pipeline import _register_stage as stage
     from jaxreg.registration.icp import ICPStatus
 
     scene, model, symmetry = scene
@@ -183,7 +183,7 @@ def test_a_failed_final_registration_fails_the_register_stage(scene, monkeypatch
 
 def test_an_overhang_that_cannot_be_measured_refuses(scene, monkeypatch):
     """A NaN overhang (a NaN comparison is False) must not pass the overhang test."""
-    from jaxreg.pipeline import _refine as stage
+    from jaxreg.pipeline import _register_stage as stage
 
     scene, model, symmetry = scene
     monkeypatch.setattr(stage, "overhang", lambda *args: np.full(3, np.nan))
@@ -307,8 +307,8 @@ def test_a_larger_box_of_a_similar_shape_is_not_taken_for_the_target(scene):
     """Seed 128: beside the 80 x 50 x 120 mm target stands an 89 x 61 x 114 mm box, which the
     box model fits as well by inlier fraction, residual and image support (it was claimed
     before the extent test); only its points reaching beyond the model tell them apart."""
+    from jaxreg.pipeline._judge import overhang
     from jaxreg.pipeline._model import _prepare_model
-    from jaxreg.pipeline._register_stage import overhang
     from jaxreg.synth import tabletop_scene
 
     _, model, symmetry = scene
@@ -370,7 +370,7 @@ def test_resting_starts_stand_the_model_on_the_table_on_each_principal_half_axis
     import jax.numpy as jnp
     from jaxlie import SE3
 
-    from jaxreg.pipeline._register_stage import _resting_starts
+    from jaxreg.pipeline._coarse import _resting_starts
     from jaxreg.pipeline.segment import TablePlane
 
     rng = np.random.default_rng(0)
@@ -470,7 +470,7 @@ def test_the_budgets_border_distances_are_the_whole_images():
     which they only need to exceed it), for masks in the middle and against the border."""
     from scipy import ndimage
 
-    from jaxreg.pipeline._budget import _distances
+    from jaxreg.pipeline._error_sources import _distances
 
     rng = np.random.default_rng(0)
     for top, left in [(20, 30), (0, 5), (50, 70), (0, 0)]:

@@ -13,6 +13,7 @@ import pytest
 from jaxlie import SE3
 
 from jaxreg.geometry.metrics import Symmetry, rotation_error
+from jaxreg.registration.icp import ICPOptions
 from jaxreg.studies import basin_radius, basin_starts, basin_sweep, lesson_cube
 
 HERE = Path(__file__).resolve().parent
@@ -76,6 +77,17 @@ def test_small_offsets_recover_the_truth_large_ones_end_confidently_wrong(sweep)
     radius = float(sweep.basin_radius_deg[0])
     assert 10.0 <= radius <= 120.0
     np.testing.assert_allclose(radius, basin_radius(SWEEP["angles_deg"], rate, 0.9))
+
+
+def test_options_and_keywords_give_the_same_sweep(sweep):
+    model, scene, truth = lesson_cube(n=300)
+    options = ICPOptions(max_correspondence_distance=0.02, max_iterations=30)
+    cells = dict(angles_deg=SWEEP["angles_deg"], samples_per_angle=SWEEP["samples_per_angle"])
+    again = basin_sweep(model, scene, truth, key=jax.random.key(3), options=options, **cells)
+    for a, b in zip(jax.tree.leaves(sweep), jax.tree.leaves(again), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(TypeError, match=r"basin_sweep\(\) got unknown keyword argument 'max_iter'"):
+        basin_sweep(model, scene, truth, key=jax.random.key(3), max_iter=30, **cells)
 
 
 def test_basin_radius_interpolates_the_crossing():

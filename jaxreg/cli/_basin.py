@@ -77,31 +77,18 @@ def _read_matrix(path: Path) -> np.ndarray:
     return m
 
 
-def _lesson_cube(seed: int):
-    import jax.numpy as jnp
-
-    from jaxreg.geometry.lie import SE3, SO3
-
-    rng = np.random.default_rng(seed)
-    model = rng.uniform(-0.03, 0.03, (800, 3)).astype(np.float32)
-    truth = SE3.from_rotation_and_translation(
-        SO3.from_z_radians(np.deg2rad(15.0)), jnp.array([0.01, -0.02, 0.005])
-    )
-    scene = np.asarray(truth @ model) + rng.normal(0, 0.002, model.shape)
-    return model, scene.astype(np.float32), truth
-
-
 def _problem(args):
     """``(source, target, truth, description)`` from the arguments."""
     import jax.numpy as jnp
 
     from jaxreg.geometry.lie import se3_from_matrix
     from jaxreg.io.clouds import load_points
+    from jaxreg.studies.basin import lesson_cube
 
     if args.source is None:
         if args.target is not None or args.truth is not None:
             raise ValueError("--target and --truth need --source")
-        model, scene, truth = _lesson_cube(args.seed)
+        model, scene, truth = lesson_cube(seed=args.seed)
         return model, scene, truth, "the lesson's cube (800 points, 6 cm, 2 mm noise)"
     source = load_points(args.source).astype(np.float32)
     matrix = np.eye(4) if args.truth is None else _read_matrix(args.truth)
@@ -167,6 +154,7 @@ def run_basin(args) -> int:
         import jax
 
         from jaxreg.geometry import kernels
+        from jaxreg.registration.solver import ICPOptions
         from jaxreg.search.normals import estimate_normals
         from jaxreg.studies.basin import basin_sweep
 
@@ -182,6 +170,12 @@ def run_basin(args) -> int:
                 geman_mcclure=kernels.GemanMcClure, welsch=kernels.Welsch,
             )  # fmt: skip
             kernel = names[args.kernel](args.kernel_scale)
+        options = ICPOptions(
+            method=method, target_normals=normals,
+            max_correspondence_distance=args.max_correspondence_distance,
+            max_iterations=args.max_iterations, tolerance=args.tolerance, kernel=kernel,
+            trim_fraction=args.trim_fraction,
+        )  # fmt: skip
         lead = jax.process_index() == 0
 
         def progress(done: int, total: int) -> None:
@@ -194,10 +188,7 @@ def run_basin(args) -> int:
             key=jax.random.key(args.seed), translation_offsets=offsets,
             success_rotation_deg=args.success_rotation_deg,
             success_translation=args.success_translation, chunk_size=args.chunk_size,
-            progress=progress, method=method, target_normals=normals,
-            max_correspondence_distance=args.max_correspondence_distance,
-            max_iterations=args.max_iterations, tolerance=args.tolerance, kernel=kernel,
-            trim_fraction=args.trim_fraction,
+            progress=progress, options=options,
         )  # fmt: skip
         report = _report(sweep, description, time.perf_counter() - start, args)
         if not lead:

@@ -1,4 +1,5 @@
-"""Command line: ``jaxreg demo | pose | basin | bop`` (``python -m jaxreg`` is the same).
+"""Command line: ``jaxreg demo | pose | basin | bop | convert-ycbv`` (``python -m jaxreg`` is
+the same).
 
 * ``jaxreg demo [--out DIR] [--json] [--seed N] [--object NAME]`` renders a synthetic tabletop
   frame (:func:`jaxreg.synth.tabletop_scene`), estimates the object's pose
@@ -7,15 +8,20 @@
 * ``jaxreg pose --scene FILE --model FILE [--intrinsics FILE] [--json] [--out DIR]`` does the
   same on your data: an organized PCD, or a 16-bit depth PNG with its intrinsics JSON
   (:func:`jaxreg.io.read_frame`), and a model as points (PCD, PLY) or a mesh (OBJ, STL, PLY),
-  in metres unless ``--model-units mm|cm`` says otherwise. ``--mask PNG`` (nonzero = the
+  in metres unless ``--model-units mm|cm`` says otherwise; ``--rgb FILE`` the colour image
+  registered to the depth (the pictures are drawn on it). ``--mask PNG`` (nonzero = the
   object, from your own segmenter), ``--pixel U V`` or ``--box U0 V0 U1 V1`` name the object;
   ``--symmetry`` and ``--depth-noise`` describe the model and the camera (see ``--help``).
+* ``jaxreg pose --ycbv PREFIX --object NAME_OR_INDEX`` does it on a YCB-Video frame, with the
+  dataset's model and label mask, and reports the errors against its truth
+  (:mod:`jaxreg.cli._ycbv`).
 
 With ``--json`` stdout is one JSON object (the fields of the design's command line section);
 ``--out DIR`` also writes ``report.json`` and the pictures ``depth.png``,
 ``segmentation.png`` (the lifted segment over the image) and ``model_overlay.png`` (the model
-drawn at the estimated pose) to DIR. ``--view`` then serves the scene in 3D to a browser
-(:mod:`jaxreg.cli._view`) at ``--view-port`` until Ctrl-C.
+drawn at the estimated pose) to DIR, over the colour image when the frame has one.
+``--view`` then serves the scene in 3D to a browser (:mod:`jaxreg.cli._view`) at
+``--view-port`` until Ctrl-C.
 
 Exit status: 0 when a pose is found; 1 when the evidence says the object is not there (the
 report, or the JSON, is still printed, with the failed stage and its reason); 2 on bad input
@@ -30,7 +36,8 @@ set ``JAXREG_CACHE_DIR=""`` to turn both off. Deleting the folder is always safe
 
 Subcommands are added by functions taking the subparsers object (``_add_demo``,
 ``_add_pose``, ``jaxreg basin``'s ``add_basin_parser`` from :mod:`jaxreg.cli._basin` and
-``jaxreg bop``'s ``add_bop_parser`` from :mod:`jaxreg.cli._bop`); each sets ``run`` to a
+``jaxreg bop``'s ``add_bop_parser`` and ``jaxreg convert-ycbv``'s ``add_convert_ycbv_parser``
+from :mod:`jaxreg.cli._bop`); each sets ``run`` to a
 function of the parsed arguments returning the exit status.
 """
 
@@ -46,7 +53,12 @@ from pathlib import Path
 import numpy as np
 
 from jaxreg.cli._basin import add_basin_parser, run_basin
-from jaxreg.cli._bop import add_bop_parser, run_bop_command
+from jaxreg.cli._bop import (
+    add_bop_parser,
+    add_convert_ycbv_parser,
+    run_bop_command,
+    run_convert_ycbv,
+)
 from jaxreg.core._program_cache import persistent_jit
 from jaxreg.core.compilation import enable_compilation_cache
 
@@ -84,6 +96,7 @@ def _grasp(prediction, offset=None) -> dict:
         "lateral_sigma_mm": round(prediction.lateral_sigma * 1e3, 3),
         "probability": prediction.probability,
         "axis": prediction.axis.tolist(),
+        "equivalent_turns_keeping_the_axis": round(prediction.turn_share, 3),
     }
     if offset is not None and math.isfinite(prediction.probability):
         grasp["measured_lateral_error_mm"] = round(prediction.lateral_error(offset) * 1e3, 3)
@@ -137,7 +150,17 @@ def build_report(estimate, model_points: np.ndarray, opening: float, offset=None
             ],
             "free_reason": estimate.budget.free_reason,
         }
-        grasp = _grasp(grasp_prediction(model_points, estimate.budget, opening), offset)
+        report["equivalent_poses"] = [turn.as_dict() for turn in estimate.equivalent_poses]
+        rotation = np.asarray(estimate.pose.rotation().as_matrix(), np.float64)
+        turns = [
+            rotation.T @ np.asarray(turn.pose.rotation().as_matrix(), np.float64)
+            for turn in estimate.equivalent_poses
+        ]
+        weights = [turn.weight for turn in estimate.equivalent_poses]
+        prediction = grasp_prediction(
+            model_points, estimate.budget, opening, turns=turns, turn_weights=weights
+        )
+        grasp = _grasp(prediction, offset)
         report["grasp"] = grasp
         report["predicted_grasp_success"] = grasp["probability"]
     return _clean(report)
@@ -168,7 +191,8 @@ def print_report(report: dict, stages: dict, title: str, out=sys.stdout) -> None
             f"({seg.plane_inlier_fraction:.0%}); {len(seg.cluster_sizes)} clusters above it "
             f"(sizes {seg.cluster_sizes})"
         )
-    for c in (seg.candidates if seg is not None else None) or []:
+    reg = stages.get("register")
+    for c in (reg.candidates if reg is not None else None) or []:
         line(
             f"           candidate {c.clusters or 'mask'}: score {c.score:.2f} (model explains "
             f"{c.explained:.0%}, image contradicts {c.contradicted:.0%})"
@@ -183,8 +207,7 @@ def print_report(report: dict, stages: dict, title: str, out=sys.stdout) -> None
                 f"{lift.points} points"
             )
         line(text)
-    reg = stages.get("register")
-    if reg is not None:
+    if reg is not None and reg.refined_starts is not None:
         residual = "none" if reg.inlier_rmse_mm is None else f"{reg.inlier_rmse_mm:.2f} mm"
         line(
             f"  register {reg.ms:8.1f} ms  {reg.starts} starts, best {reg.refined_starts} "
@@ -203,7 +226,8 @@ def print_report(report: dict, stages: dict, title: str, out=sys.stdout) -> None
     if report.get("add_s_mm") is not None:
         line(
             f"  error vs truth: translation {report['translation_error_mm']:.2f} mm, rotation "
-            f"{report['rotation_error_deg']:.2f} deg, ADD-S {report['add_s_mm']:.2f} mm"
+            f"{report['rotation_error_deg']:.2f} deg, ADD {report['add_mm']:.2f} mm, ADD-S "
+            f"{report['add_s_mm']:.2f} mm"
         )
     budget = report["error_budget"]
     line("  error budget (1 sigma along the object's x y z): translation mm | rotation deg")
@@ -218,6 +242,17 @@ def print_report(report: dict, stages: dict, title: str, out=sys.stdout) -> None
         )
     if budget["free_axes"]:
         line(f"    free ({', '.join(budget['free_axes'])}): {budget['free_reason']}")
+    turns = report.get("equivalent_poses") or []
+    if turns:
+        line(
+            f"  depth cannot decide between this pose and {len(turns)} turn(s) of the model "
+            "that fit as well (in the ambiguity term):"
+        )
+        for turn in turns:
+            line(
+                f"    {turn['angle_deg']:+.0f} deg about {turn['axis']}: weight "
+                f"{turn['weight']:.2f}, residual {turn['inlier_rmse_mm']:.2f} mm"
+            )
     g = report["grasp"]
     if g["probability"] is not None:
         line(
@@ -225,6 +260,11 @@ def print_report(report: dict, stages: dict, title: str, out=sys.stdout) -> None
             f"{g['object_width_mm']:.0f} mm width leaves {g['margin_per_side_mm']:.1f} mm per "
             f"side; lateral sigma {g['lateral_sigma_mm']:.2f} mm (the whole budget) -> "
             f"predicted success {g['probability']:.1%}"
+            + (
+                f" ({g['equivalent_turns_keeping_the_axis']:.0%} of the equally good turns "
+                "keep the jaws' axis)"
+                if turns else ""
+            )
         )
     if g.get("probability_with_measured_error") is not None:
         line(
@@ -248,7 +288,10 @@ def _colormap(values: np.ndarray) -> np.ndarray:
 
 
 def write_pictures(folder: Path, frame, estimate, model_points: np.ndarray) -> list[str]:
-    """depth.png, segmentation.png and model_overlay.png in ``folder``; returns the names."""
+    """depth.png (false colour), segmentation.png (the lifted segment in green) and
+    model_overlay.png (every fourth model point at the estimated pose in red) in ``folder``;
+    the last two are drawn on the frame's colour image when it has one, else on grey depth.
+    Returns the names."""
     from PIL import Image
 
     depth = np.asarray(frame.depth)
@@ -320,14 +363,37 @@ def _emit(args, report: dict, title: str, frame, estimate, model_points, truth=N
 
 @persistent_jit
 def _truth_errors(pose, truth, model_points, symmetry):
-    """Translation (m), rotation (rad) and ADD-S (m) error of ``pose`` against ``truth``, and
-    the true object origin in the estimated object frame ``(3,)`` (m), in one compiled program
-    (each eager operation would be a program of its own to load)."""
-    from jaxreg.geometry.metrics import add_s, pose_error
+    """Translation (m), rotation (rad), ADD and ADD-S (m) errors of ``pose`` against
+    ``truth``. ADD counts a turn that ``symmetry`` declares as no error; without one, every
+    turn is error."""
+    from jaxreg.geometry.metrics import add, add_s, pose_error
 
     translation, rotation = pose_error(pose, truth, symmetry=symmetry)
-    offset = (pose.inverse() @ truth).translation()
-    return translation, rotation, add_s(model_points, pose, truth), offset
+    errors = add(model_points, pose, truth, symmetry=symmetry), add_s(model_points, pose, truth)
+    return translation, rotation, *errors
+
+
+def truth_offset(estimate, truth) -> np.ndarray | None:
+    """The true object origin in the estimated object frame ``(3,)`` (metres): the error a
+    grasp planned on the estimate meets (:func:`build_report`'s ``offset``); ``None``
+    without a pose."""
+    if estimate.pose is None:
+        return None
+    return np.asarray((estimate.pose.inverse() @ truth).translation(), np.float64)
+
+
+def add_truth_errors(report: dict, estimate, truth, model_points, symmetry) -> None:
+    """Adds the errors of ``estimate`` against the known ``truth`` (``SE3`` base_T_object) to
+    ``report`` (:func:`build_report`): ``translation_error_mm``, ``rotation_error_deg``,
+    ``add_mm``, ``add_s_mm`` (None without a pose) and ``truth`` (the ``(4, 4)`` pose)."""
+    keys = ("translation_error_mm", "rotation_error_deg", "add_mm", "add_s_mm")
+    report.update(dict.fromkeys(keys))
+    report["truth"] = np.asarray(truth.as_matrix(), np.float64).tolist()
+    if estimate.pose is None:
+        return
+    t_err, r_err, add_m, add_s_m = _truth_errors(estimate.pose, truth, model_points, symmetry)
+    errors = (float(t_err) * 1e3, float(np.degrees(r_err)), float(add_m) * 1e3, add_s_m * 1e3)
+    report.update({key: round(float(value), 3) for key, value in zip(keys, errors, strict=True)})
 
 
 def run_demo(args) -> int:
@@ -353,18 +419,10 @@ def run_demo(args) -> int:
         scene.frame, model, symmetry=symmetry, depth_noise=noise, progress=progress
     )
     progress(None)
-    errors = None
-    if estimate.pose is not None:
-        errors = _truth_errors(estimate.pose, scene.truth, scene.model_points, symmetry)
     report = build_report(
-        estimate, model, args.gripper_opening, None if errors is None else np.asarray(errors[3])
+        estimate, model, args.gripper_opening, truth_offset(estimate, scene.truth)
     )
-    report.update(translation_error_mm=None, rotation_error_deg=None, add_s_mm=None)
-    if errors is not None:
-        t_err, r_err, add_s_m, _ = errors
-        report["translation_error_mm"] = round(float(t_err) * 1e3, 3)
-        report["rotation_error_deg"] = round(float(np.degrees(r_err)), 3)
-        report["add_s_mm"] = round(float(add_s_m) * 1e3, 3)
+    add_truth_errors(report, estimate, scene.truth, scene.model_points, symmetry)
     report["scene"] = {"seed": args.seed, "object": args.object, "distractors": 2}
     title = f"jaxreg demo: a {args.object} (seed {args.seed})"
     return _emit(args, report, title, scene.frame, estimate, model, truth=scene.truth)
@@ -399,16 +457,11 @@ def _symmetry(spec: str | None):
     )
 
 
-def run_pose(args) -> int:
-    from jaxreg.io import load_points, read_frame, read_mask
-    from jaxreg.pipeline.estimate import estimate_pose
+def _pose_options(args, frame) -> dict:
+    """``estimate_pose``'s options from ``jaxreg pose``'s arguments."""
+    from jaxreg.io import read_mask
     from jaxreg.uncertainty import DepthNoise
 
-    frame = read_frame(args.scene, args.intrinsics)
-    model = np.asarray(load_points(args.model, n_points=None), np.float32)
-    model = model * np.float32(UNITS[args.model_units])
-    if len(model) < 10:
-        raise ValueError(f"{args.model}: the model has {len(model)} points; give a surface")
     options = {"symmetry": _symmetry(args.symmetry)}
     if args.depth_noise is not None:
         options["depth_noise"] = DepthNoise(tuple(args.depth_noise), frame.base_T_camera)
@@ -422,6 +475,28 @@ def run_pose(args) -> int:
         metres, degrees = args.hand_eye_sigma[0] * 1e-3, np.radians(args.hand_eye_sigma[1])
         options["hand_eye_covariance"] = np.diag([metres**2] * 3 + [degrees**2] * 3)
     options["depth_scale_sigma"] = args.depth_scale_sigma
+    return options
+
+
+def run_pose(args) -> int:
+    from jaxreg.io import load_points, read_frame
+    from jaxreg.pipeline.estimate import estimate_pose
+
+    if args.ycbv is not None:
+        from jaxreg.cli._ycbv import run_pose_ycbv
+
+        return run_pose_ycbv(args)
+    for name in ("object", "no_mask"):
+        if getattr(args, name):
+            raise ValueError(f"--{name.replace('_', '-')} is for --ycbv frames")
+    if args.model is None:
+        raise ValueError("--scene needs --model FILE (the object's points or mesh)")
+    frame = read_frame(args.scene, args.intrinsics, rgb=args.rgb)
+    model = np.asarray(load_points(args.model, n_points=None), np.float32)
+    model = model * np.float32(UNITS[args.model_units])
+    if len(model) < 10:
+        raise ValueError(f"{args.model}: the model has {len(model)} points; give a surface")
+    options = _pose_options(args, frame)
     progress = _progress(args.json)
     estimate = estimate_pose(frame, model, progress=progress, **options)
     progress(None)
@@ -457,19 +532,38 @@ def _add_demo(sub) -> None:
 
 def _add_pose(sub) -> None:
     pose = sub.add_parser("pose", help="estimate a model's pose in your depth frame")
-    pose.add_argument("--scene", type=Path, required=True, help="organized PCD or depth PNG")
-    pose.add_argument("--model", type=Path, required=True, help="model points or mesh")
+    frame = pose.add_mutually_exclusive_group(required=True)
+    frame.add_argument("--scene", type=Path, help="organized PCD or depth PNG")
+    frame.add_argument(
+        "--ycbv", type=Path, metavar="PREFIX",
+        help="a YCB-Video frame (e.g. data/0000/000001): its depth, colour, the model of "
+        "--object, the label's mask, and the errors against its truth",
+    )  # fmt: skip
+    pose.add_argument(
+        "--object", metavar="NAME_OR_INDEX",
+        help="with --ycbv: the object, by model name (025_mug) or class index (14)",
+    )  # fmt: skip
+    pose.add_argument("--model", type=Path, help="model points or mesh (with --scene)")
     pose.add_argument(
         "--model-units", choices=tuple(UNITS), default="m",
         help="the model file's units (default m; CAD files are often mm)",
     )  # fmt: skip
     pose.add_argument("--intrinsics", type=Path, help="intrinsics JSON of a depth PNG")
+    pose.add_argument(
+        "--rgb", type=Path,
+        help="colour image registered to the depth (same size): the pictures of --out are "
+        "drawn on it",
+    )  # fmt: skip
     which = pose.add_mutually_exclusive_group()
     which.add_argument("--mask", type=Path, help="PNG of the object's pixels (nonzero = object)")
     which.add_argument("--pixel", type=float, nargs=2, metavar=("U", "V"), help="a pixel on it")
     which.add_argument(
         "--box", type=float, nargs=4, metavar=("U0", "V0", "U1", "V1"), help="a box around it"
     )
+    which.add_argument(
+        "--no-mask", action="store_true",
+        help="with --ycbv: find the object by the table route, not the label's mask",
+    )  # fmt: skip
     pose.add_argument(
         "--symmetry", default="none",
         help="the model's symmetry about its own axes through its origin: none (default), box "
@@ -506,6 +600,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, argparse._SubParsersAction]
     _add_pose(sub)
     add_basin_parser(sub).set_defaults(run=run_basin)
     add_bop_parser(sub).set_defaults(run=run_bop_command)
+    add_convert_ycbv_parser(sub).set_defaults(run=run_convert_ycbv)
     return parser, sub
 
 

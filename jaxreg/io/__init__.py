@@ -1,12 +1,14 @@
 """Files in and out: PCD (every variant PCL writes, LZF-compressed included), meshes and point
 files through trimesh, RGB-D frames (organized PCD, or a depth PNG with intrinsics JSON), object
-masks, depth and colour images, and BOP datasets in and BOP result CSVs out.
+masks, depth and colour images, BOP datasets in and BOP result CSVs out, and YCB-Video frames
+with their annotated objects (and written as a BOP split).
 
 Readers return metres and raise ``ValueError`` naming the file and what is wrong with it. May
 import :mod:`jaxreg.core`, :mod:`jaxreg.geometry` and :mod:`jaxreg.camera`.
 """
 
 from jaxreg.core._lazy import submodule as _submodule
+from jaxreg.io._ycbv_bop import ycbv_to_bop as ycbv_to_bop
 from jaxreg.io.bop import (
     BopModel as BopModel,
     BopResult as BopResult,
@@ -29,6 +31,12 @@ from jaxreg.io.images import (
     read_image_size as read_image_size,
     read_mask as read_mask,
     read_rgb as read_rgb,
+)
+from jaxreg.io.ycbv import (
+    YcbvFrame as YcbvFrame,
+    YcbvInstance as YcbvInstance,
+    read_ycbv as read_ycbv,
+    read_ycbv_models as read_ycbv_models,
 )
 
 

@@ -1,6 +1,10 @@
 """BOP object models: ``models/obj_<id:06d>.ply`` meshes in millimetres and
 ``models/models_info.json`` (diameter, symmetries), read into metres.
 
+A PLY without faces is a point model (as :func:`jaxreg.io.ycbv_to_bop` writes PoseCNN's
+points): its vertices serve MSSD, MSPD and the pipeline, and its ``mesh`` is ``None`` (VSD,
+which renders a surface, cannot score it).
+
 ``models_info.json`` maps each object id (a string) to an object with ``diameter`` (mm, the
 largest distance between two vertices), optional ``symmetries_discrete`` (a list of row-major
 4x4 transforms, translation in mm, the identity not listed) and optional
@@ -34,8 +38,9 @@ class BopModel:
 
     Attributes:
         obj_id: the dataset's object id.
-        mesh: the model's `trimesh.Trimesh` in its own frame, metres, vertices in file order.
-        points: `(N, 3)` float64 the mesh's vertices (metres): the points BOP's MSSD and MSPD
+        mesh: the model's `trimesh.Trimesh` in its own frame, metres, vertices in file order;
+            `None` for a point model (a PLY without faces).
+        points: `(N, 3)` float64 the model's vertices (metres): the points BOP's MSSD and MSPD
             are computed on.
         diameter: metres, from models_info's `diameter`.
         symmetry: the library's `Symmetry`: the identity then the discrete rotations, and the
@@ -49,7 +54,7 @@ class BopModel:
     """
 
     obj_id: int
-    mesh: trimesh.Trimesh
+    mesh: trimesh.Trimesh | None
     points: np.ndarray
     diameter: float
     symmetry: Symmetry
@@ -110,7 +115,9 @@ def _symmetry(path: Path, where: str, discrete: np.ndarray, continuous) -> Symme
     return Symmetry(discrete[:, :3, :3], axis=axis)
 
 
-def _read_mesh(path: Path) -> trimesh.Trimesh:
+def _read_model(path: Path) -> tuple[np.ndarray, trimesh.Trimesh | None]:
+    """`(vertices (N, 3) metres, mesh or None)` of a PLY in millimetres: a mesh, or a point
+    model (vertices without faces)."""
     import trimesh  # imported here so that `import jaxreg` stays light
 
     if not path.is_file():
@@ -118,12 +125,15 @@ def _read_mesh(path: Path) -> trimesh.Trimesh:
             f"{path}: no such file (the object's model); BOP names models obj_<id:06d>.ply"
         )
     try:
-        mesh = trimesh.load(path, process=False, force="mesh")
+        loaded = trimesh.load(path, process=False)
     except Exception as error:  # noqa: BLE001 (trimesh's loaders raise many types)
         raise ValueError(f"{path}: not a readable PLY mesh ({error})") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.vertices) == 0:
+    if not isinstance(loaded, trimesh.PointCloud | trimesh.Trimesh) or not len(loaded.vertices):
         raise ValueError(f"{path}: the PLY has no vertices")
-    return trimesh.Trimesh(mesh.vertices * MM, mesh.faces, process=False)
+    if isinstance(loaded, trimesh.PointCloud) or len(loaded.faces) == 0:
+        return np.asarray(loaded.vertices, dtype=np.float64) * MM, None
+    mesh = trimesh.Trimesh(loaded.vertices * MM, loaded.faces, process=False)
+    return np.asarray(mesh.vertices, dtype=np.float64), mesh
 
 
 def read_models(models_dir: Path, obj_ids) -> dict[int, BopModel]:
@@ -155,11 +165,11 @@ def read_models(models_dir: Path, obj_ids) -> dict[int, BopModel]:
                 f"{diameter!r}"
             )
         discrete, listed, continuous = _transforms(info_path, where, info)
-        mesh = _read_mesh(models_dir / f"obj_{obj_id:06d}.ply")
+        points, mesh = _read_model(models_dir / f"obj_{obj_id:06d}.ply")
         models[obj_id] = BopModel(
             obj_id=obj_id,
             mesh=mesh,
-            points=np.asarray(mesh.vertices, dtype=np.float64),
+            points=points,
             diameter=float(diameter) * MM,
             symmetry=_symmetry(info_path, where, discrete, continuous),
             symmetry_transforms=bop_symmetry_transforms(listed, continuous),

@@ -14,6 +14,8 @@ Depth PNG + JSON (the RealSense / Azure Kinect export convention)
   `dist_coeffs` (4 or 5 Brown-Conrady coefficients, OpenCV order), `base_T_camera` (4x4
   nested list, the hand-eye transform camera -> robot base) and `rgb` (file name of an 8-bit
   colour PNG registered to the depth, relative to the JSON's folder).
+* `read_frame(..., rgb=PATH)` reads a colour image named by the caller instead (any format
+  Pillow reads, converted to 8-bit RGB); it must have the depth's size.
 
 Organized PCD (PCL's Kinect and stereo captures)
 ------------------------------------------------
@@ -110,7 +112,29 @@ def _load_json(path: Path) -> dict:
     return meta
 
 
-def _frame_from_png(path: Path, intrinsics, depth_scale: float, base_T_camera) -> RGBDFrame:
+def _checked_rgb(path: Path, rgb, shape: tuple[int, int]) -> np.ndarray:
+    """The colour image `rgb` (a file or an `(H, W, 3)` array) as uint8, checked to have the
+    depth image's `(H, W)` `shape`; `path` is the depth's file, named in the error."""
+    if isinstance(rgb, str | Path):
+        source, image = Path(rgb), read_rgb(Path(rgb))
+    else:
+        source, image = "the rgb array", np.asarray(rgb)
+        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+            raise ValueError(
+                f"rgb must be an (H, W, 3) uint8 colour image, got {image.dtype} {image.shape}"
+            )
+    if image.shape[:2] != tuple(shape):
+        raise ValueError(
+            f"{source}: the colour image is {image.shape[1]}x{image.shape[0]} (width x height) "
+            f"but the depth {path} is {shape[1]}x{shape[0]}: give the colour image registered "
+            "to this depth image"
+        )
+    return image
+
+
+def _frame_from_png(
+    path: Path, intrinsics, depth_scale: float, base_T_camera, rgb_file
+) -> RGBDFrame:
     rgb = None
     if isinstance(intrinsics, Intrinsics):
         scale = depth_scale
@@ -129,7 +153,7 @@ def _frame_from_png(path: Path, intrinsics, depth_scale: float, base_T_camera) -
         scale = float(meta["depth_scale"])
         if base_T_camera is None and "base_T_camera" in meta:
             base_T_camera = np.asarray(meta["base_T_camera"], dtype=np.float64)
-        if "rgb" in meta:
+        if "rgb" in meta and rgb_file is None:
             rgb = read_rgb(json_path.parent / meta["rgb"])
     counts = read_depth_counts(path, "depth PNG")
     if counts.shape != intrinsics.shape:
@@ -137,7 +161,9 @@ def _frame_from_png(path: Path, intrinsics, depth_scale: float, base_T_camera) -
             f"{path}: the depth image is {counts.shape[1]}x{counts.shape[0]} (width x height) "
             f"but the intrinsics are for {intrinsics.width}x{intrinsics.height}"
         )
-    if rgb is not None and rgb.shape[:2] != counts.shape:
+    if rgb_file is not None:
+        rgb = _checked_rgb(path, rgb_file, counts.shape)
+    elif rgb is not None and rgb.shape[:2] != counts.shape:
         raise ValueError(f"{path}: the colour image is {rgb.shape[:2]}, the depth {counts.shape}")
     depth = np.where(counts > 0, counts * scale, np.nan).astype(np.float32)
     return RGBDFrame(depth, intrinsics, rgb=rgb, base_T_camera=base_T_camera)
@@ -149,6 +175,7 @@ def read_frame(
     *,
     depth_scale: float = 0.001,
     base_T_camera=None,
+    rgb: str | Path | np.ndarray | None = None,
 ) -> RGBDFrame:
     """Read an `RGBDFrame` from an organized `.pcd` or a 16-bit depth `.png`.
 
@@ -161,13 +188,18 @@ def read_frame(
         depth_scale: metres per PNG count when `intrinsics` is an `Intrinsics`.
         base_T_camera: `SE3` or `(4, 4)` hand-eye transform camera -> base; default: the JSON's
             `base_T_camera` if any, else the identity.
+        rgb: the colour image registered to the depth pixels: a file (PNG, JPEG, ...; read as
+            8-bit RGB) or an `(H, W, 3)` uint8 array. It replaces the JSON's `rgb` (PNG) or
+            the cloud's colours (PCD). Default: those, if any.
 
     Returns:
-        The frame: `(H, W)` depth in metres with NaN holes (PNG count 0, PCD NaN points).
+        The frame: `(H, W)` depth in metres with NaN holes (PNG count 0, PCD NaN points),
+        `rgb` `(H, W, 3)` uint8 or None.
 
     Raises:
         ValueError: unknown suffix, unreadable file, an unorganized or non-pinhole cloud,
-            missing JSON keys, or an image size that does not match the intrinsics.
+            missing JSON keys, or an image size (depth or colour) that does not match the
+            intrinsics.
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -177,9 +209,13 @@ def read_frame(
                 f"{path}: an organized PCD's intrinsics are recovered from its points; "
                 "pass intrinsics only with a depth PNG"
             )
-        return _frame_from_pcd(path, base_T_camera)
+        frame = _frame_from_pcd(path, base_T_camera)
+        if rgb is None:
+            return frame
+        colour = _checked_rgb(path, rgb, frame.intrinsics.shape)
+        return RGBDFrame(frame.depth, frame.intrinsics, colour, frame.base_T_camera)
     if suffix == ".png":
-        return _frame_from_png(path, intrinsics, depth_scale, base_T_camera)
+        return _frame_from_png(path, intrinsics, depth_scale, base_T_camera, rgb)
     raise ValueError(f"{path}: read_frame reads .pcd (organized) or .png (16-bit depth) files")
 
 

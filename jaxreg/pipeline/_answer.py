@@ -1,6 +1,7 @@
-"""The answer's last checks for :mod:`jaxreg.pipeline.estimate`: an answer resting on the table
-is moved onto it and settled there with virtual contact points, and the answer turned about
-the model's axes (probes) shows which other poses the image supports as well.
+"""The register stage's answer: an answer resting on the table is moved onto it and settled
+there with virtual contact points, the answer turned about the model's axes (probes) shows
+which other poses the image supports as well, and the answer is reported on one symmetry
+branch (:func:`_finish`).
 
 Conventions: poses are ``object_T_base`` (wxyz_xyz) as ICP returns them (the segment, base
 frame, registered into the model, object frame); tangents are jaxlie's ``(v, w)``.
@@ -8,15 +9,21 @@ frame, registered into the model, object frame); tangents are jaxlie's ``(v, w)`
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxlie import SE3, SO3
 
 from jaxreg.core._program_cache import persistent_jit
-from jaxreg.pipeline._model import _Model
-from jaxreg.pipeline._register_stage import _confirmed_share, _judge, _register_starts
-from jaxreg.pipeline._settings import _TOLERANCE, _Settings
+from jaxreg.geometry.lie import geodesic_angle
+from jaxreg.geometry.metrics import Symmetry, canonicalise
+from jaxreg.pipeline._coarse import _register_starts
+from jaxreg.pipeline._judge import TOLERANCE, _confirmed_share, _judge, evidence_gap
+from jaxreg.pipeline._model import _bucketed_symmetry, _Model
+from jaxreg.pipeline.records import EquivalentPose
+from jaxreg.pipeline.settings import PipelineSettings
 from jaxreg.registration.icp import icp
 
 # --------------------------------------------------------------------------------------------
@@ -98,23 +105,20 @@ def probe_starts(model: _Model, object_T_base: np.ndarray) -> np.ndarray:
     return np.asarray((centre @ turns @ centre.inverse() @ answer).wxyz_xyz, np.float32)
 
 
-def _probe(frame, plane, model, source, answer, score, rmse, trim, noise, settings: _Settings):
+def _probe(frame, plane, model, source, answer, trim, noise, distances, settings):
     """The answer turned about the model's axes (:func:`probe_starts`), refined and judged
-    like the refined starts: their poses ``(P, 7)`` (object_T_base), which are as good as
-    the answer ``(P,)`` (score within 0.02, residual within 10%) and their residuals
-    ``(P,)`` (metres). The probes are refined on every second point of ``source`` (half
-    the cost; the 95% region's coverage on bench_calibration's frames stays within 85-99%,
-    its bars a little wider)."""
+    like the refined starts: their poses ``(P, 7)`` (object_T_base), scores and residuals
+    ``(P,)`` (metres). The probes are refined on every second point of ``source`` (half the
+    cost)."""
     starts = SE3(jax.device_put(probe_starts(model, answer)))
     probed = _register_starts(
-        source[::2], model.points, model.normals, model.fine_grid, starts, settings.fine_distances,
-        trim, 30,
+        source[::2], model.points, model.normals, model.fine_grid, starts, distances, trim, 30,
     )  # fmt: skip
     poses, _ = _onto_table(model, probed.pose.wxyz_xyz, plane, settings)
-    seen = np.asarray(_judge(frame, plane, poses, model.points, _TOLERANCE, noise.coefficients))
+    seen = np.asarray(_judge(frame, plane, poses, model.points, TOLERANCE, noise.coefficients))
     scores = np.asarray(probed.inlier_fraction) * _confirmed_share(seen)
     rmses = np.nan_to_num(np.asarray(probed.inlier_rmse), nan=np.inf)
-    return poses, (scores >= score - 0.02) & (rmses <= rmse * 1.1 + 1e-4), rmses
+    return poses, scores, rmses
 
 
 def _unfixed_turns(model, equal: np.ndarray):
@@ -161,7 +165,7 @@ def _good_arc(angles: np.ndarray, good: np.ndarray) -> float:
     return float(turns[right % n] - turns[left % n]) % 360.0
 
 
-def _onto_table(model, answers, plane, settings: _Settings):
+def _onto_table(model, answers, plane, settings: PipelineSettings):
     """``answers`` ``(S, 7)`` (object_T_base wxyz_xyz) with each one that rests on the table
     (:func:`resting_contact`) moved onto it, and each one's contact (points, lowest height)
     or ``None`` (a list of ``S``). The poses are composed in batches (a few dispatches for
@@ -174,7 +178,8 @@ def _onto_table(model, answers, plane, settings: _Settings):
     normal, offset = np.asarray(plane.normal, np.float64), float(plane.offset)
     restings = [
         resting_contact(
-            points, matrix, normal, offset, settings.rest_tolerance, settings.voxel_size
+            points, matrix, normal, offset, settings.register.rest_tolerance,
+            settings.voxel_size,
         )
         for matrix in matrices
     ]
@@ -186,7 +191,7 @@ def _onto_table(model, answers, plane, settings: _Settings):
     return answers, restings
 
 
-def _rest(source, model, results, best: int, plane, trim, settings: _Settings):
+def _rest(source, model, results, best: int, plane, trim, distances, settings: PipelineSettings):
     """The refined answers ``(S, 7)`` (object_T_base) with each one that rests on the table
     moved onto it, the best one settled there by ICP with the contact points; the contact
     points ``(C, 3)`` of the best (``None`` when it does not rest) and its lowest point's
@@ -197,9 +202,149 @@ def _rest(source, model, results, best: int, plane, trim, settings: _Settings):
     if resting is not None:
         settled = _settle(
             source, resting[0], model.points, model.normals, model.fine_grid, answers[best],
-            settings.fine_distances[-15:], trim, 15,
+            distances[-15:], trim, 15,
         )  # fmt: skip
         if bool(np.isfinite(np.asarray(settled.inlier_rmse))):
             answers[best] = np.asarray(settled.pose.wxyz_xyz, np.float32)
             contact, lowest = resting
     return answers, contact, lowest
+
+
+# --------------------------------------------------------------------------------------------
+# The answer on one symmetry branch, and the distinct starts it is chosen from.
+
+
+def _canonical(pose: SE3, reference: SE3, symmetry) -> SE3:
+    """:func:`canonicalise` by a bucketed ``symmetry`` ``(rotations (K, 3, 3), axis (3,),
+    continuous)``: with the axis when ``continuous``, else the rotations alone."""
+    rotations, axis, continuous = symmetry
+    fixed = canonicalise(pose, reference, Symmetry(rotations))
+    turned = canonicalise(pose, reference, Symmetry(rotations, axis))
+    return SE3(jnp.where(continuous, turned.wxyz_xyz, fixed.wxyz_xyz))
+
+
+@persistent_jit
+def _finish(object_T_base, best, equal, symmetry):
+    """The answer from the refined starts ``object_T_base (S, 7)``, as one stored program
+    for every model: ``base_T_object`` of start ``best`` (wxyz_xyz; the equivalent under the
+    bucketed ``symmetry`` (:func:`_bucketed_symmetry`) nearest the base axes), the largest
+    offset (metres) and angle (degrees) to the starts flagged ``equal`` ``(S,)`` and their
+    tangents ``(S, 6)``, all compared on the answer's symmetry branch (right perturbations
+    of the reported ``base_T_object``, object axes)."""
+    found = SE3(object_T_base[best])
+    pose = found.inverse()
+    others = _canonical(SE3(object_T_base).inverse(), pose, symmetry)
+    offset = jnp.linalg.norm(others.translation() - pose.translation(), axis=-1)
+    angle = jnp.degrees(geodesic_angle(others.rotation(), pose.rotation()))
+    spread = jnp.stack([jnp.max(jnp.where(equal, offset, 0)), jnp.max(jnp.where(equal, angle, 0))])
+    # report one branch: the equivalent nearest the base axes
+    pose = _canonical(pose, SE3.from_translation(pose.translation()), symmetry)
+    others = _canonical(others, pose, symmetry)
+    tangents = (pose.inverse() @ others).log()
+    return pose.wxyz_xyz, spread, tangents
+
+
+def _distinct(poses: np.ndarray, count: int, min_distance: float) -> list[int]:
+    """The first ``count`` rows of ``poses`` (``(S, 7)`` wxyz_xyz, best first) that differ
+    from every earlier pick by ``min_distance`` metres or 0.2 rad."""
+    quats, trans = poses[:, :4], poses[:, 4:]
+    chosen: list[int] = []
+    for i in range(len(poses)):
+        if all(
+            np.linalg.norm(trans[i] - trans[j]) > min_distance
+            or 2 * np.arccos(min(1.0, abs(float(quats[i] @ quats[j])))) > 0.2
+            for j in chosen
+        ):
+            chosen.append(i)
+        if len(chosen) == count:
+            break
+    return chosen
+
+
+# --------------------------------------------------------------------------------------------
+# Everything that fits as well as the answer.
+
+
+@dataclasses.dataclass(frozen=True)
+class _Alternatives:
+    """What fits the view as well as the answer (:func:`_alternatives`).
+
+    Attributes:
+        pose: ``(7,)`` the reported ``base_T_object`` (the answer on its symmetry branch).
+        spread: ``(2,)`` the largest offset (metres) and angle (degrees) of the equally good
+            refined starts from it.
+        equal_starts: ``(S,)`` bool the refined starts as good as the answer.
+        equal_probes: ``(P,)`` bool the probes as good as the answer.
+        tangents, weights: ``(A, 6)`` the starts and probes that fit about as well, as right
+            perturbations of ``pose`` (object axes), and their weights (``exp(-gap^2/2)``,
+            :func:`~jaxreg.pipeline._judge.evidence_gap`): the budget's ambiguity term.
+        view_free, view_reason: the rotation axes the view leaves free (``(6,)`` bool) and
+            why (:func:`_unfixed_turns`).
+        equivalent: the distinct turned answers as good as the answer.
+    """
+
+    pose: np.ndarray
+    spread: np.ndarray
+    equal_starts: np.ndarray
+    equal_probes: np.ndarray
+    tangents: np.ndarray
+    weights: np.ndarray
+    view_free: np.ndarray
+    view_reason: str | None
+    equivalent: tuple[EquivalentPose, ...]
+
+
+def _alternatives(
+    frame, plane, model, source, answers, best, scores, rmses, patches, trim, noise, distances,
+    symmetry, settings,
+) -> _Alternatives:  # fmt: skip
+    """The refined starts (``answers`` ``(S, 7)`` object_T_base, their ``scores`` and
+    ``rmses``, ``best`` the answer's row) and the answer's probes (:func:`_probe`) judged
+    against the answer over the segment's ``patches``: which fit as well (within two
+    standard errors, :func:`~jaxreg.pipeline._judge.equally_good`), each one's weight for
+    the error budget's ambiguity term, the rotations a contiguous arc of equally good probes
+    leaves free (:func:`_unfixed_turns`), and the equivalent poses: the probes that stay
+    turned after refinement (half their turn or more, on the answer's ``symmetry`` branch:
+    a declared symmetry's copies are the answer itself) and fit as well, one per distinct
+    pose (1 cm or 0.2 rad apart), best first."""
+    padded = _bucketed_symmetry(symmetry)
+    gaps = evidence_gap(scores, rmses, scores[best], rmses[best], patches)
+    equal = gaps <= 2.0
+    pose, spread, tangents = _finish(answers, np.int32(best), equal, padded)
+    probes, probe_scores, probe_rmses = _probe(
+        frame, plane, model, source, answers[best], trim, noise, distances, settings
+    )
+    probe_gaps = evidence_gap(probe_scores, probe_rmses, scores[best], rmses[best], patches)
+    equal_probes = probe_gaps <= 2.0
+    _, _, probe_tangents = _finish(
+        np.concatenate([answers[best][None], probes]), np.int32(0),
+        np.concatenate([[False], equal_probes]), padded,
+    )  # fmt: skip
+    probe_tangents = np.asarray(probe_tangents)[1:]
+    turns = np.radians(np.abs(np.tile(PROBE_ANGLES_DEG, 3)))
+    stayed = np.linalg.norm(probe_tangents[:, 3:], axis=1) >= 0.5 * turns
+    view_free, view_reason, turned = _unfixed_turns(model, equal_probes & stayed)
+    kept = equal_probes & ~turned
+    others = equal & (np.arange(len(equal)) != best)
+    tangents = np.concatenate([np.asarray(tangents)[others], probe_tangents[kept]])
+    weights = np.exp(-0.5 * np.concatenate([gaps[others], probe_gaps[kept]]) ** 2)
+    listed = np.flatnonzero(kept & stayed)
+    listed = listed[np.argsort(probe_gaps[listed], kind="stable")]
+    ordered = np.concatenate([answers[best][None], probes[listed]])
+    distinct = _distinct(ordered, len(listed) + 1, 0.01)
+    axes = np.asarray(model.axes, np.float64).T
+    equivalent = tuple(
+        EquivalentPose(
+            pose=SE3(np.asarray(probes[i], np.float64)).inverse(),
+            axis=axes[i // len(PROBE_ANGLES_DEG)],
+            angle_deg=float(PROBE_ANGLES_DEG[i % len(PROBE_ANGLES_DEG)]),
+            score=float(probe_scores[i]),
+            inlier_rmse=float(probe_rmses[i]),
+            weight=float(np.exp(-0.5 * probe_gaps[i] ** 2)),
+        )
+        for i in listed[np.asarray(distinct[1:], int) - 1]
+    )
+    return _Alternatives(
+        np.asarray(pose), np.asarray(spread), equal, equal_probes, tangents, weights, view_free,
+        view_reason, equivalent,
+    )  # fmt: skip

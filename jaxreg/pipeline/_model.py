@@ -12,7 +12,7 @@ import hashlib
 import math
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from jaxreg.geometry.metrics import Symmetry
 from jaxreg.search.neighbors import NeighborGrid, build_grid, pad_grid, voxel_downsample
@@ -31,6 +31,7 @@ class _Model:
     axes: np.ndarray  # (3, 3) principal axes as columns, largest extent first
     bounds: np.ndarray  # (2, 3) least and greatest coordinate along each axis (given points)
     screen: np.ndarray  # (R1, 3) voxelled at 3 voxels: the coarse starts' first judgement
+    sampling: tuple[float, float]  # (rms, gap) metres: see _sampling
     # _coarse_problem's, per schedule (not in the repr that keys stored programs)
     coarse: dict = dataclasses.field(default_factory=dict, repr=False)
 
@@ -152,11 +153,26 @@ def _prepare_model(
         axes=axes,
         bounds=np.stack([given.min(0), given.max(0)]),
         screen=_padded_rows(voxel_downsample(points, 3 * voxel_size), _SCREEN_ROWS, np.nan),
+        sampling=_sampling(points),
     )
     if len(_MODELS) > 8:
         _MODELS.clear()
     _MODELS[key] = model
     return model
+
+
+def _sampling(points: np.ndarray, k: int = 6) -> tuple[float, float]:
+    """How far a point of the surface lies from the nearest of the model's ``points``
+    ``(R, 3)`` (metres), from the area each point stands for (``pi r_k^2 / k``, ``r_k`` the
+    distance to its ``k``-th neighbour: a uniform grid of spacing ``h`` gives ``h^2``): the
+    RMS distance of a surface point drawn uniformly to its nearest model point
+    (``sqrt(sum a^2 / (2 pi sum a))``: the sparse parts weigh by their area), and the gap
+    (the radius of the 95th percentile's area). A sparse or unevenly sampled model (a few
+    thousand points on a large object) has larger ones than a dense scan voxelled finely."""
+    distances, _ = cKDTree(points).query(points, k=k + 1)
+    area = np.pi * distances[:, k].astype(np.float64) ** 2 / k
+    rms = float(np.sqrt(np.sum(area**2) / (2 * np.pi * np.sum(area))))
+    return rms, float(np.sqrt(np.quantile(area, 0.95) / np.pi))
 
 
 def _bucketed_symmetry(symmetry: Symmetry | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -1,437 +1,311 @@
-"""The register stage's pieces for :mod:`jaxreg.pipeline`: multi-start registration of every
-candidate cluster in one compiled call, the depth image's evidence about a model pose
-(:func:`visibility`), the refinement's starts and the final answer on its symmetry branch
-(``_finish``). The model comes prepared by :mod:`jaxreg.pipeline._model`.
+"""The register stage of :func:`jaxreg.estimate_pose`, in two parts around the lift.
 
-Conventions of :mod:`jaxreg.pipeline.estimate`: the segment (source, base frame) is registered into
-the model (target, object frame), so ICP's poses are ``object_T_base``; tangents are jaxlie's.
+:func:`coarse_search` (before the lift): every candidate segment registered into the model
+from many starts in one compiled call (:func:`jaxreg.pipeline._coarse._score_candidates`) and
+scored by the fraction of its points the model explains times the share of the model's
+camera-facing surface the depth image confirms; the best candidate wins unless its points
+reach beyond the model (a larger object of a similar shape), and on the table route the
+clusters its coarse pose explains (60% of their points within 1 cm) join it.
+
+:func:`refine_stage` (after it): the winner's best distinct coarse poses refined on the lifted
+points, ranked by inlier fraction times the confirmed share, the answer settled on the table
+and probed (:mod:`jaxreg.pipeline._answer`), the checks that refuse a model that is not there,
+and the pose's error budget (:mod:`jaxreg.pipeline._error_sources`).
 """
 
 from __future__ import annotations
 
-import equinox as eqx
+import dataclasses
+import time
+
 import jax
-import jax.numpy as jnp
 import numpy as np
-from jaxlie import SE3, SO3
-from jaxtyping import Array, Float
-from scipy.spatial.transform import Rotation
+from jaxlie import SE3
 
-from jaxreg.camera.model import RGBDFrame
-from jaxreg.core._program_cache import persistent_jit
-from jaxreg.geometry.lie import geodesic_angle
-from jaxreg.geometry.metrics import Symmetry, canonicalise
-from jaxreg.pipeline._model import _Model
-from jaxreg.pipeline.segment import TablePlane
-from jaxreg.registration._icp_core import _apply, run
-from jaxreg.registration._icp_setup import Settings, prepare
-from jaxreg.registration.icp import multistart_icp, pca_inits, rotation_inits
-from jaxreg.search.neighbors import (
-    query_nearest,
+from jaxreg.pipeline._answer import _alternatives, _distinct, _rest
+from jaxreg.pipeline._coarse import _coarse_problem, _register_starts, _score_candidates
+from jaxreg.pipeline._error_sources import MISMATCH_SIGMA, pose_budget
+from jaxreg.pipeline._judge import (
+    TOLERANCE,
+    _confirmed_share,
+    _judge,
+    _near_model,
+    _support,
+    overhang,
+    patch_count,
 )
+from jaxreg.pipeline._stages import _Failed, _padded
+from jaxreg.pipeline.records import (
+    Candidate,
+    CoarseSearch,
+    LiftedSegment,
+    RegisterRecord,
+    Registration,
+    Segmented,
+)
+from jaxreg.pipeline.segment import cluster_mask
+from jaxreg.pipeline.settings import PipelineSettings
+from jaxreg.registration.icp import ICPStatus
 
-__all__ = ["visibility"]
+__all__ = ["coarse_search", "refine_stage"]
 
-NOISE_SIGMAS = 4  # a depth within this many sigma_z(z) of the model agrees (see visibility)
+# Final ICP statuses that leave a pose to judge (the iteration bound leaves the last step's
+# pose); degenerate geometry passes too when a symmetry is given (its free directions).
+_USABLE = (ICPStatus.success, ICPStatus.max_iterations)
 
-# --------------------------------------------------------------------------------------------
-# Visibility of the model in the depth image at a pose.
+
+# A fit's residual may be this many times the one the depth noise, the model's sampling and
+# the model-sensor mismatch explain (their RMS sum).
+RESIDUAL_FACTOR = 1.5
 
 
-@eqx.filter_jit
-def visibility(
-    frame: RGBDFrame,
-    base_T_object: SE3,
-    model_points: Float[Array, "M 3"],
-    tolerance: Float[Array, ""],
-    plane: TablePlane | None = None,
-    cell: int = 4,
-    *,
-    sigma_z: Float[Array, " C"] | None = None,
-) -> Float[Array, " 5"]:
-    """How the depth image judges the model at a pose: counts ``(confirmed, contradicted,
-    occluded, unknown, self_hidden)`` of the model points (jittable).
+@dataclasses.dataclass(frozen=True)
+class Tolerances:
+    """The register stage's distances and gates for one segment, from the depth noise at the
+    segment's depth and the model's sampling (:func:`tolerances`).
 
-    With a table ``plane``, every model point more than ``tolerance`` below it is
-    contradicted, facing the camera or not: an object cannot stand in the table.
-
-    The model points are moved into the camera and z-buffered among themselves on a grid of
-    ``cell`` x ``cell`` pixels: a point more than ``tolerance`` behind the nearest model
-    point of its cell is hidden by the model itself (its far side). Each point the camera
-    could see is compared with the depth measured at its pixel: within ``tolerance``
-    (metres) it is confirmed; measured farther, the camera sees through where the surface
-    should be (contradicted, evidence against the pose or the object's presence); measured
-    nearer, something else hides it (occluded); a hole or a pixel outside the image is
-    unknown. NaN rows of ``model_points`` (a model padded to a bucketed size) count nowhere.
-
-    With ``sigma_z`` (ascending polynomial coefficients of the depth noise's standard
-    deviation in the camera depth ``z``, as :class:`~jaxreg.uncertainty.DepthNoise` holds
-    them) each point's tolerance is ``tolerance`` or ``NOISE_SIGMAS`` times ``sigma_z`` at
-    its depth, whichever is larger: the floor covers the model's own error (voxels,
-    samples), the noise term a far or noisy view.
+    Attributes:
+        distances: ``(30,)`` float32 the refinement's correspondence distances (metres, 15 mm
+            down to the final one).
+        max_rmse: the largest inlier RMSE of a fit (metres).
+        max_overhang: how far the segment may span beyond the model (metres).
+        sigma_z: the depth noise's standard deviation at the segment's depth (metres).
     """
-    poses = SE3(base_T_object.wxyz_xyz[None])
-    return _visibilities(frame, poses, model_points, tolerance, plane, cell, sigma_z)[0]
+
+    distances: np.ndarray
+    max_rmse: float
+    max_overhang: float
+    sigma_z: float
 
 
-def _visibilities(frame, base_T_object: SE3, model_points, tolerance, plane, cell, sigma_z):
-    """:func:`visibility` counts ``(S, 5)`` of a batch of poses ``base_T_object`` ``(S,)``
-    (traced). The per-point geometry is vmapped over the poses, the points moved by rotation
-    matrices (jaxlie's quaternion ``apply`` gathers its Hamilton products' terms: ~50x
-    slower on XLA's CPU backend for a batch of poses); the z-buffer is one scatter into
-    ``S`` cell grids laid end to end (a vmapped scatter is ~20x slower on a CPU)."""
-    h, w = frame.depth.shape
-    hc, wc = -(-h // cell), -(-w // cell)
+def tolerances(model, noise, depth: float, settings: PipelineSettings) -> Tolerances:
+    """The :class:`Tolerances` of a segment ``depth`` metres from the camera (its median).
 
-    def place(pose):
-        """Camera-frame points ``(M, 3)``, clipped pixel ``(row, col)``, whether each lies in
-        front of the camera and inside the image, its tolerance and its cell ``(M,)``."""
-        camera_T_object = frame.base_T_camera.inverse() @ pose
-        cam = _apply(camera_T_object, jnp.asarray(model_points, frame.depth.dtype))
-        pix = frame.intrinsics.project(cam)
-        col = jnp.round(pix[:, 0]).astype(jnp.int32)
-        row = jnp.round(pix[:, 1]).astype(jnp.int32)
-        inside = (cam[:, 2] > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        limit = jnp.broadcast_to(tolerance, cam[:, 2].shape).astype(cam.dtype)
-        if sigma_z is not None:
-            powers = cam[:, 2:3] ** jnp.arange(sigma_z.shape[0], dtype=cam.dtype)
-            limit = jnp.maximum(tolerance, NOISE_SIGMAS * (powers @ sigma_z.astype(cam.dtype)))
-        row, col = jnp.clip(row, 0, h - 1), jnp.clip(col, 0, w - 1)
-        code = (row // cell) * wc + col // cell
-        below = jnp.zeros(cam.shape[0], bool)
-        if plane is not None:
-            height = plane.height(_apply(pose, jnp.asarray(model_points, cam.dtype)))
-            below = height < -limit
-        return cam, row, col, inside, limit, code, below
-
-    cam, row, col, inside, limit, code, below = jax.vmap(place)(base_T_object)
-    count = cam.shape[0]
-    slot = code + (jnp.arange(count, dtype=code.dtype) * (hc * wc))[:, None]
-    zbuf = (
-        jnp.full(count * hc * wc, jnp.inf, cam.dtype)
-        .at[slot.reshape(-1)]
-        .min(jnp.where(inside, cam[..., 2], jnp.inf).reshape(-1))
-    )
-    facing = inside & (cam[..., 2] <= zbuf[slot] + limit)
-    measured = frame.depth[row, col]
-    known = facing & jnp.isfinite(measured)
-    diff = measured - cam[..., 2]
-    confirmed = known & (jnp.abs(diff) <= limit)
-    contradicted = known & (diff > limit)
-    if plane is not None:
-        contradicted = contradicted | below  # seen or hidden, it cannot be there
-        known = known | below
-        confirmed = confirmed & ~below
-    occluded = known & (diff < -limit) & ~contradicted
-    unknown = ~known & (facing | ~inside) & jnp.all(jnp.isfinite(cam), -1)
-    flags = [confirmed, contradicted, occluded, unknown, inside & ~facing]
-    return jnp.stack([flag.sum(-1) for flag in flags], -1)
+    With ``sigma_z`` the depth noise there and the model's sampling (``rms``, ``gap``: how
+    far a surface point lies from the nearest model point, :func:`~jaxreg.pipeline._model.
+    _sampling`): the final correspondence distance reaches a point ``3 sigma_z`` off the
+    surface in the model's widest gap (``hypot(gap, 3 sigma_z)``, at least 1.5 voxels, the
+    measured points' own spacing, at most 15 mm); a fit's residual may be ``RESIDUAL_FACTOR``
+    times ``sqrt(rms^2 + sigma_z^2 + MISMATCH_SIGMA^2)`` (``max_inlier_rmse`` when set); the
+    segment may span ``max_overhang`` plus ``4 sigma_z`` beyond the model (the noise spreads
+    the points of both of its ends)."""
+    r = settings.register
+    sigma = float(np.polynomial.polynomial.polyval(depth, np.asarray(noise.coefficients)))
+    rms, gap = model.sampling
+    final = min(max(float(np.hypot(gap, 3 * sigma)), 1.5 * settings.voxel_size), 0.015)
+    if final == 1.5 * settings.voxel_size:
+        distances = settings.fine_distances
+    else:
+        distances = np.geomspace(0.015, final, 30).astype(np.float32)
+    expected = float(np.sqrt(rms**2 + sigma**2 + MISMATCH_SIGMA**2))
+    max_rmse = RESIDUAL_FACTOR * expected if r.max_inlier_rmse is None else r.max_inlier_rmse
+    return Tolerances(distances, max_rmse, r.max_overhang + 4 * sigma, sigma)
 
 
-def overhang(model: _Model, object_T_base: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """How far a segment spans beyond the model, along each of the model's principal axes
-    (metres, ``(3,)``): the span of ``points`` ``(N, 3)`` (base frame) moved by
-    ``object_T_base`` ``(7,)`` (wxyz_xyz), between their 2% and 98% quantiles, less the model's
-    full span. An object's own points stay within its extent up to the depth noise, whatever
-    part of it is visible (a partial view spans less: negative), so a positive overhang of
-    several millimetres says the segment is a larger object of a similar shape, or the object
-    merged with a neighbour."""
-    rotation = Rotation.from_quat(np.asarray(object_T_base[:4], np.float64), scalar_first=True)
-    moved = rotation.apply(np.asarray(points, np.float64)) + object_T_base[4:]
-    along = (moved - model.centroid) @ model.axes
-    low, high = np.quantile(along, [0.02, 0.98], axis=0)
-    return (high - low) - (model.bounds[1] - model.bounds[0])
+def _camera_depth(frame, points: np.ndarray) -> float:
+    """The median camera depth (metres) of base-frame ``points`` ``(N, 3)``."""
+    camera = frame.base_T_camera
+    axis = np.asarray(camera.rotation().as_matrix(), np.float64)[:, 2]
+    return float(np.median((points - np.asarray(camera.translation(), np.float64)) @ axis))
 
 
-def _confirmed_share(counts: Array) -> Array:
-    """Confirmed over judged (confirmed, contradicted, occluded) model points, ``(...)``, of
-    numpy or JAX counts ``(..., 5)`` (array methods only: host counts stay on the host)."""
-    return counts[..., 0] / counts[..., :3].sum(-1).clip(min=1)
-
-
-def _support(counts: np.ndarray) -> tuple[float, float]:
-    """(confirmed share, contradicted share) of the model points facing the camera that the
-    image can judge (confirmed, contradicted or occluded)."""
-    confirmed, contradicted, occluded = (float(c) for c in counts[:3])
-    judged = max(confirmed + contradicted + occluded, 1.0)
-    return confirmed / judged, contradicted / judged
-
-
-# --------------------------------------------------------------------------------------------
-# Register.
-
-
-class _Coarse(eqx.Module):
-    """Coarse registration of every candidate, its refined starts ranked best first (by the
-    fraction of the cloud the model explains times the confirmed share of the model's
-    visible surface): ``poses`` ``(C, K, 7)`` object_T_base wxyz_xyz, ``explained``
-    ``(C, K)``, ``visibility`` ``(C, K, 5)``."""
-
-    poses: Array
-    explained: Array
-    visibility: Array
-
-
-def _coarse_problem(model: _Model, size: int, distances: np.ndarray, splits: tuple[int, ...]):
-    """ICP's problem for ``size``-point sources against the model (the source rows are
-    replaced per candidate) and the options of its rounds: the correspondence ``distances``
-    cut at ``splits`` (e.g. ``(2, 6)``: the first two for every start, the next four for the
-    starts kept after them, the rest for the starts kept after those). Built once per model
-    and schedule."""
-    key = (size, distances.tobytes(), splits)
-    if key not in model.coarse:
-        rounds = []
-        for part in np.split(distances, splits):
-            settings = Settings(
-                "point_to_plane", model.normals, part, len(part), 1e-5, None, None, None,
-                model.grid,
-            )  # fmt: skip
-            problem, opts, _ = prepare(np.zeros((size, 3), np.float32), model.points, settings)
-            rounds.append(opts)
-        model.coarse[key] = (problem, *rounds)
-    return model.coarse[key]
-
-
-def _front_aligned(inits: SE3, cloud, ok, model_points, eye) -> SE3:
-    """Starts (object_T_base) slid along the line of sight so that the model's nearest
-    point to the camera lies as near as the cloud's (its 5th percentile): a partial view's
-    centroid sits on the visible surface, in front of the object's centre. NaN model rows
-    (padding) are ignored."""
-    centroid = jnp.sum(jnp.where(ok[:, None], cloud, 0.0), 0) / jnp.maximum(ok.sum(), 1)
-    view = (centroid - eye) / jnp.linalg.norm(centroid - eye)
-    depth = jnp.where(ok, jnp.where(ok[:, None], cloud, 0.0) @ view, jnp.nan)
-    front = jnp.nanpercentile(depth, 5.0)
-    placed = inits.inverse()  # base_T_object
-    model_front = (
-        jnp.nanmin(
-            jnp.einsum("sij,mj->smi", placed.rotation().as_matrix(), model_points) @ view, axis=1
-        )
-        + placed.translation() @ view
-    )
-    moved = SE3.from_rotation_and_translation(
-        placed.rotation(), placed.translation() + (front - model_front)[:, None] * view
-    )
-    return moved.inverse()
-
-
-def _resting_starts(cloud, ok, model_points, model_axes, plane, eye, yaws: int) -> SE3:
-    """Starts (object_T_base) of the model resting on the table: each of the model's six
-    principal half-axes ``model_axes`` ``(3, 3)`` (columns, object frame) pointing down the
-    plane's normal, turned to ``yaws`` headings about it, the lowest model point on the
-    plane, and the model slid horizontally toward the camera until its front meets the
-    cloud's (5th percentile along the horizontal line of sight; a partial view's centroid
-    lies on its visible side). NaN rows of ``model_points`` (padding) are ignored. Batch
-    ``(6 * yaws,)``."""
-    n = plane.normal
-    dtype = cloud.dtype
-    downs = jnp.concatenate([model_axes.T, -model_axes.T])  # (6, 3) object frame
-    helper = jnp.where(jnp.abs(downs[:, :1]) < 0.9, jnp.eye(3, dtype=dtype)[0], jnp.eye(3)[1])
-    b = jnp.cross(downs, helper)
-    b = b / jnp.linalg.norm(b, axis=-1, keepdims=True)
-    object_frames = jnp.stack([downs, b, jnp.cross(downs, b)], -1)  # (6, 3, 3) columns
-    u = jnp.cross(-n, jnp.where(jnp.abs(n[0]) < 0.9, jnp.eye(3, dtype=dtype)[0], jnp.eye(3)[1]))
-    u = u / jnp.linalg.norm(u)
-    base_frame = jnp.stack([-n, u, jnp.cross(-n, u)], -1)  # (3, 3) columns
-    base_R = jnp.einsum("ij,fkj->fik", base_frame, object_frames)  # (6, 3, 3): down -> -n
-    angles = jnp.arange(yaws, dtype=dtype) * (2 * jnp.pi / yaws)
-    turns = SO3.exp(angles[:, None] * n[None, :]).as_matrix()  # (Y, 3, 3)
-    rotations = jnp.einsum("yij,fjk->fyik", turns, base_R).reshape(-1, 3, 3)
-    moved = jnp.einsum("sij,mj->smi", rotations, model_points)  # (S, M, 3) about the origin
-    centroid = jnp.sum(jnp.where(ok[:, None], cloud, 0.0), 0) / jnp.maximum(ok.sum(), 1)
-    along = (centroid - eye) - ((centroid - eye) @ n) * n
-    along = along / jnp.maximum(jnp.linalg.norm(along), 1e-9)
-    front = jnp.nanpercentile(jnp.where(ok, cloud @ along, jnp.nan), 5.0)
-    real = jnp.all(jnp.isfinite(model_points), -1)  # NaN rows pad the model
-    model_mid = jnp.sum(jnp.where(real[:, None], moved, 0.0), 1) / real.sum()  # (S, 3)
-    # horizontal: the model's centre over the cloud's centroid, then slid along `along`
-    horizontal = centroid - (centroid @ n) * n - (model_mid - (model_mid @ n)[:, None] * n)
-    horizontal = horizontal - (horizontal @ along)[:, None] * along
-    model_front = jnp.nanmin(moved @ along, axis=1)
-    horizontal = horizontal + (front - model_front)[:, None] * along
-    lift = -plane.offset - jnp.nanmin(moved @ n, axis=1)  # lowest point on the plane
-    translations = horizontal + lift[:, None] * n
-    placed = SE3.from_rotation_and_translation(SO3.from_matrix(rotations), translations)
-    return placed.inverse()
-
-
-def _spread_best(poses: Array, score: Array, count: int, min_distance: float) -> Array:
-    """Indices ``(count,)`` of the best-scoring rows of ``poses`` ``(S, 7)`` (wxyz_xyz) that
-    differ from every earlier pick by ``min_distance`` metres or 0.2 rad; when fewer rows
-    are that distinct, the best remaining ones fill the rest (jittable)."""
-    quats, trans = poses[:, :4], poses[:, 4:]
-    gap = jnp.linalg.norm(trans[:, None] - trans[None], axis=-1)
-    cos = jnp.abs(quats @ quats.T)
-    near = (gap <= min_distance) & (cos >= jnp.cos(0.1))  # half-angle of 0.2 rad
-    rank = jnp.where(jnp.isfinite(score), score, -1.0)
-
-    def pick(carry, _):
-        distinct, free = carry
-        i = jnp.argmax(jnp.where(distinct, rank + 3.0, jnp.where(free, rank, -jnp.inf)))
-        return (distinct & ~near[i], free.at[i].set(False)), i
-
-    ones = jnp.ones(len(score), bool)
-    _, chosen = jax.lax.scan(pick, (ones, ones), None, length=count)
-    return chosen
-
-
-@persistent_jit
-def _score_candidates(
-    frame, plane, problem, rounds, fine_grid, clouds, used, model_points, screen_points,
-    model_axes, tolerance, sigma_z, explained_distance, num_starts, yaws, survivors, keep,
-):  # fmt: skip
-    """Multi-start ICP of every candidate cloud ``(C, N, 3)`` (NaN padding) into the model,
-    its ranked starts, and the evidence for each; slots where ``used`` ``(C,)`` is False are
-    skipped (zeros), so one compiled shape serves any number of candidates up to C. Starts:
-    ``num_starts`` rotations of a grid over SO(3) and the 4 PCA frames, slid along the line
-    of sight to the cloud's front, and ``6 * yaws`` resting on the table
-    (:func:`_resting_starts`); without a table (``plane`` is ``None``) their share goes to
-    the rotation grid (``num_starts + 6 * yaws`` rotations), and nothing is judged against a
-    plane. ICP runs in three ``rounds`` (options of
-    :func:`_coarse_problem`), each on fewer starts: every start takes the first; the
-    ``survivors`` whose model then explains most of the cloud (1 cm; not thinned to
-    distinct poses: a start that will win may still sit near a better-fitting one) take the
-    second and are scored as below with the sparse ``screen_points``
-    ``(M1, 3)`` (the model voxelled at 3 voxels; :func:`visibility` on 16-pixel cells: the
-    z-buffer's scatter dominates the scoring on a CPU); the ``keep`` best distinct ones
-    take the third and are scored with ``model_points`` (4-pixel cells; the sparse
-    judgement is too coarse to rank near-equal candidates). The score is the share of the
-    cloud within ``explained_distance`` of the model times the confirmed share
-    (:func:`visibility` with ``tolerance`` and ``sigma_z``). Those shares are counted on
-    ``fine_grid`` (the model's grid exact to the refinement's largest distance, 15 mm or
-    more: the same neighbours within 1 cm as ICP's coarse grid, in lists an eighth as
-    long)."""
-    screen_opts, first_opts, rest_opts = rounds
-
-    def one(cloud):
-        ok = jnp.all(jnp.isfinite(cloud), -1)
-        eye = frame.base_T_camera.translation()
-        rotations = num_starts if plane is not None else num_starts + 6 * yaws
-        grid = rotation_inits(cloud, model_points, rotations)
-        inits = SE3(jnp.concatenate([grid.wxyz_xyz, pca_inits(cloud, model_points).wxyz_xyz]))
-        inits = _front_aligned(inits, cloud, ok, model_points, eye)
-        if plane is not None:
-            resting = _resting_starts(cloud, ok, model_points, model_axes, plane, eye, yaws)
-            inits = SE3(jnp.concatenate([inits.wxyz_xyz, resting.wxyz_xyz]))
-        source = (
-            jnp.zeros_like(problem.source)
-            .at[: cloud.shape[0]]
-            .set(jnp.where(ok[:, None], cloud, 0.0))
-        )
-        weights = jnp.zeros_like(problem.source_weights).at[: cloud.shape[0]].set(ok)
-        p = eqx.tree_at(lambda q: (q.source, q.source_weights), problem, (source, weights))
-        cloud0 = jnp.where(ok[:, None], cloud, 0.0)
-
-        def explains(pose, distance):
-            _, _, near = query_nearest(fine_grid, _apply(pose, cloud0), distance)
-            return jnp.sum(near & ok) / jnp.maximum(ok.sum(), 1)
-
-        def evidence(poses, points, cell):
-            explained = jax.vmap(explains, in_axes=(0, None))(poses, explained_distance)
-            seen = _visibilities(
-                frame, poses.inverse(), points, tolerance, plane, cell, sigma_z
-            )  # fmt: skip
-            return explained, seen
-
-        icp = jax.vmap(run, in_axes=(None, None, 0))
-        screened = icp(p, screen_opts, inits).pose
-        near = jax.vmap(explains, in_axes=(0, None))(screened, 0.01)
-        alive = jnp.argsort(-near)[:survivors]
-        first = icp(p, first_opts, SE3(screened.wxyz_xyz[alive]))
-        explained, seen = evidence(first.pose, screen_points, 16)
-        kept = _spread_best(first.pose.wxyz_xyz, explained * _confirmed_share(seen), keep, 0.01)
-        results = icp(p, rest_opts, SE3(first.pose.wxyz_xyz[kept]))
-        explained, seen = evidence(results.pose, model_points, 4)
-        score = explained * _confirmed_share(seen)
-        order = jnp.argsort(-score)
-        return results.pose.wxyz_xyz[order], explained[order], seen[order]
-
-    dtype = clouds.dtype
-
-    def skip(cloud):
-        return (
-            jnp.zeros((keep, 7), dtype), jnp.zeros(keep, dtype), jnp.zeros((keep, 5), jnp.int32),
-        )  # fmt: skip
-
-    def slot(args):
-        cloud, live = args
-        return jax.lax.cond(live, one, skip, cloud)
-
-    poses, explained, seen = jax.lax.map(slot, (clouds, used))
-    return _Coarse(poses, explained, seen)
-
-
-@persistent_jit
-def _near_model(grid, object_T_base, points, distance):
-    """``(...)`` bool: which of ``points`` ``(..., 3)`` (base frame; NaN rows never) lie
-    within ``distance`` of the model at a pose."""
-    flat = points.reshape(-1, 3)
-    ok = jnp.all(jnp.isfinite(flat), -1)
-    moved = _apply(SE3(object_T_base), jnp.where(ok[:, None], flat, 0.0))
-    _, _, near = query_nearest(grid, moved, distance)
-    return (near & ok).reshape(points.shape[:-1])
-
-
-@persistent_jit
-def _judge(frame, plane, object_T_base, model_points, tolerance, sigma_z):
-    """:func:`visibility` counts ``(S, 5)`` of a batch of object_T_base ``(S, 7)``."""
-    return _visibilities(frame, SE3(object_T_base).inverse(), model_points, tolerance, plane, 4,
-                         sigma_z)  # fmt: skip
-
-
-@persistent_jit
-def _register_starts(source, points, normals, grid, inits, distances, trim, iterations):
-    """Point-to-plane multi-start ICP of ``source`` into the model (its points, normals and
-    grid as arguments, not constants of the stored program: a model's arrays closed into it
-    made a ~30 MB executable to load in every process)."""
-    return multistart_icp(
-        source, points, inits, method="point_to_plane", target_normals=normals,
-        max_correspondence_distance=distances, max_iterations=iterations, trim_fraction=trim,
-        neighbors=grid, tolerance=1e-5,
+def coarse_search(
+    frame, model, segmented: Segmented, settings: PipelineSettings, noise, rng
+) -> CoarseSearch:
+    """The winner among ``segmented``'s candidates and its coarse poses (see the module
+    docstring); ``noise`` is the camera's ``DepthNoise`` (base frame), ``rng`` the numpy
+    Generator that subsamples the candidates."""
+    start = time.perf_counter()
+    clouds = [cloud for _, cloud in segmented.candidates]
+    gates = tolerances(model, noise, _camera_depth(frame, np.concatenate(clouds)), settings)
+    coarse, scored = _score(frame, segmented.plane, model, settings, clouds, rng, noise, gates)
+    _, explained, _, _, chosen = scored[0]
+    poses = np.asarray(coarse.poses[chosen])  # object_T_base per start, best first
+    candidates = [_candidate(list(segmented.candidates[i][0]), *rest) for *rest, i in scored]
+    joined, region = None, segmented.mask
+    if segmented.clusters is not None:  # pieces the clustering split off the winner
+        seg = segmented.clusters
+        grid_points = np.asarray(seg.points)
+        labels = np.asarray(seg.clusters.labels)
+        sizes = np.asarray(seg.clusters.sizes)
+        live = [k for k in range(len(sizes)) if sizes[k] > 0]
+        members = labels >= 0  # the whole grid, non-members NaN: one shape for every frame
+        points = np.where(members[..., None], grid_points, np.nan).astype(np.float32)
+        near = np.asarray(_near_model(model.fine_grid, poses[0], points, np.float32(0.01)))
+        near, member_labels = near[members], labels[members]
+        group = segmented.candidates[chosen][0]
+        joined = sorted({*group, *(k for k in live if near[member_labels == k].mean() >= 0.6)})
+        region = cluster_mask(seg, joined, frame.depth.shape)
+    r = settings.register
+    record = RegisterRecord(
+        ms=0.0, starts=r.num_starts + 4 + 6 * r.resting_yaws, candidates=candidates,
+        coarse_kept_starts=int(poses.shape[0]),
+        chosen_clusters=None if joined is None else list(joined),
     )  # fmt: skip
+    return CoarseSearch(region, poses, explained, gates, record.with_ms(start))
 
 
-def _canonical(pose: SE3, reference: SE3, symmetry) -> SE3:
-    """:func:`canonicalise` by a bucketed ``symmetry`` ``(rotations (K, 3, 3), axis (3,),
-    continuous)``: with the axis when ``continuous``, else the rotations alone."""
-    rotations, axis, continuous = symmetry
-    fixed = canonicalise(pose, reference, Symmetry(rotations))
-    turned = canonicalise(pose, reference, Symmetry(rotations, axis))
-    return SE3(jnp.where(continuous, turned.wxyz_xyz, fixed.wxyz_xyz))
+def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, gates):
+    """Coarse registration of the candidate ``clouds`` (each ``(N, 3)``, base frame) in one
+    compiled call, and each one's evidence, best first: tuples ``(score, explained,
+    contradicted, overhang, slot)``; a candidate whose points reach beyond the model
+    (``max_overhang``: a larger object of a similar shape, or a span that cannot be measured)
+    ranks after those that do not. ``noise``: the camera's ``DepthNoise`` (the image's
+    judgement allows 4 sigma_z at each depth)."""
+    s = settings.register
+    padded = np.full((settings.segment.max_candidates, s.coarse_points, 3), np.nan, np.float32)
+    for i, cloud in enumerate(clouds):
+        padded[i] = _padded(cloud, s.coarse_points, rng)
+    used = np.arange(settings.segment.max_candidates) < len(clouds)
+    problem, *rounds = _coarse_problem(
+        model, s.coarse_points, settings.coarse_distances, (s.coarse_screen, s.coarse_first)
+    )
+    coarse = jax.block_until_ready(
+        _score_candidates(
+            frame, plane, problem, tuple(rounds), model.fine_grid, padded, used, model.points,
+            model.screen, model.axes, TOLERANCE, noise.coefficients, gates.distances[-1],
+            s.num_starts, s.resting_yaws, s.coarse_survivors, s.coarse_keep,
+        )
+    )  # fmt: skip
+    scored = []
+    for i, cloud in enumerate(clouds):
+        confirmed, contradicted = _support(np.asarray(coarse.visibility[i, 0]))
+        explained = float(coarse.explained[i, 0])
+        reach = float(overhang(model, np.asarray(coarse.poses[i, 0]), cloud).max())
+        scored.append((explained * confirmed, explained, contradicted, reach, i))
+    # larger objects (or an unmeasurable span) last
+    scored.sort(key=lambda item: (not item[3] <= gates.max_overhang, -item[0]))
+    return coarse, scored
 
 
-@persistent_jit
-def _finish(object_T_base, best, equal, symmetry):
-    """The answer from the refined starts ``object_T_base (S, 7)``, as one stored program
-    for every model: ``base_T_object`` of start ``best`` (wxyz_xyz; the equivalent under the
-    bucketed ``symmetry`` (:func:`_bucketed_symmetry`) nearest the base axes), the largest
-    offset (metres) and angle (degrees) to the starts flagged ``equal`` ``(S,)`` and their
-    tangents ``(S, 6)``, all compared on the answer's symmetry branch (right perturbations
-    of the reported ``base_T_object``, object axes)."""
-    found = SE3(object_T_base[best])
-    pose = found.inverse()
-    others = _canonical(SE3(object_T_base).inverse(), pose, symmetry)
-    offset = jnp.linalg.norm(others.translation() - pose.translation(), axis=-1)
-    angle = jnp.degrees(geodesic_angle(others.rotation(), pose.rotation()))
-    spread = jnp.stack([jnp.max(jnp.where(equal, offset, 0)), jnp.max(jnp.where(equal, angle, 0))])
-    # report one branch: the equivalent nearest the base axes
-    pose = _canonical(pose, SE3.from_translation(pose.translation()), symmetry)
-    others = _canonical(others, pose, symmetry)
-    tangents = (pose.inverse() @ others).log()
-    return pose.wxyz_xyz, spread, tangents
+def _candidate(clusters, score, explained, contradicted, reach) -> Candidate:
+    return Candidate(
+        clusters=clusters,
+        score=round(score, 3),
+        explained=round(explained, 3),
+        contradicted=round(contradicted, 3),
+        overhang_mm=round(reach * 1e3, 1),
+    )
 
 
-def _distinct(poses: np.ndarray, count: int, min_distance: float) -> list[int]:
-    """The first ``count`` rows of ``poses`` (``(S, 7)`` wxyz_xyz, best first) that differ
-    from every earlier pick by ``min_distance`` metres or 0.2 rad."""
-    quats, trans = poses[:, :4], poses[:, 4:]
-    chosen: list[int] = []
-    for i in range(len(poses)):
-        if all(
-            np.linalg.norm(trans[i] - trans[j]) > min_distance
-            or 2 * np.arccos(min(1.0, abs(float(quats[i] @ quats[j])))) > 0.2
-            for j in chosen
-        ):
-            chosen.append(i)
-        if len(chosen) == count:
-            break
-    return chosen
+
+def refine_stage(
+    frame, model, coarse: CoarseSearch, lifted: LiftedSegment, plane, settings: PipelineSettings,
+    noise, symmetry, calibration, rng,
+) -> Registration:  # fmt: skip
+    """The best distinct coarse poses refined on the lifted points and judged (see the
+    module docstring). Raises ``_Failed`` when the evidence says the model is not there."""
+    coarse_poses, coarse_fraction = coarse.poses, coarse.explained
+    mask, points = lifted.mask, lifted.points
+    s = settings.register
+    gates = coarse.tolerances
+    fine_distances = gates.distances
+    start = time.perf_counter()
+    source = _padded(points, s.max_points, rng)
+    picks = _distinct(coarse_poses, s.refined_starts, 0.01)
+    inits = SE3(jax.device_put(coarse_poses[picks]))
+    trim = np.float32(np.clip(coarse_fraction, 0.6, 0.95))  # an argument: one program for all
+    results = _register_starts(
+        source, model.points, model.normals, model.fine_grid, inits, fine_distances, trim, 30
+    )
+    fractions = np.asarray(results.inlier_fraction)
+    rmses = np.nan_to_num(np.asarray(results.inlier_rmse), nan=np.inf)
+    seen = np.asarray(
+        _judge(frame, plane, results.pose.wxyz_xyz, model.points, TOLERANCE, noise.coefficients)
+    )
+    scores = fractions * _confirmed_share(seen)
+    ranked = np.lexsort((rmses, -np.round(scores, 2)))
+    best = results[int(ranked[0])]
+    fraction, rmse = float(fractions[ranked[0]]), float(rmses[ranked[0]])
+    confirmed, contradicted = _support(seen[ranked[0]])
+    reach = overhang(model, np.asarray(results.pose.wxyz_xyz[ranked[0]]), points)
+    answers, contact, lowest = _rest(
+        source, model, results, ranked[0], plane, trim, fine_distances, settings
+    )
+    found = _alternatives(
+        frame, plane, model, source, answers, int(ranked[0]), scores, rmses, patch_count(points),
+        trim, noise, fine_distances, symmetry, settings,
+    )  # fmt: skip
+    spread_mm, spread_deg = (float(x) for x in found.spread)
+    matched = fraction > 0 and rmse < 1.0  # no match leaves ICP's empty-sum residual
+    record = dataclasses.replace(
+        coarse.record,
+        refined_starts=len(picks),
+        trim_fraction=round(float(trim), 3),
+        iterations=int(best.iterations),
+        icp_status=str(best.status_message()),
+        inlier_rmse_mm=round(rmse * 1e3, 3) if matched else None,
+        inlier_fraction=round(fraction, 3),
+        equally_good_starts=int(found.equal_starts.sum()),
+        equally_good_probes=int(found.equal_probes.sum()),
+        start_agreement_mm=round(spread_mm * 1e3, 3),
+        start_agreement_deg=round(spread_deg, 3),
+        model_confirmed=round(confirmed, 3),
+        model_contradicted=round(contradicted, 3),
+        overhang_mm=[round(float(r) * 1e3, 1) for r in reach],
+        resting_on_table=contact is not None,
+        contact_shift_mm=None if lowest is None else round(-lowest * 1e3, 2),
+    )
+
+    def fail(reason: str):
+        raise _Failed("register", reason, _timed(record, start), mask=mask, points=points)
+
+    usable = _USABLE + ((ICPStatus.degenerate,) if symmetry is not None else ())
+    if not any(bool(best.status == status) for status in usable):
+        fail(f"the final registration failed: {best.status_message()}")
+    problems = []
+    if fraction < s.min_inlier_fraction:
+        problems.append(
+            f"the model explains only {fraction:.0%} of the segment (need "
+            f"{s.min_inlier_fraction:.0%})"
+        )
+    if not matched:
+        problems.append(
+            f"no segment point lies within {fine_distances[-1] * 1e3:.0f} mm of the model"
+        )
+    elif not rmse <= gates.max_rmse:
+        problems.append(
+            f"the residual is {rmse * 1e3:.1f} mm (at most {gates.max_rmse * 1e3:.1f} at "
+            f"sigma_z {gates.sigma_z * 1e3:.1f} mm)"
+        )
+    if contradicted > s.max_contradicted:
+        problems.append(
+            f"the camera sees through {contradicted:.0%} of the model's surface facing it (at "
+            f"most {s.max_contradicted:.0%})"
+        )
+    if np.isnan(reach).any():
+        problems.append(
+            "the segment's span beyond the model could not be measured (NaN: a non-finite "
+            "pose or segment point)"
+        )
+    elif reach.max() > gates.max_overhang:
+        problems.append(
+            f"the segment spans {reach.max() * 1e3:.0f} mm beyond the model along its "
+            f"{('longest', 'middle', 'shortest')[int(reach.argmax())]} axis (at most "
+            f"{gates.max_overhang * 1e3:.1f}): a larger object of a similar shape, or the object "
+            "merged with a neighbour"
+        )
+    if problems:
+        fail("the model is not there: " + "; ".join(problems))
+    reason = (
+        f"found: {fraction:.0%} of {len(points)} segment points within "
+        f"{fine_distances[-1] * 1e3:.0f} mm of the model, residual {rmse * 1e3:.2f} mm"
+    )
+    budget = pose_budget(
+        points=points, source_size=s.max_points, model=model,
+        object_T_base=answers[ranked[0]], pose=found.pose, contact=contact,
+        frame=frame, mask=mask, plane=plane, min_height=settings.lift.min_height,
+        distances=fine_distances, trim=trim, noise=noise, calibration=calibration,
+        ambiguous=(found.tangents, found.weights), symmetry=symmetry,
+        view_free=(found.view_free, found.view_reason),
+        rng=np.random.default_rng(1),
+    )  # fmt: skip
+    return Registration(
+        SE3(found.pose), rmse, fraction, budget, reason, _timed(record, start), found.equivalent
+    )
+
+
+def _timed(record: RegisterRecord, start: float) -> RegisterRecord:
+    """``record`` (its ``ms`` the coarse search's) with the refinement's time since ``start``
+    added."""
+    return dataclasses.replace(record, ms=round(record.ms + (time.perf_counter() - start) * 1e3, 2))

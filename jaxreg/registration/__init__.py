@@ -1,6 +1,8 @@
 """Registration solvers: ICP (point-to-point, point-to-plane, trimming, robust IRLS kernels,
-multi-start), the ICP pose covariance, RANSAC global registration on feature matches, and
-robust (GNC) alignment of given correspondences.
+multi-start; its options one :class:`~jaxreg.registration.icp.ICPOptions`), the ICP pose
+covariance, RANSAC global registration on feature matches, and robust (GNC) alignment of given
+correspondences. :mod:`jaxreg.registration.solver` holds ICP's steps (prepare, run, unpad) for
+code that batches registrations its own way.
 
 Every solver returns a result with a per-lane ``status``. May import :mod:`jaxreg.core`,
 :mod:`jaxreg.geometry`, :mod:`jaxreg.uncertainty` and :mod:`jaxreg.search`.

@@ -3,10 +3,12 @@ one objective whose gradient and Hessian both the implicit derivative and
 :func:`jaxreg.icp_covariance` use.
 
 Everything here takes a problem already checked, masked and padded by
-:mod:`jaxreg.registration._icp_setup` and runs under ``jit`` and ``vmap``; the public entry points
-are in :mod:`jaxreg.registration.icp`, whose conventions these are: a pose maps source into target
-coordinates, increments are applied on the left (target frame), perturbations of the solution on
-the right (source frame), and tangents are ``(vx, vy, vz, wx, wy, wz)``.
+:func:`jaxreg.registration.solver.prepare` and runs under ``jit`` and ``vmap``; the public entry
+points are in :mod:`jaxreg.registration.icp` (the building blocks that the pipeline and the
+studies run in :mod:`jaxreg.registration.solver`), whose conventions these are: a pose maps
+source into target coordinates, increments are applied on the left (target frame),
+perturbations of the solution on the right (source frame), and tangents are
+``(vx, vy, vz, wx, wy, wz)``.
 """
 
 from __future__ import annotations
@@ -87,7 +89,9 @@ class RegistrationResult(AbstractResult):
 
 
 class Problem(eqx.Module):
-    """The data of one registration (unbatched arrays, padded by :func:`_icp_setup.prepare`)."""
+    """The data of one registration as :func:`jaxreg.registration.solver.prepare` leaves it:
+    unbatched arrays, unusable rows masked, both clouds padded to bucketed sizes, and the
+    target's neighbour grid (``None``: brute force)."""
 
     source: Float[Array, "N 3"]
     source_weights: Float[Array, " N"]  # 0 for NaN input and padding rows
@@ -97,9 +101,12 @@ class Problem(eqx.Module):
     grid: NeighborGrid | None
 
 
-class Options(eqx.Module):
-    """The solver's settings as the loop uses them (arrays where a value may change without
-    recompiling)."""
+class LoopSettings(eqx.Module):
+    """ICP's options as the loop uses them, made from an ``ICPOptions`` by
+    :func:`jaxreg.registration.solver.prepare`: the method and the iteration bound are static
+    (a new value compiles a new loop); the correspondence distance of every iteration
+    ``(max_iterations,)``, the tolerance, the kernel (:class:`~jaxreg.geometry.kernels.L2` for
+    least squares) and the trim fraction are arrays (a new value does not recompile)."""
 
     method: str = eqx.field(static=True)
     max_iterations: int = eqx.field(static=True)
@@ -122,12 +129,13 @@ class Pairs(eqx.Module):
     fraction: Float[Array, ""]
 
 
-def _apply(pose: SE3, points: Float[Array, "N 3"]) -> Float[Array, "N 3"]:
-    """``pose @ points`` in the loop: three broadcast multiply-adds with the rotation
-    matrix's columns, which XLA fuses into their consumers (the neighbour query, the Kabsch
-    sums). On XLA's CPU backend ``points @ R.T`` is a separate kernel ~20x slower than that,
-    and jaxlie's quaternion ``apply`` batched over poses is slower still. Differentiated
-    code uses the matmul instead (see :func:`objective`)."""
+def apply_pose(pose: SE3, points: Float[Array, "N 3"]) -> Float[Array, "N 3"]:
+    """``pose @ points`` ``(N, 3)`` for one unbatched ``pose`` (vmap for many), as the loop
+    computes it: three broadcast multiply-adds with the rotation matrix's columns, which XLA
+    fuses into their consumers (the neighbour query, the Kabsch sums). On XLA's CPU backend
+    ``points @ R.T`` is a separate kernel ~20x slower than that, and jaxlie's quaternion
+    ``apply`` batched over poses is slower still. Differentiated code uses the matmul instead
+    (see :func:`objective`)."""
     r = pose.rotation().as_matrix()
     rotated = points[:, :1] * r[:, 0] + points[:, 1:2] * r[:, 1] + points[:, 2:] * r[:, 2]
     return rotated + pose.translation()
@@ -165,13 +173,13 @@ def _match(problem: Problem, moved: Float[Array, "N 3"], distance: Array) -> Int
     return index[:, 0]
 
 
-def correspond(problem: Problem, opts: Options, pose: SE3, distance: Array) -> Pairs:
+def correspond(problem: Problem, opts: LoopSettings, pose: SE3, distance: Array) -> Pairs:
     """Nearest-neighbour pairs of the source moved by ``pose``, rejected and weighted."""
-    moved = _apply(pose, problem.source)
+    moved = apply_pose(pose, problem.source)
     return pairs_at(problem, opts, moved, _match(problem, moved, distance))
 
 
-def pairs_at(problem: Problem, opts: Options, moved: Array, index: Array) -> Pairs:
+def pairs_at(problem: Problem, opts: LoopSettings, moved: Array, index: Array) -> Pairs:
     """Rejection, trimming and IRLS weights of the pairs ``(moved[i], target[index[i]])``,
     with ``index`` from :func:`_match`. A pair with an invalid target row (no match,
     padding, a non-finite point or an unusable normal) is neither kept nor counted."""
@@ -245,7 +253,7 @@ def _horn_step(moved: Array, matched: Array, w: Array) -> tuple[SE3, Array]:
     return SE3.from_rotation_and_translation(fit.rotation, translation), fit.degenerate
 
 
-def _increment(problem: Problem, opts: Options, moved: Array, pairs: Pairs):
+def _increment(problem: Problem, opts: LoopSettings, moved: Array, pairs: Pairs):
     """Increment (left, target frame) from the ``pairs`` of the ``moved`` source; and
     :func:`jaxreg.geometry.alignment.align`'s degeneracy flag (point-to-point) or rank loss
     (plane)."""
@@ -256,8 +264,10 @@ def _increment(problem: Problem, opts: Options, moved: Array, pairs: Pairs):
     return _horn_step(moved, fill_gather(problem.target, pairs.index), pairs.weight)
 
 
-def run(problem: Problem, opts: Options, init: SE3) -> RegistrationResult:
-    """The ICP loop for one start (unbatched; vmap for many).
+def run(problem: Problem, opts: LoopSettings, init: SE3) -> RegistrationResult:
+    """The ICP loop for one start ``init`` (unbatched; vmap for many) on a prepared
+    ``problem``: the result's per-point fields keep the padding rows, which
+    :func:`jaxreg.registration.solver.unpad` drops.
 
     Each trip of the loop weighs the pairs of the current pose, then either finishes (the
     previous increment passed the tolerance test, the iteration bound is reached, or there
@@ -280,7 +290,7 @@ def run(problem: Problem, opts: Options, init: SE3) -> RegistrationResult:
     def body(state):
         pose, it, primed = state["pose"], state["iteration"], state["primed"]
         # Before the first match (primed False) the pairs are empty: that trip only matches.
-        moved = _apply(pose, frozen.source)
+        moved = apply_pose(pose, frozen.source)
         pairs = pairs_at(frozen, fopts, moved, state["match"])
         too_few = primed & (pairs.count < 3)
         unweighted = primed & ~too_few & (pairs.weighted < 3)
@@ -306,7 +316,7 @@ def run(problem: Problem, opts: Options, init: SE3) -> RegistrationResult:
             pose=next_pose,
             iteration=next_it,
             primed=jnp.array(True),
-            match=_match(frozen, _apply(next_pose, frozen.source), distance),
+            match=_match(frozen, apply_pose(next_pose, frozen.source), distance),
             finished=primed & ~take,
             small_step=take & (step_t < tol) & (step_r < tol),
             converged=converged,
@@ -335,7 +345,7 @@ def run(problem: Problem, opts: Options, init: SE3) -> RegistrationResult:
     # The last trip took no step and re-matched the final pose: form its pairs once more
     # rather than carry (N,) arrays through every trip. A status set in the loop (too few
     # pairs, non-finite) stands; else degenerate geometry, else the iteration bound.
-    pairs = pairs_at(frozen, fopts, _apply(state["pose"], frozen.source), state["match"])
+    pairs = pairs_at(frozen, fopts, apply_pose(state["pose"], frozen.source), state["match"])
     status = state["status"]
     clean = status == ICPStatus.success
     status = ICPStatus.where(clean & state["degenerate"], ICPStatus.degenerate, status)
@@ -361,7 +371,7 @@ run_one = persistent_jit(run)
 
 
 @persistent_jit
-def run_many(problem: Problem, opts: Options, inits: SE3) -> RegistrationResult:
+def run_many(problem: Problem, opts: LoopSettings, inits: SE3) -> RegistrationResult:
     """:func:`run` from every start of the batch ``inits`` ``(S,)``, in one compiled call."""
     return jax.vmap(run, in_axes=(None, None, 0))(problem, opts, inits)
 
@@ -378,10 +388,10 @@ def _chart(delta: Float[Array, " 6"]) -> SE3:
     return SE3.from_rotation_and_translation(rotation, delta[:3])
 
 
-def objective(problem: Problem, opts: Options, pose: SE3, pairs: Pairs) -> Float[Array, ""]:
+def objective(problem: Problem, opts: LoopSettings, pose: SE3, pairs: Pairs) -> Float[Array, ""]:
     """Robust ICP objective ``sum_i w_i rho(r_i^2)`` with the correspondences (and the kept
     set) frozen; differentiable in the problem's data, the kernel and ``pose``."""
-    # A matmul, unlike _apply: its derivatives are matmuls too, where those of _apply's
+    # A matmul, unlike apply_pose: its derivatives are matmuls too, where those of apply_pose's
     # broadcasts are reductions that make the implicit-function Hessian ~5x slower.
     moved = problem.source @ pose.rotation().as_matrix().T + pose.translation()
     s = _residual_sq(problem, moved, pairs.index, opts.method)
@@ -389,19 +399,25 @@ def objective(problem: Problem, opts: Options, pose: SE3, pairs: Pairs) -> Float
     return jnp.sum(jnp.where(pairs.kept, problem.source_weights * rho, 0.0))
 
 
-def _perturbed(delta: Array, problem: Problem, opts: Options, pose: SE3, pairs: Pairs) -> Array:
+def _perturbed(
+    delta: Array, problem: Problem, opts: LoopSettings, pose: SE3, pairs: Pairs
+) -> Array:
     """:func:`objective` at the right perturbation ``pose @ chart(delta)``."""
     return objective(problem, opts, pose @ _chart(delta), pairs)
 
 
-def pose_gradient(problem: Problem, opts: Options, pose: SE3, pairs: Pairs) -> Float[Array, " 6"]:
+def pose_gradient(
+    problem: Problem, opts: LoopSettings, pose: SE3, pairs: Pairs
+) -> Float[Array, " 6"]:
     """``dF/d delta`` at ``delta = 0`` for the right perturbation ``pose @ exp(delta)``,
     ``(vx, vy, vz, wx, wy, wz)``: zero at a converged pose; differentiable in the data."""
     zero = jnp.zeros(6, pose.wxyz_xyz.dtype)
     return jax.grad(_perturbed)(zero, problem, opts, pose, pairs)
 
 
-def pose_hessian(problem: Problem, opts: Options, pose: SE3, pairs: Pairs) -> Float[Array, "6 6"]:
+def pose_hessian(
+    problem: Problem, opts: LoopSettings, pose: SE3, pairs: Pairs
+) -> Float[Array, "6 6"]:
     """``d^2F/d delta^2`` at ``delta = 0`` (same perturbation and order as
     :func:`pose_gradient`). At a stationary point any chart that agrees with ``exp`` to first
     order gives the same Hessian."""
@@ -409,7 +425,7 @@ def pose_hessian(problem: Problem, opts: Options, pose: SE3, pairs: Pairs) -> Fl
     return jax.hessian(_perturbed)(zero, problem, opts, pose, pairs)
 
 
-def _implicit_pose(problem: Problem, opts: Options, pose: SE3, pairs: Pairs) -> SE3:
+def _implicit_pose(problem: Problem, opts: LoopSettings, pose: SE3, pairs: Pairs) -> SE3:
     """The converged ``pose``, carrying implicit-function-theorem derivatives with respect to
     the problem's data and the options (see :func:`_converged`); its value is ``pose``."""
     params = jax.lax.stop_gradient(pose.wxyz_xyz)
@@ -417,7 +433,7 @@ def _implicit_pose(problem: Problem, opts: Options, pose: SE3, pairs: Pairs) -> 
 
 
 @eqx.filter_custom_jvp
-def _converged(problem: Problem, opts: Options, *, params: Array, pairs: Pairs) -> Array:
+def _converged(problem: Problem, opts: LoopSettings, *, params: Array, pairs: Pairs) -> Array:
     """``params`` (the converged pose's ``wxyz_xyz``) unchanged; differentiable in ``problem``
     and ``opts`` through the rule below, so the forward pass pays nothing for derivatives."""
     return params

@@ -15,24 +15,24 @@ frame.
 
 from __future__ import annotations
 
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxlie import SE3
 from jaxtyping import Array, ArrayLike, Float
 
-from jaxreg.geometry.kernels import AbstractRobustKernel
 from jaxreg.geometry.lie import se3_exp
 from jaxreg.registration._icp_core import (
-    Options,
+    LoopSettings,
     Problem,
     correspond,
     pose_gradient,
     pose_hessian,
     pseudo_inverse,
 )
-from jaxreg.registration._icp_setup import DEFAULT, Method, Settings, prepare, run_starts
-from jaxreg.search.neighbors import NeighborGrid
+from jaxreg.registration._icp_setup import ICPOptions, prepare, resolve_options, run_starts
 from jaxreg.uncertainty import AbstractPointNoise, IsotropicNoise
 
 NoiseLike = AbstractPointNoise | float | None
@@ -51,7 +51,9 @@ def _as_noise(noise, name: str) -> AbstractPointNoise | None:
 
 
 @eqx.filter_jit
-def _sensitivity_covariance(problem: Problem, opts: Options, pose: SE3, source_cov, target_cov):
+def _sensitivity_covariance(
+    problem: Problem, opts: LoopSettings, pose: SE3, source_cov, target_cov
+):
     """``H^+ (sum_i B_i C_i B_i^T) H^+`` with unobservable axes set to ``inf``."""
     pose = SE3(pose.wxyz_xyz.astype(problem.source.dtype))
     pairs = correspond(problem, opts, pose, opts.distances[-1])
@@ -81,7 +83,7 @@ def _sensitivity_covariance(problem: Problem, opts: Options, pose: SE3, source_c
 
 def _noise_covariance(noise: AbstractPointNoise | None, points, rows: int, dtype):
     """``(rows, 3, 3)`` covariances of the finite rows of ``points``, zero elsewhere and on
-    the rows that :func:`jaxreg.registration._icp_setup.prepare` appended as padding."""
+    the rows that :func:`jaxreg.registration.solver.prepare` appended as padding."""
     if noise is None:
         return None
     points = jnp.asarray(points, dtype)
@@ -96,20 +98,12 @@ def icp_covariance(
     target: Float[ArrayLike, "M 3"],
     pose: SE3,
     *,
-    method: Method = DEFAULT.method,
-    target_normals: Float[ArrayLike, "M 3"] | None = None,
-    max_correspondence_distance: Float[ArrayLike, ""]
-    | Float[ArrayLike, " I"] = DEFAULT.max_correspondence_distance,
-    max_iterations: int = DEFAULT.max_iterations,
-    tolerance: float = DEFAULT.tolerance,
-    kernel: AbstractRobustKernel | None = None,
-    trim_fraction: float | None = None,
-    source_weights: Float[ArrayLike, " N"] | None = None,
-    neighbors: NeighborGrid | None = None,
+    options: ICPOptions | None = None,
     point_sigma: Float[ArrayLike, ""] | None = None,
     source_noise: NoiseLike = None,
     target_noise: NoiseLike = None,
     init_covariance: Float[ArrayLike, "6 6"] | None = None,
+    **overrides: Any,
 ) -> Float[Array, "6 6"]:
     """Covariance ``(6, 6)`` of a converged ICP pose under measurement noise.
 
@@ -151,11 +145,9 @@ def icp_covariance(
         source: ``(N, 3)`` source points (NaN rows ignored), as given to :func:`jaxreg.icp`.
         target: ``(M, 3)`` target points (NaN rows ignored).
         pose: the converged ``SE3`` source -> target (e.g. ``icp(...).pose``).
-        method, target_normals, max_correspondence_distance, max_iterations, tolerance,
-            kernel, trim_fraction, source_weights, neighbors: those the registration was
-            run with (see :func:`jaxreg.icp`); the covariance uses the last correspondence
-            distance, and ``max_iterations`` and ``tolerance`` only with
-            ``init_covariance``.
+        options: the :class:`~jaxreg.ICPOptions` the registration was run with (see
+            :func:`jaxreg.icp`); the covariance uses the last correspondence distance, and
+            ``max_iterations`` and ``tolerance`` only with ``init_covariance``.
         point_sigma: shorthand for isotropic noise of ``point_sigma`` metres per axis on
             every point of *both* clouds; not allowed together with ``source_noise`` or
             ``target_noise``.
@@ -168,6 +160,8 @@ def icp_covariance(
             given, the :func:`init_spread` of ICP re-run from 13 sigma points of that
             Gaussian around ``pose`` is added (zero when every start converges to the same
             pose; large when some fall into another basin).
+        **overrides: fields of :class:`~jaxreg.ICPOptions` by name (``method=``,
+            ``target_normals=``, ...), replacing those of ``options``.
 
     Returns:
         ``(6, 6)`` covariance of the right perturbation of ``pose`` in jaxlie's tangent order
@@ -179,6 +173,7 @@ def icp_covariance(
         ValueError: bad shapes or grid (as :func:`jaxreg.icp`), no noise given, a noise that
             is neither a scalar nor a model, or ``point_sigma`` together with a per-cloud
             noise.
+        TypeError: a keyword that is not a field of :class:`~jaxreg.ICPOptions`.
     """
     if point_sigma is not None:
         if source_noise is not None or target_noise is not None:
@@ -195,11 +190,8 @@ def icp_covariance(
         )
     if not isinstance(pose, SE3) or pose.get_batch_axes() != ():
         raise ValueError("pose must be one jaxlie.SE3 (vmap icp_covariance for a batch)")
-    settings = Settings(
-        method, target_normals, max_correspondence_distance, max_iterations, tolerance,
-        kernel, trim_fraction, source_weights, neighbors,
-    )  # fmt: skip
-    problem, opts, sizes = prepare(source, target, settings)
+    options = resolve_options(options, overrides, "icp_covariance")
+    problem, opts, sizes = prepare(source, target, options)
     dtype = problem.source.dtype
     cov = _sensitivity_covariance(
         problem,
@@ -226,7 +218,7 @@ def _sigma_points(covariance: Array, kappa: float) -> tuple[Array, Array]:
 
 
 def _spread(
-    problem: Problem, opts: Options, sizes: tuple[int, int], pose: SE3, init_covariance, kappa
+    problem: Problem, opts: LoopSettings, sizes: tuple[int, int], pose: SE3, init_covariance, kappa
 ) -> Float[Array, "6 6"]:
     """:func:`init_spread` on a prepared problem."""
     cov0 = jnp.asarray(init_covariance, pose.wxyz_xyz.dtype)
@@ -249,16 +241,8 @@ def init_spread(
     init_covariance: Float[ArrayLike, "6 6"],
     *,
     kappa: float = 1.0,
-    method: Method = DEFAULT.method,
-    target_normals: Float[ArrayLike, "M 3"] | None = None,
-    max_correspondence_distance: Float[ArrayLike, ""]
-    | Float[ArrayLike, " I"] = DEFAULT.max_correspondence_distance,
-    max_iterations: int = DEFAULT.max_iterations,
-    tolerance: float = DEFAULT.tolerance,
-    kernel: AbstractRobustKernel | None = None,
-    trim_fraction: float | None = None,
-    source_weights: Float[ArrayLike, " N"] | None = None,
-    neighbors: NeighborGrid | None = None,
+    options: ICPOptions | None = None,
+    **overrides: Any,
 ) -> Float[Array, "6 6"]:
     """Covariance ``(6, 6)`` of ICP's result caused by an uncertain initial pose.
 
@@ -277,17 +261,12 @@ def init_spread(
         init_covariance: ``(6, 6)`` PSD, metres and radians.
         kappa: spread of the sigma points (``>= 0``); the default reaches
             ``sqrt(7) = 2.6`` standard deviations along each principal axis.
-        method, target_normals, max_correspondence_distance, max_iterations, tolerance,
-            kernel, trim_fraction, source_weights, neighbors: ICP's keyword arguments (see
-            :func:`jaxreg.icp`).
+        options, **overrides: ICP's options, as for :func:`jaxreg.icp`.
 
     Returns:
         ``(6, 6)`` covariance of the right perturbation of ``pose``, ``(vx, vy, vz, wx, wy,
         wz)``, metres and radians, source frame.
     """
-    settings = Settings(
-        method, target_normals, max_correspondence_distance, max_iterations, tolerance,
-        kernel, trim_fraction, source_weights, neighbors,
-    )  # fmt: skip
-    problem, opts, sizes = prepare(source, target, settings, grid_capacity=24)
+    options = resolve_options(options, overrides, "init_spread")
+    problem, opts, sizes = prepare(source, target, options, grid_capacity=24)
     return _spread(problem, opts, sizes, pose, init_covariance, kappa)

@@ -1,15 +1,20 @@
 """Host-side set-up of an ICP problem, shared by every entry point that runs ICP
 (:func:`jaxreg.icp`, :func:`jaxreg.multistart_icp`, :func:`jaxreg.icp_covariance`,
-:func:`jaxreg.init_spread`): ICP's keyword arguments and their defaults (:class:`Settings`,
-written once), argument checks that raise ``ValueError``, masking and padding of the clouds,
-the neighbour grid (built, or a given one validated), and the batched run over starts.
+:func:`jaxreg.init_spread`, :func:`jaxreg.studies.basin_sweep`, the pipeline): ICP's options
+(:class:`ICPOptions`, the one place they and their defaults are written) and the keyword form
+of them (:func:`resolve_options`), argument checks that raise ``ValueError``, masking and
+padding of the clouds, the neighbour grid (built, or a given one validated), and the batched
+run over starts. Public through :mod:`jaxreg.registration.solver`.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import difflib
 import hashlib
 import weakref
-from typing import Literal
+from collections.abc import Mapping
+from typing import Any, Literal
 
 import equinox as eqx
 import jax
@@ -24,7 +29,7 @@ from jaxreg.core._sizes import bucket
 from jaxreg.core._threads import lane_pieces, split_lanes
 from jaxreg.geometry.kernels import L2, AbstractRobustKernel
 from jaxreg.geometry.lie import se3_from_matrix
-from jaxreg.registration._icp_core import Options, Problem, RegistrationResult, run_many
+from jaxreg.registration._icp_core import LoopSettings, Problem, RegistrationResult, run_many
 from jaxreg.search.neighbors import NeighborGrid, build_grid, validate_grid
 
 Method = Literal["point_to_point", "point_to_plane"]
@@ -37,10 +42,46 @@ _CHECKED: dict[int, tuple[weakref.ref, set[bytes]]] = {}
 _MAX_CHECKED = 64
 
 
-class Settings(eqx.Module):
-    """ICP's keyword arguments (those of :func:`jaxreg.icp`, in its order) with their
-    defaults. Entry points take them explicitly, default them to ``DEFAULT.<name>`` and pass
-    them on in one ``Settings``; :func:`prepare` checks and converts them."""
+class ICPOptions(eqx.Module):
+    """ICP's options, taken by every entry point that runs ICP: :func:`jaxreg.icp`,
+    :func:`jaxreg.multistart_icp`, :func:`jaxreg.icp_covariance`, :func:`jaxreg.init_spread`
+    and :func:`jaxreg.studies.basin_sweep` (as ``options=``, or field by field as keywords:
+    ``jr.icp(s, t, method="point_to_plane", target_normals=n)`` is
+    ``jr.icp(s, t, options=jr.ICPOptions(method="point_to_plane", target_normals=n))``; given
+    both, the keywords replace those fields of ``options``). Frozen: derive a variant with
+    ``dataclasses.replace(options, max_iterations=80)``. Checked against the clouds when a
+    registration starts (``ValueError``), not when built.
+
+    Attributes:
+        method: ``"point_to_point"`` (default: minimise the 3D distance of each pair, a
+            weighted Kabsch step) or ``"point_to_plane"`` (the distance along the target's
+            normal, a Gauss-Newton step; needs ``target_normals``).
+        target_normals: ``(M, 3)`` unit normals of the target, in target coordinates; only
+            point-to-plane uses them. A point whose normal is not a finite unit vector (zero
+            where :func:`jaxreg.estimate_normals` found none, or unnormalised) is excluded
+            from matches and counts. Default ``None``.
+        max_correspondence_distance: metres; pairs farther apart are rejected. A scalar
+            (default ``0.02``), or a schedule ``(max_iterations,)`` giving the distance at each
+            iteration (start wide, tighten).
+        max_iterations: bound on the increments taken (default ``40``); static: it sizes
+            ``rmse_history``, and a new value compiles a new loop.
+        tolerance: convergence threshold (default ``1e-6``): the increment's translation
+            (metres) and rotation angle (radians) both below it, or the inlier RMSE changing
+            by less than this fraction of itself with the inlier count unchanged.
+        kernel: robust kernel from :mod:`jaxreg.geometry.kernels` weighting each pair by its
+            IRLS weight of the squared residual (its scale in metres); ``None`` (default) is
+            least squares (:class:`~jaxreg.geometry.kernels.L2`).
+        trim_fraction: keep only this best fraction (in ``(0, 1]``) of the accepted pairs at
+            each iteration (trimmed ICP); match it to the expected overlap. ``None`` (default)
+            keeps every accepted pair.
+        source_weights: ``(N,)`` non-negative per-point weights of the source; 0 marks
+            padding. ``None`` (default) weighs every point 1.
+        neighbors: a prebuilt :class:`~jaxreg.search.neighbors.NeighborGrid` of the target
+            (``build_grid(target, max_distance)``, ideally with ``mask=`` dropping points
+            without a usable normal) whose ``max_distance`` covers the largest correspondence
+            distance, to reuse across calls. ``None`` (default) builds one per call on a
+            concrete target and searches by blocked brute force on a traced one.
+    """
 
     method: Method = "point_to_point"
     target_normals: Float[ArrayLike, "M 3"] | None = None
@@ -53,7 +94,39 @@ class Settings(eqx.Module):
     neighbors: NeighborGrid | None = None
 
 
-DEFAULT = Settings()
+_DEFAULTS = ICPOptions()
+_NAMES = tuple(field.name for field in dataclasses.fields(ICPOptions))
+
+
+def resolve_options(
+    options: ICPOptions | None, overrides: Mapping[str, Any], caller: str
+) -> ICPOptions:
+    """The options an ICP entry point runs with: ``options`` (the defaults when ``None``)
+    with each keyword of ``overrides`` (an :class:`ICPOptions` field name) replacing that
+    field. ``caller`` names the entry point in error messages.
+
+    Raises:
+        TypeError: ``options`` is not an :class:`ICPOptions`, or a keyword is not one of its
+            fields (the message names it and the nearest field).
+    """
+    if options is None:
+        options = _DEFAULTS
+    elif not isinstance(options, ICPOptions):
+        raise TypeError(
+            f"{caller}(options=...) takes a jaxreg.ICPOptions, got {type(options).__name__}"
+        )
+    unknown = [name for name in overrides if name not in _NAMES]
+    if unknown:
+        hints = []
+        for name in unknown:
+            close = difflib.get_close_matches(name, _NAMES, n=1)
+            hints.append(f"{name!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+        noun = "argument" if len(unknown) == 1 else "arguments"
+        raise TypeError(
+            f"{caller}() got unknown keyword {noun} {', '.join(hints)}; ICP's options are "
+            f"{', '.join(_NAMES)} (see jaxreg.ICPOptions)"
+        )
+    return dataclasses.replace(options, **overrides) if overrides else options
 
 
 def as_pose(init, dtype) -> SE3:
@@ -75,14 +148,14 @@ def _is_concrete(x) -> bool:
 def prepare(
     source: Float[ArrayLike, "N 3"],
     target: Float[ArrayLike, "M 3"],
-    settings: Settings,
+    options: ICPOptions,
     *,
     grid_capacity: int | None = None,
-) -> tuple[Problem, Options, tuple[int, int]]:
-    """Checks ``settings`` against the clouds and builds the solver's inputs.
+) -> tuple[Problem, LoopSettings, tuple[int, int]]:
+    """Checks ``options`` against the clouds and builds the solver's inputs.
 
-    Returns the problem (clouds masked and padded to bucketed sizes), the options, and the
-    caller's ``(N, M)`` for :func:`unpad`. Without ``settings.neighbors`` a grid is built on
+    Returns the problem (clouds masked and padded to bucketed sizes), the loop's settings, and
+    the caller's ``(N, M)`` for :func:`unpad`. Without ``options.neighbors`` a grid is built on
     a concrete target (``grid_capacity`` asks for shorter candidate lists: cheaper queries,
     slower build, falling back to the default when a leaf cannot fit them); a given grid is
     checked by :func:`jaxreg.search.neighbors.validate_grid` against the caller's target and the
@@ -94,7 +167,7 @@ def prepare(
             distance schedule; a grid built on another target, for a smaller distance, or
             overflowed.
     """
-    s = settings
+    s = options
     if s.method not in ("point_to_point", "point_to_plane"):
         raise ValueError(f"method must be 'point_to_point' or 'point_to_plane', got {s.method!r}")
     user_target = target
@@ -149,7 +222,7 @@ def prepare(
             if grid_capacity is not None and bool(grid.overflow):
                 grid = build_grid(points, radius, mask=ok)
     problem = Problem(source, weights, target, target_ok, target_normals, grid)
-    opts = Options(
+    opts = LoopSettings(
         method=s.method,
         max_iterations=int(s.max_iterations),
         distances=distances,
@@ -261,7 +334,7 @@ def unpad(result: RegistrationResult, n: int, m: int) -> RegistrationResult:
 
 
 def run_starts(
-    problem: Problem, opts: Options, sizes: tuple[int, int], inits
+    problem: Problem, opts: LoopSettings, sizes: tuple[int, int], inits
 ) -> RegistrationResult:
     """ICP from every start of ``inits`` (an ``SE3`` batch ``(S,)`` or ``(S, 4, 4)``) in one
     compiled program, sharded over ``jax.local_devices()`` when there are several, and on a

@@ -44,27 +44,32 @@ Gradients: the returned pose is differentiable with respect to the source and ta
 points, target normals, source weights and the kernel scale by the implicit function
 theorem at the converged fixed point with correspondences held fixed, not by unrolling
 the iterations, and computed only when something differentiates. :func:`icp_covariance`
-propagates point noise through the same objective, gradient and Hessian
-(:mod:`jaxreg.registration._icp_core`).
+propagates point noise through the same objective, gradient and Hessian.
+
+Options: every entry point takes ICP's options as one :class:`ICPOptions` (``options=``) or
+field by field as keywords (``method=``, ``max_correspondence_distance=``, ...); given both,
+the keywords replace those fields of ``options``. A keyword that is no field raises
+``TypeError``.
 
 Nearest neighbours come from a :class:`jaxreg.search.neighbors.NeighborGrid` built once per target
 on the host (pass ``neighbors=`` to reuse one across calls). When the target is traced (under
 ``jit`` or ``grad`` with respect to the target) exact blocked brute force is used instead.
 
 Layout: this module holds the public entry points and start generators;
-:mod:`jaxreg.registration._icp_setup` the argument checks, defaults and padding;
-:mod:`jaxreg.registration._icp_core` the solver and its derivatives;
-:mod:`jaxreg.registration._icp_covariance` the covariance.
+:mod:`jaxreg.registration.solver` the steps they are made of (options, set-up, the loop), for
+code that batches registrations its own way; the private ``_icp_setup`` (checks and padding),
+``_icp_core`` (the loop and its derivatives) and ``_icp_covariance`` implement them.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 from jaxlie import SE3, SO3
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from jaxreg.geometry.kernels import AbstractRobustKernel
 from jaxreg.geometry.lie import rotation_grid, rotation_grid_around, se3_exp
 from jaxreg.registration._icp_core import (
     ICPStatus as ICPStatus,
@@ -76,17 +81,16 @@ from jaxreg.registration._icp_covariance import (
     init_spread as init_spread,
 )
 from jaxreg.registration._icp_setup import (
-    DEFAULT,
-    Method,
-    Settings,
+    ICPOptions as ICPOptions,
     as_pose,
     prepare,
+    resolve_options,
     run_starts,
     unpad,
 )
-from jaxreg.search.neighbors import NeighborGrid
 
 __all__ = [
+    "ICPOptions",
     "ICPStatus",
     "RegistrationResult",
     "best_index",
@@ -106,16 +110,8 @@ def icp(
     target: Float[ArrayLike, "M 3"],
     init: SE3 | Float[ArrayLike, "4 4"] | None = None,
     *,
-    method: Method = DEFAULT.method,
-    target_normals: Float[ArrayLike, "M 3"] | None = None,
-    max_correspondence_distance: Float[ArrayLike, ""]
-    | Float[ArrayLike, " I"] = DEFAULT.max_correspondence_distance,
-    max_iterations: int = DEFAULT.max_iterations,
-    tolerance: float = DEFAULT.tolerance,
-    kernel: AbstractRobustKernel | None = None,
-    trim_fraction: float | None = None,
-    source_weights: Float[ArrayLike, " N"] | None = None,
-    neighbors: NeighborGrid | None = None,
+    options: ICPOptions | None = None,
+    **overrides: Any,
 ) -> RegistrationResult:
     """Register ``source`` to ``target`` by ICP from ``init``.
 
@@ -123,26 +119,11 @@ def icp(
         source: ``(N, 3)`` model / source points (NaN rows are ignored).
         target: ``(M, 3)`` scene / target points (NaN rows are ignored).
         init: initial source -> target pose, ``SE3`` or ``(4, 4)``; identity by default.
-        method: ``"point_to_point"`` or ``"point_to_plane"`` (needs ``target_normals``).
-        target_normals: ``(M, 3)`` unit normals of the target, in target coordinates. A
-            point whose normal is not a finite unit vector (zero where
-            :func:`jaxreg.estimate_normals` found none, or unnormalised) is excluded from
-            matches and counts.
-        max_correspondence_distance: pairs farther apart (metres) are rejected. A scalar, or a
-            schedule ``(max_iterations,)`` giving the distance at each iteration (start wide,
-            tighten).
-        max_iterations: iteration bound (static: it sizes ``rmse_history``).
-        tolerance: convergence threshold on the increment (metres and radians) and on the
-            relative change of the inlier RMSE.
-        kernel: robust kernel from :mod:`jaxreg.geometry.kernels` for IRLS; least squares by
-        default.
-        trim_fraction: keep only this best fraction of the accepted pairs each iteration
-            (trimmed ICP); match it to the expected overlap.
-        source_weights: ``(N,)`` non-negative per-point weights; 0 marks padding.
-        neighbors: a prebuilt :class:`~jaxreg.search.neighbors.NeighborGrid` of this ``target``
-            (``build_grid(target, max_distance)``, ideally with ``mask=`` dropping points
-            without a usable normal) whose ``max_distance`` covers the largest
-            correspondence distance.
+        options: ICP's options (:class:`ICPOptions`: method, target normals, correspondence
+            distance or schedule, iteration bound, tolerance, kernel, trimming, source
+            weights, neighbour grid); its defaults when ``None``.
+        **overrides: fields of :class:`ICPOptions` by name (``method="point_to_plane"``,
+            ``max_correspondence_distance=0.05``, ...), replacing those of ``options``.
 
     Returns:
         :class:`RegistrationResult` (batch ``()``).
@@ -151,12 +132,10 @@ def icp(
         ValueError: bad shapes or method, point-to-plane without normals, or a
             ``neighbors`` grid built on another target, for a smaller distance, or
             overflowed (:func:`jaxreg.search.neighbors.validate_grid`).
+        TypeError: a keyword that is not a field of :class:`ICPOptions`.
     """
-    settings = Settings(
-        method, target_normals, max_correspondence_distance, max_iterations, tolerance,
-        kernel, trim_fraction, source_weights, neighbors,
-    )  # fmt: skip
-    problem, opts, sizes = prepare(source, target, settings)
+    options = resolve_options(options, overrides, "icp")
+    problem, opts, sizes = prepare(source, target, options)
     result = run_one(problem, opts, as_pose(init, problem.source.dtype))
     return unpad(result, *sizes)
 
@@ -166,16 +145,8 @@ def multistart_icp(
     target: Float[ArrayLike, "M 3"],
     inits: SE3 | Float[ArrayLike, "S 4 4"],
     *,
-    method: Method = DEFAULT.method,
-    target_normals: Float[ArrayLike, "M 3"] | None = None,
-    max_correspondence_distance: Float[ArrayLike, ""]
-    | Float[ArrayLike, " I"] = DEFAULT.max_correspondence_distance,
-    max_iterations: int = DEFAULT.max_iterations,
-    tolerance: float = DEFAULT.tolerance,
-    kernel: AbstractRobustKernel | None = None,
-    trim_fraction: float | None = None,
-    source_weights: Float[ArrayLike, " N"] | None = None,
-    neighbors: NeighborGrid | None = None,
+    options: ICPOptions | None = None,
+    **overrides: Any,
 ) -> RegistrationResult:
     """ICP from every pose in ``inits`` in one compiled call.
 
@@ -184,14 +155,12 @@ def multistart_icp(
     start has its own status; one failed start never fails the batch. The neighbour
     structure is built once and shared. With more than one device in
     ``jax.local_devices()`` the starts are sharded over them (the problem is replicated).
-    The keyword arguments are those of :func:`icp`. :func:`select_best` picks the best start.
+    ``options`` and the keywords are those of :func:`icp`. :func:`select_best` picks the best
+    start.
     """
-    settings = Settings(
-        method, target_normals, max_correspondence_distance, max_iterations, tolerance,
-        kernel, trim_fraction, source_weights, neighbors,
-    )  # fmt: skip
+    options = resolve_options(options, overrides, "multistart_icp")
     # Many starts query the grid many times: shorter candidate lists pay for a longer build.
-    problem, opts, sizes = prepare(source, target, settings, grid_capacity=24)
+    problem, opts, sizes = prepare(source, target, options, grid_capacity=24)
     return run_starts(problem, opts, sizes, inits)
 
 

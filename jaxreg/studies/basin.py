@@ -32,6 +32,7 @@ units (metres).
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -43,11 +44,8 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxreg.core._program_cache import persistent_jit
 from jaxreg.core._threads import lane_pieces, split_lanes
-from jaxreg.geometry.kernels import AbstractRobustKernel
 from jaxreg.geometry.metrics import Symmetry, pose_error
-from jaxreg.registration._icp_core import ICPStatus, run
-from jaxreg.registration._icp_setup import DEFAULT, Method, Settings, prepare
-from jaxreg.search.neighbors import NeighborGrid
+from jaxreg.registration.solver import ICPOptions, ICPStatus, prepare, resolve_options, run
 from jaxreg.studies._hand_eye import HandEyeCorrection, estimate_hand_eye_correction
 from jaxreg.studies._repeatability import Repeatability, repeatability
 
@@ -275,16 +273,8 @@ def basin_sweep(
     basin_level: float = 0.9,
     chunk_size: int | None = None,
     progress: Callable[[int, int], None] | None = None,
-    method: Method = DEFAULT.method,
-    target_normals: Float[ArrayLike, "M 3"] | None = None,
-    max_correspondence_distance: Float[ArrayLike, ""]
-    | Float[ArrayLike, " I"] = DEFAULT.max_correspondence_distance,
-    max_iterations: int = DEFAULT.max_iterations,
-    tolerance: float = DEFAULT.tolerance,
-    kernel: AbstractRobustKernel | None = None,
-    trim_fraction: float | None = None,
-    source_weights: Float[ArrayLike, " N"] | None = None,
-    neighbors: NeighborGrid | None = None,
+    options: ICPOptions | None = None,
+    **overrides: Any,
 ) -> BasinSweep:
     """ICP's basin of attraction around ``truth``: success rate against start offset.
 
@@ -314,8 +304,9 @@ def basin_sweep(
             of the device count; one compilation serves every chunk); all at once by
             default.
         progress: called as ``progress(done, total)`` after each chunk.
-        method, target_normals, max_correspondence_distance, max_iterations, tolerance,
-            kernel, trim_fraction, source_weights, neighbors: those of :func:`jaxreg.icp`.
+        options: ICP's options (:class:`jaxreg.ICPOptions`); its defaults when ``None``.
+        **overrides: fields of :class:`jaxreg.ICPOptions` by name (``method=``,
+            ``max_correspondence_distance=``, ...), replacing those of ``options``.
 
     Returns:
         :class:`BasinSweep`, every field on every process.
@@ -324,6 +315,7 @@ def basin_sweep(
         ValueError: angles not increasing or negative, ``samples_per_angle < 1``, a
             non-positive threshold, ``basin_level`` outside ``(0, 1]``, or any of
             :func:`jaxreg.icp`'s.
+        TypeError: a keyword that is not a field of :class:`jaxreg.ICPOptions`.
     """
     angles = np.asarray(angles_deg, np.float64)
     if angles.ndim != 1 or angles.size == 0 or np.any(np.diff(angles) <= 0) or angles[0] < 0:
@@ -336,11 +328,8 @@ def basin_sweep(
         raise ValueError(f"basin_level must lie in (0, 1], got {basin_level}")
     if not isinstance(truth, SE3) or truth.get_batch_axes() != ():
         raise ValueError("truth must be one (unbatched) jaxlie.SE3")
-    settings = Settings(
-        method, target_normals, max_correspondence_distance, max_iterations, tolerance,
-        kernel, trim_fraction, source_weights, neighbors,
-    )  # fmt: skip
-    problem, opts, _ = prepare(source, target, settings, grid_capacity=24)
+    options = resolve_options(options, overrides, "basin_sweep")
+    problem, opts, _ = prepare(source, target, options, grid_capacity=24)
     dtype = problem.source.dtype
     starts = basin_starts(
         source, truth, angles_deg=angles, samples_per_angle=samples_per_angle, key=key,

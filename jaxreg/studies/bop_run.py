@@ -4,8 +4,9 @@
 `split.images` belongs to process `i % process_count`), with the target's visible mask
 (mask_visib) as the segment when `use_masks` and the split has masks, else by the table route.
 A target whose estimate makes no pose claim gets no row: BOP counts it as missed, as it counts
-a missing estimate. `gather_bop_results` collects every process's rows on every process
-(`jax.distributed` processes; exact: the float64 rows travel as their bits).
+a missing estimate. The model is `MODEL_SAMPLES` points sampled on the object's mesh, or a point
+model's own vertices (`BopModel.mesh` None). `gather_bop_results` collects every process's rows
+on every process (`jax.distributed` processes; exact: the float64 rows travel as their bits).
 
 Each estimate is converted to BOP's convention: `camera_T_object = inverse(base_T_camera) @
 base_T_object`; its score is the fraction of the segment the model explains
@@ -75,7 +76,11 @@ def run_bop(
                 continue
             model = split.models[target.obj_id]
             if target.obj_id not in points:
-                points[target.obj_id] = surface_points(model.mesh)
+                points[target.obj_id] = (
+                    model.points.astype(np.float32)
+                    if model.mesh is None
+                    else surface_points(model.mesh)
+                )
             mask = split.mask(target) if use_masks else None
             if mask is not None and not mask.any():
                 continue  # nothing of the object is visible: no estimate, a miss

@@ -13,6 +13,12 @@ overlap the instance's has a VSD of 1 (nothing is rendered for it).
 VSD renders the model at both poses with the library's ray caster (``jaxreg.synth.render``)
 and compares them with the split's depth image; MSSD and MSPD use the model's vertices and
 BOP's symmetry transforms (``BopModel``). Units are metres and pixels throughout.
+
+A point model (``BopModel.mesh`` None, e.g. a YCB-Video split written by
+:func:`jaxreg.io.ycbv_to_bop`) has no surface to render: its VSD is not scored (NaN), its
+objects' AR is the mean of the MSSD and MSPD recalls, and ``BopScores.vsd_unavailable`` says so;
+when any scored object is a point model, the split's VSD recall is NaN and its AR the same mean
+of two.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from collections import defaultdict
 from collections.abc import Sequence
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxreg.geometry.bop_metrics import (
@@ -53,7 +60,7 @@ class TargetErrors:
     Attributes:
         target: the `BopTarget`.
         found: whether any estimate of its object in its image was kept.
-        vsd: `(T,)` VSD per tau of `VSD_TAUS` (1 when not found).
+        vsd: `(T,)` VSD per tau of `VSD_TAUS` (1 when not found, NaN for a point model).
         mssd: metres (inf when not found or a diameter away).
         mspd: pixels of the target's image (inf when not found).
     """
@@ -70,13 +77,17 @@ class BopScores:
     """BOP's Average Recall of a split's estimates, overall and per object.
 
     Attributes:
-        ar: the mean of `ar_vsd`, `ar_mssd` and `ar_mspd` (BOP19's score of a dataset).
+        ar: the mean of `ar_vsd`, `ar_mssd` and `ar_mspd` (BOP19's score of a dataset); the
+            mean of `ar_mssd` and `ar_mspd` when VSD is unavailable.
         ar_vsd, ar_mssd, ar_mspd: each metric's recall averaged over its thresholds (and, for
-            VSD, its taus), over every target of the split.
+            VSD, its taus), over every target of the split; `ar_vsd` NaN when unavailable.
         per_object: `{obj_id: {"ar", "ar_vsd", "ar_mssd", "ar_mspd", "targets"}}`, the same
             over one object's targets (`targets` counts them).
-        recall: the split's `BopRecall` (recall per threshold).
+        recall: the split's `BopRecall` (recall per threshold; `recall_vsd` NaN when VSD is
+            unavailable).
         errors: one `TargetErrors` per target, in `split.targets()` order.
+        vsd_unavailable: why VSD was not scored (the point models it needs a mesh for), or
+            None when it was scored for every target.
     """
 
     ar: float
@@ -86,6 +97,7 @@ class BopScores:
     per_object: dict[int, dict[str, float]]
     recall: BopRecall
     errors: list[TargetErrors]
+    vsd_unavailable: str | None = None
 
 
 def _depth(model: BopModel, camera_T_object: np.ndarray, intrinsics) -> np.ndarray:
@@ -117,6 +129,8 @@ def _pair_errors(split, model, instances, estimates):
     centres = np.linalg.norm(est[:, None, :3, 3] - truth[None, :, :3, 3], axis=-1)
     mssd_e = np.where(centres < model.diameter, mssd_e, np.inf)
     vsd_e = np.ones((len(estimates), len(instances), len(VSD_TAUS)))
+    if model.mesh is None:  # a point model: nothing to render
+        return np.full_like(vsd_e, np.nan), mssd_e, mspd_e
     depth_test = split.depth(scene_id, im_id)
     rendered_truth = {}
     for i, e in enumerate(est):
@@ -189,8 +203,9 @@ def bop_scores(split: BopSplit, results: Sequence[BopResult]) -> BopScores:
         model = split.models[key[2]]
         kept = _kept(by_key.get(key, []), len(instances))
         if not kept:
+            vsd_missed = np.full(len(VSD_TAUS), 1.0 if model.mesh is not None else np.nan)
             for n in members:
-                errors[n] = TargetErrors(targets[n], False, np.ones(len(VSD_TAUS)), np.inf, np.inf)
+                errors[n] = TargetErrors(targets[n], False, vsd_missed, np.inf, np.inf)
             continue
         vsd_e, mssd_e, mspd_e = _pair_errors(split, model, instances, kept)
         width = split.intrinsics(key[0], key[1]).width
@@ -204,13 +219,41 @@ def bop_scores(split: BopSplit, results: Sequence[BopResult]) -> BopScores:
                 targets[n], True, vsd_e[:, j].min(axis=0), mssd_e[:, j].min(), mspd_e[:, j].min()
             )
 
-    recall = BopRecall.from_hits(vsd_hits, mssd_hits, mspd_hits)
+    points_only = sorted(o for o in {t.obj_id for t in targets} if split.models[o].mesh is None)
+    recall = _recall(vsd_hits, mssd_hits, mspd_hits, with_vsd=not points_only)
     per_object = {}
     for obj_id in sorted({t.obj_id for t in targets}):
         rows = [n for n, t in enumerate(targets) if t.obj_id == obj_id]
-        part = BopRecall.from_hits(vsd_hits[rows], mssd_hits[rows], mspd_hits[rows])
+        with_vsd = obj_id not in points_only
+        part = _recall(vsd_hits[rows], mssd_hits[rows], mspd_hits[rows], with_vsd=with_vsd)
         per_object[obj_id] = {**_ars(part), "targets": len(rows)}
-    return BopScores(**_ars(recall), per_object=per_object, recall=recall, errors=errors)
+    unavailable = None
+    if points_only:
+        unavailable = (
+            f"objects {points_only} are point models (PLY without faces): VSD renders a mesh, so "
+            "it is not scored, and AR is the mean of the MSSD and MSPD recalls"
+        )
+    return BopScores(
+        **_ars(recall), per_object=per_object, recall=recall, errors=errors,
+        vsd_unavailable=unavailable,
+    )  # fmt: skip
+
+
+def _recall(vsd_hits, mssd_hits, mspd_hits, *, with_vsd: bool) -> BopRecall:
+    """`BopRecall.from_hits`, or without VSD: its recalls NaN and AR the mean of MSSD's and
+    MSPD's."""
+    recall = BopRecall.from_hits(vsd_hits, mssd_hits, mspd_hits)
+    if with_vsd:
+        return recall
+    return BopRecall(
+        ar=(recall.ar_mssd + recall.ar_mspd) / 2,
+        ar_vsd=jnp.full_like(recall.ar_vsd, jnp.nan),
+        ar_mssd=recall.ar_mssd,
+        ar_mspd=recall.ar_mspd,
+        recall_vsd=jnp.full_like(recall.recall_vsd, jnp.nan),
+        recall_mssd=recall.recall_mssd,
+        recall_mspd=recall.recall_mspd,
+    )
 
 
 def _ars(recall: BopRecall) -> dict[str, float]:

@@ -99,16 +99,23 @@ class PoseBudget:
             observe), or ``None``.
         bias: ``(6,)`` known systematic offset of the estimate (object axes) that the
             pipeline could not remove; zero when none is known.
+        unknown: ``source -> why`` for each term that could not be computed (a non-finite
+            value, no usable re-registration): such a term is ``inf`` on every axis, and so
+            is the total: a budget with an unknown term bounds nothing.
     """
 
     terms: dict[str, np.ndarray]
     free: np.ndarray
     free_reason: str | None
     bias: np.ndarray
+    unknown: dict[str, str] = dataclasses.field(default_factory=dict)
 
     @property
     def total(self) -> np.ndarray:
-        """``(6, 6)`` sum of the terms (they are independent), free axes ``inf``."""
+        """``(6, 6)`` sum of the terms (they are independent), free axes ``inf``; ``inf`` on
+        every axis when a term is :attr:`unknown`."""
+        if self.unknown:
+            return free_axes(np.ones(6, bool), np.zeros((6, 6)))
         finite = sum(np.where(np.isfinite(c), c, 0.0) for c in self.terms.values())
         return free_axes(self.free, finite)
 
@@ -128,17 +135,27 @@ class PoseBudget:
 
 
 def combine(
-    terms: dict[str, np.ndarray], free: np.ndarray, free_reason: str | None, bias=None
-) -> PoseBudget:
-    """A :class:`PoseBudget` from finite ``(6, 6)`` terms (each made symmetric PSD, free axes
-    set), in :data:`SOURCES` order."""
+    terms: dict[str, np.ndarray], free: np.ndarray, free_reason: str | None, bias=None,
+    unknown: dict[str, str] | None = None,
+) -> PoseBudget:  # fmt: skip
+    """A :class:`PoseBudget` from ``(6, 6)`` terms (each made symmetric PSD, free axes set),
+    in :data:`SOURCES` order. A term with a non-finite value off the free axes, or named in
+    ``unknown`` (``source -> why``) by its caller, is unknown: ``inf`` on every axis, and
+    named in the budget's ``unknown`` with the reason."""
     missing = set(SOURCES) - set(terms)
     if missing:
         raise ValueError(f"the budget lacks the terms {sorted(missing)}")
     free = np.asarray(free, bool)
+    unknown = dict(unknown or {})
     clean = {}
     for name in SOURCES:
-        c = np.nan_to_num(np.asarray(terms[name], np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-        clean[name] = free_axes(free, _psd(c))
+        c = np.asarray(terms[name], np.float64)
+        kept = np.ix_(~free, ~free)
+        if name not in unknown and not np.all(np.isfinite(c[kept])):
+            unknown[name] = "non-finite values"
+        if name in unknown:
+            clean[name] = free_axes(np.ones(6, bool), np.zeros((6, 6)))
+        else:
+            clean[name] = free_axes(free, _psd(np.where(np.isfinite(c), c, 0.0)))
     bias = np.zeros(6) if bias is None else np.asarray(bias, np.float64)
-    return PoseBudget(clean, free, free_reason, bias)
+    return PoseBudget(clean, free, free_reason, bias, unknown)

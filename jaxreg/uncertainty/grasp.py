@@ -123,7 +123,12 @@ class GraspPrediction:
         lateral_sigma: standard deviation of the translation error along ``axis``; ``inf``
             when a free (unobservable) axis enters.
         probability: :func:`grasp_success_probability` with ``lateral_sigma`` and no bias
-            (float32 arithmetic); NaN when ``lateral_sigma`` is ``inf`` (unknown).
+            (float32 arithmetic), times ``turn_share``; NaN when ``lateral_sigma`` is ``inf``
+            (unknown).
+        turn_share: the share of the weight of the pose and its equivalent turns (poses that
+            fit as well) under which the jaws still close across the same axis: a turn that
+            maps the axis onto itself (or its reverse) leaves the grasp as it is, any other
+            puts the jaws across another extent of the object. 1 without turns.
     """
 
     axis: np.ndarray
@@ -133,6 +138,7 @@ class GraspPrediction:
     margin: float
     lateral_sigma: float
     probability: float
+    turn_share: float = 1.0
 
     def lateral_error(self, offset: Float[ArrayLike, " 3"]) -> float:
         """``|axis . offset|``: the part across the jaws of a known translation error
@@ -149,7 +155,7 @@ class GraspPrediction:
         NaN when ``lateral_sigma`` is ``inf``."""
         bias = self.lateral_error(offset)
         numbers = self.opening, self.width, self.friction_allowance, self.lateral_sigma, bias
-        return _chance(*numbers)[1]
+        return _chance(*numbers)[1] * self.turn_share
 
 
 def grasp_prediction(
@@ -157,6 +163,8 @@ def grasp_prediction(
     covariance: PoseBudget | Float[ArrayLike, "6 6"],
     opening: float,
     friction_allowance: float = 0.0,
+    turns: Float[ArrayLike, "K 3 3"] | None = None,
+    turn_weights: Float[ArrayLike, " K"] | None = None,
 ) -> GraspPrediction:
     """A parallel-jaw grasp across the model's narrowest principal axis and its predicted
     success under a pose's error (host-side, once per estimate).
@@ -168,6 +176,11 @@ def grasp_prediction(
             :class:`~jaxreg.uncertainty.budget.PoseBudget`, whose total is used.
         opening: the gripper's opening (metres), > 0.
         friction_allowance: the part of the margin per side a closing jaw needs (metres).
+        turns: ``(K, 3, 3)`` rotations (object frame, relative to the pose: ``R_pose^T
+            R_turned``) of poses that fit as well as this one (``PoseEstimate.
+            equivalent_poses``), and ``turn_weights`` ``(K,)`` their weights against the
+            pose's 1 (default 1 each): the grasp holds under a turn that keeps the jaw axis
+            (within 10 degrees, either sign), fails under any other.
 
     Returns:
         A :class:`GraspPrediction`: the jaw axis, the model's width along it, the margin per
@@ -195,4 +208,22 @@ def grasp_prediction(
     sigma = lateral_sigma(total, axis)
     opening, friction_allowance = float(opening), float(friction_allowance)
     margin, probability = _chance(opening, width, friction_allowance, sigma, 0.0)
-    return GraspPrediction(axis, opening, friction_allowance, width, margin, sigma, probability)
+    share = _turn_share(axis, turns, turn_weights)
+    return GraspPrediction(
+        axis, opening, friction_allowance, width, margin, sigma, probability * share, share
+    )
+
+
+def _turn_share(axis: np.ndarray, turns, weights) -> float:
+    """The weight share (the pose's own 1 included) of ``turns`` ``(K, 3, 3)`` that keep
+    ``axis`` ``(3,)`` within 10 degrees, either sign (see :func:`grasp_prediction`)."""
+    if turns is None or len(turns) == 0:
+        return 1.0
+    turns = np.asarray(turns, np.float64).reshape(-1, 3, 3)
+    weights = np.ones(len(turns)) if weights is None else np.asarray(weights, np.float64)
+    if weights.shape != (len(turns),) or np.any(~np.isfinite(weights)) or np.any(weights < 0):
+        raise ValueError(
+            f"turn_weights must be {len(turns)} non-negative weights, got {np.shape(weights)}"
+        )
+    kept = np.abs((turns @ axis) @ axis) >= np.cos(np.radians(10.0))
+    return float((1.0 + weights[kept].sum()) / (1.0 + weights.sum()))

@@ -10,16 +10,16 @@ itself, one stored program over a padded pixel list.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 
 import numpy as np
 
 from jaxreg.camera.model import RGBDFrame
 from jaxreg.core._program_cache import persistent_jit
-from jaxreg.pipeline._records import LiftRecord
-from jaxreg.pipeline._settings import _Failed, _ms, _Settings
+from jaxreg.pipeline._stages import _Failed
+from jaxreg.pipeline.records import LiftedSegment, LiftRecord
 from jaxreg.pipeline.segment import TablePlane
+from jaxreg.pipeline.settings import LiftSettings
 from jaxreg.search.neighbors import voxel_downsample
 from jaxreg.uncertainty import DepthNoise
 
@@ -134,12 +134,12 @@ def lift_region(
 
 
 def lift_stage(
-    frame, region, plane: TablePlane | None, noise: DepthNoise, settings: _Settings, stages
-):
+    frame, region, plane: TablePlane | None, noise: DepthNoise, settings: LiftSettings,
+    voxel_size: float,
+) -> LiftedSegment:  # fmt: skip
     """The lift stage of :func:`jaxreg.estimate_pose`: the segment's footprint ``region``
-    ``(H, W)`` lifted and filtered (:func:`lift_region`; the band above the ``plane``, if any),
-    its record in ``stages["lift"]``. Returns the mask of the lifted pixels ``(H, W)`` and the
-    base-frame points ``(K, 3)``; raises ``_Failed`` with too little valid depth or too few
+    ``(H, W)`` lifted and filtered (:func:`lift_region`; the band above the ``plane``, if any)
+    and voxelled at ``voxel_size``. Raises ``_Failed`` with too little valid depth or too few
     points left."""
     s = settings
     start = time.perf_counter()
@@ -148,16 +148,16 @@ def lift_stage(
     has_depth = np.isfinite(depth[rows, cols])
     valid_fraction = float(has_depth.mean()) if len(rows) else 0.0
     rows, cols = rows[has_depth], cols[has_depth]
-    diag = LiftRecord(
+    record = LiftRecord(
         ms=0.0, footprint_pixels=int(region.sum()), valid_depth_fraction=round(valid_fraction, 3)
     )
     if valid_fraction < s.min_valid_fraction:
-        stages["lift"] = dataclasses.replace(diag, ms=_ms(start))
         raise _Failed(
             "lift",
             f"too little valid depth: {valid_fraction:.0%} of the segment's {int(region.sum())} "
             f"pixels have depth (need {s.min_valid_fraction:.0%}); dark, shiny or grazing "
             "surfaces, or the object too near the camera",
+            record.with_ms(start),
             mask=region,
         )
     sigma = np.polynomial.polynomial.polyval(
@@ -166,16 +166,17 @@ def lift_stage(
     normal, offset = (None, None) if plane is None else (np.asarray(plane.normal), plane.offset)
     mask, points, counts = lift_region(
         frame, rows, cols, sigma, normal, None if offset is None else float(offset),
-        min_height=s.lift_min_height, voxel_size=s.voxel_size,
+        min_height=s.min_height, voxel_size=voxel_size,
         min_consistent_neighbors=s.min_consistent_neighbors,
     )  # fmt: skip
-    stages["lift"] = dataclasses.replace(diag, **counts, ms=_ms(start))
+    record = record.with_ms(start, **counts)
     if len(points) < s.min_segment_points:
         raise _Failed(
             "lift",
             f"only {len(points)} points left after filtering (need {s.min_segment_points}): "
             "the segment is too small or too noisy to register",
+            record,
             mask=mask,
             points=points,
         )
-    return mask, points
+    return LiftedSegment(mask, points, record)

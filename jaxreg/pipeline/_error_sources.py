@@ -31,8 +31,9 @@ from scipy.spatial import cKDTree
 
 from jaxreg.core._program_cache import persistent_jit
 from jaxreg.pipeline._answer import CONTACT_WEIGHT
-from jaxreg.pipeline._lift import lift_pixels
-from jaxreg.registration.icp import icp
+from jaxreg.pipeline._lift_stage import lift_pixels
+from jaxreg.pipeline._surface import depth_step
+from jaxreg.registration.icp import ICPStatus, icp
 from jaxreg.uncertainty.budget import combine
 
 __all__ = ["Calibration", "pose_budget"]
@@ -183,12 +184,15 @@ def _calibration_term(calibration, jac, points, frame, inverse):
 
 
 def _pixels(frame, points: np.ndarray) -> np.ndarray:
-    """``(K, 2)`` int (row, col) of base-frame ``points`` in ``frame`` (clipped to it)."""
+    """``(K, 2)`` int (row, col) of base-frame ``points`` in ``frame`` (clipped to it),
+    through the intrinsics' distortion (:meth:`~jaxreg.camera.model.Intrinsics.project`, one
+    program per padded count: the rows padded to a power of two)."""
     camera = frame.base_T_camera
     cam = (points - np.asarray(camera.translation())) @ np.asarray(camera.rotation().as_matrix())
-    k = frame.intrinsics
-    u = float(k.fx) * cam[:, 0] / cam[:, 2] + float(k.cx)
-    v = float(k.fy) * cam[:, 1] / cam[:, 2] + float(k.cy)
+    size = max(1024, 1 << (max(len(cam), 1) - 1).bit_length())
+    padded = np.ones((size, 3), np.float32)  # in front of the camera: a finite projection
+    padded[: len(cam)] = cam
+    u, v = np.asarray(frame.intrinsics.project(padded))[: len(cam)].T
     h, w = frame.depth.shape
     return np.stack(
         [np.clip(np.rint(v), 0, h - 1).astype(int), np.clip(np.rint(u), 0, w - 1).astype(int)], 1
@@ -216,17 +220,21 @@ def _distances(mask: np.ndarray, margin: int) -> tuple[np.ndarray, np.ndarray]:
     return inside, outside
 
 
-def perturbed_segments(frame, mask, points, plane, min_height, size, rng, count=16):
+def perturbed_segments(frame, mask, points, plane, min_height, size, rng, count=16, noise=None):
     """``(count, size, 3)`` float32 segments with their membership changed (NaN padding):
     a quarter with the mask's border eroded by 1-3 pixels, a quarter with the ring of 1-3
-    pixels around it added (points above the table), half with a contiguous ~15% piece of the
-    visible part dropped. Each is subsampled to ``size`` points like the registered cloud."""
+    pixels around it added (points above the table; with the camera's ``noise``, only the
+    ring's pixels on one surface with the mask's, :func:`_continuing`), half with a contiguous
+    ~15% piece of the visible part dropped. Each is subsampled to ``size`` points like the
+    registered cloud."""
     inside, outside = _distances(mask, RING + 1)
     rows, cols = _pixels(frame, points).T
     border = inside[rows, cols]
     ring_r, ring_c = np.nonzero((outside > 0) & (outside <= RING))
     ring = np.asarray(lift_pixels(frame, ring_r, ring_c), np.float64)
     ring_ok = np.all(np.isfinite(ring), 1)
+    if noise is not None:
+        ring_ok &= _continuing(frame, mask, ring_r, ring_c, noise)
     if plane is not None:  # above the table band, as the lift keeps
         height = ring[ring_ok] @ np.asarray(plane.normal) + float(plane.offset)
         ring_ok[ring_ok] = height > min_height
@@ -249,11 +257,29 @@ def perturbed_segments(frame, mask, points, plane, min_height, size, rng, count=
     return out
 
 
+def _continuing(frame, mask, rows, cols, noise) -> np.ndarray:
+    """``(R,)`` bool: which pixels ``(rows, cols)`` outside ``mask`` ``(H, W)`` continue its
+    surface: their depth within :func:`~jaxreg.pipeline._surface.depth_step` per pixel of
+    distance of the nearest mask pixel's (the background behind an object, or an occluder in
+    front, is a step away)."""
+    depth = np.asarray(frame.depth, np.float64)
+    if len(rows) == 0:
+        return np.zeros(0, bool)
+    top, left = max(rows.min() - RING - 1, 0), max(cols.min() - RING - 1, 0)
+    box = (slice(top, rows.max() + RING + 2), slice(left, cols.max() + RING + 2))
+    gap, (near_r, near_c) = ndimage.distance_transform_edt(~mask[box], return_indices=True)
+    r, c = rows - top, cols - left
+    z, z_near = depth[rows, cols], depth[near_r[r, c] + top, near_c[r, c] + left]
+    sigma = np.polynomial.polynomial.polyval(z_near, np.asarray(noise.coefficients, np.float64))
+    step = depth_step(z_near, sigma, float(frame.intrinsics.fx))
+    return np.abs(z - z_near) <= step * gap[r, c]
+
+
 @persistent_jit
 def _perturbed_fits(sources, weights, points, normals, grid, init, distances, trim):
     """Point-to-plane ICP of every perturbed segment ``(P, N, 3)`` (rows weighted by
-    ``weights`` ``(N,)``, NaN rows ignored) from ``init`` (7,): the poses ``(P, 7)`` and
-    whether each converged to a usable answer ``(P,)``."""
+    ``weights`` ``(N,)``, NaN rows ignored) from ``init`` (7,): the poses ``(P, 7)``, their
+    ICP statuses and whether their residuals are finite ``(P,)``."""
 
     def one(source):
         usable = jax.numpy.all(jax.numpy.isfinite(source), axis=1)
@@ -263,7 +289,7 @@ def _perturbed_fits(sources, weights, points, normals, grid, init, distances, tr
             source_weights=jax.numpy.where(usable, weights, 0.0), neighbors=grid,
             tolerance=1e-5,
         )  # fmt: skip
-        return result.pose.wxyz_xyz, jax.numpy.isfinite(result.inlier_rmse)
+        return result.pose.wxyz_xyz, result.status, jax.numpy.isfinite(result.inlier_rmse)
 
     return jax.vmap(one)(sources)
 
@@ -315,12 +341,11 @@ def pose_budget(
         trim: the refinement's trim fraction.
         noise: the camera's :class:`~jaxreg.uncertainty.DepthNoise` in the base frame.
         calibration: :class:`Calibration`.
-        ambiguous: ``((A, 6), (A,), r)`` the answers as good as this one (other refined
+        ambiguous: ``((A, 6), (A,))`` the answers about as good as this one (other refined
             starts, the answer turned and refined again) as right perturbations of ``pose``
-            (object axes, on its symmetry branch), their residuals and the answer's ``r``
-            (metres, as ICP reports them). Each weighs by its
-            likelihood against the answer's: ``exp(-N (r_i^2 - r^2) / (2 r^2))`` with ``N``
-            the segment's independent patches (12 mm blocks) and ``r`` the answer's residual.
+            (object axes, on its symmetry branch), and each one's weight against the
+            answer's 1 (how likely the evidence finds it): their weighted second moment,
+            the answer included, is the ambiguity term.
         symmetry: the model's ``Symmetry`` or ``None``.
         view_free: ``((6,) bool, reason)``: tangent axes the view leaves free (a mug whose
             handle is hidden turns about its body's axis and fits as well), or no axis.
@@ -348,18 +373,32 @@ def pose_budget(
     fit_base = _fit_term(jac, residual, blocks, inverse, depth_base)
     mismatch_base = _mismatch_term(jac, blocks, sensed, inverse, MISMATCH_SIGMA)
 
-    segments = perturbed_segments(frame, mask, points, plane, min_height, source_size, rng)
+    segments = perturbed_segments(
+        frame, mask, points, plane, min_height, source_size, rng, noise=noise
+    )
     weights = np.ones(source_size, np.float32)
     if contact is not None:
         segments = np.concatenate(
             [segments, np.broadcast_to(contact, (len(segments),) + contact.shape)], 1
         )
         weights = np.concatenate([weights, np.full(len(contact), CONTACT_WEIGHT, np.float32)])
-    poses, ok = _perturbed_fits(
+    poses, status, finite = _perturbed_fits(
         segments, weights, model.points, model.normals, model.fine_grid,
         np.asarray(object_T_base, np.float32), np.asarray(distances)[-15:], np.float32(trim),
     )  # fmt: skip
-    moved = (_tangents(object_T_base, np.asarray(poses)) @ to_object.T)[np.asarray(ok)]
+    lift = np.linalg.inv(to_object)
+    free, reason = _free(symmetry, lift.T @ hessian @ lift)
+    usable = (ICPStatus.success, ICPStatus.max_iterations)
+    if free.any():  # a fit degenerate along the free axes still pins the others
+        usable += (ICPStatus.degenerate,)
+    ok = np.asarray(finite) & np.any([np.asarray(status == code) for code in usable], axis=0)
+    moved = (_tangents(object_T_base, np.asarray(poses)) @ to_object.T)[ok]
+    unknown = {}
+    if len(moved) < len(segments) // 2:
+        unknown["segmentation"] = (
+            f"{len(segments) - len(moved)} of the {len(segments)} re-registrations of the "
+            "perturbed segment failed"
+        )
 
     calibration_base = _calibration_term(calibration, jac, pairs_points, frame, inverse)
     hand_eye = np.zeros((6, 6))
@@ -373,12 +412,7 @@ def pose_budget(
         hand_eye = ad @ calibration.hand_eye @ ad.T
 
     others = np.asarray(ambiguous[0], np.float64).reshape(-1, 6)
-    patches = int(blocks.max()) + 1
-    best = float(ambiguous[2])
-    excess = patches * (np.asarray(ambiguous[1], np.float64) ** 2 - best**2)
-    likelihood = np.exp(-0.5 * np.clip(excess / max(best**2, 1e-12), 0.0, None))
-    lift = np.linalg.inv(to_object)
-    free, reason = _free(symmetry, lift.T @ hessian @ lift)
+    likelihood = np.asarray(ambiguous[1], np.float64)
     if np.any(view_free[0] & ~free):
         free = free | view_free[0]
         reason = "; ".join(r for r in (reason, view_free[1]) if r)
@@ -390,4 +424,4 @@ def pose_budget(
         "calibration": hand_eye + to_object @ calibration_base @ to_object.T,
         "ambiguity": (others.T * likelihood) @ others / (1.0 + likelihood.sum()),
     }
-    return combine(terms, free, reason)
+    return combine(terms, free, reason, unknown=unknown)

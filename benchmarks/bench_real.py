@@ -1,0 +1,350 @@
+"""Real frames: jaxreg.estimate_pose beside an Open3D pipeline on YCB-Video's object instances,
+each given the dataset's label mask.
+
+Usage: python benchmarks/bench_real.py [--data PATH] [--csv PATH] [--no-open3d]
+
+Frames: every frame that ``jaxreg.io.read_ycbv(PATH)`` reads (default: the shipped frames,
+``$JAXREG_DATA/ycbv``, else ``../shared/data/ycbv``; any folder of the same layout works): real
+Asus Xtion captures, PoseCNN's point models (metres) and the annotated poses. Every annotated
+instance is one problem: its mask is ``label == class_index``, as a user's segmenter would give
+it, background and occluder pixels at its edges included.
+
+* jaxreg: ``estimate_pose(frame, model_points, mask=mask, depth_noise=noise)`` with its default
+  settings and the camera's published noise model (``DepthNoise.structured_light``: the Xtion
+  is a structured-light camera of the Kinect v1 class), as a user states their camera. Each
+  instance is run once untimed (a new segment size may compile) and once timed; the first
+  call's time (compiles included) is reported apart, the first instance's and the largest.
+* Open3D (0.18+), the best a user builds from its toolbox with the same mask: the masked pixels
+  lifted to camera-frame points, ``remove_statistical_outlier`` (20 neighbours, 2 sigma), a
+  4 mm voxel downsample; the model's points (about 2,620) with normals (``estimate_normals``, 20
+  neighbours) as the target; point-to-plane ``registration_icp`` (15 mm, 50 iterations) from
+  the 24 rotations of the cube's rotation group, the model centred on the segment's centroid;
+  the best start by fitness, then inlier RMSE. It always answers: its wrong answers are wrong
+  successes. Timed from the lifted pixels (the model's normals are computed once per object).
+
+Scores: ADD and ADD-S (``jaxreg.add``, ``jaxreg.add_s``) over the model's points; posed means
+found with ADD-S < 10% of the model's diameter (its largest point-to-point distance); a wrong
+success is found with ADD-S >= 10%.
+
+Box-centre coverage (jaxreg's reported covariance): ``c`` is the centre of the model points'
+axis-aligned bounding box (object frame), which the half turns of boxes and cans leave in place.
+With the covariance ``Sigma`` of the right perturbation ``(v, w)`` of the estimate
+(``T_true = T_est exp(delta)``), c's error in object axes is ``J delta``, ``J = [I, -skew(c)]``;
+the measured error is ``e = R_est^T (T_true c - T_est c)``. Tangent axes with an infinite
+variance (free axes) move c without bound along their columns of ``J``: the distance is
+minimised over them, ``d2 = min_x |W (e - J_free x)|^2`` with ``W^T W`` the inverse of
+``J Sigma J^T`` over the finite axes, and compared with the chi-square 95% quantile for the
+``3 - rank(W J_free)`` directions left (7.815 with no free direction moving c; with none left,
+c is unconstrained and counts as inside). "Allowing 2 mm" also minimises over a shift ``b`` of
+the truth, ``|b_i| <= 2 mm`` per camera axis (rotated into object axes), as a bounded least-squares
+problem (``scipy.optimize.lsq_linear``): the dataset's truth is good to a few millimetres. Both
+coverages are over jaxreg's posed instances.
+
+The per-instance rows go to ``benchmarks/results/bench_real.csv`` (or ``--csv``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import itertools
+import platform
+import re
+import statistics
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+from _timing import DATA, print_table
+from scipy.optimize import lsq_linear
+from scipy.spatial import ConvexHull
+from scipy.stats import chi2
+
+import jaxreg as jr
+
+CSV = Path(__file__).resolve().parent / "results" / "bench_real.csv"
+FIELDS = [
+    "frame", "object", "method", "found", "reason", "add_mm", "adds_mm", "diameter_mm",
+    "centre_err_mm", "centre_d2", "centre_inside", "centre_inside_allowing", "ms",
+]  # fmt: skip
+POSED = 0.1  # ADD-S below this fraction of the diameter
+TRUTH_BOX = 0.002  # metres per camera axis: the dataset's truth error allowed
+VOXEL, ICP_DISTANCE, ICP_ITERATIONS = 0.004, 0.015, 50
+
+
+def diameter(points: np.ndarray) -> float:
+    """The largest distance between two of `points` (metres): between hull vertices."""
+    hull = points[ConvexHull(points).vertices].astype(np.float64)
+    return float(np.sqrt(((hull[:, None] - hull[None]) ** 2).sum(-1).max()))
+
+
+def _skew(c: np.ndarray) -> np.ndarray:
+    return np.array([[0, -c[2], c[1]], [c[2], 0, -c[0]], [-c[1], c[0], 0]])
+
+
+def centre_error(est_T: np.ndarray, true_T: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """``e = R_est^T (T_true c - T_est c)`` (metres, object axes); `est_T`, `true_T` `(4, 4)`
+    object -> camera, `c` `(3,)` object frame."""
+    moved = (true_T[:3, :3] - est_T[:3, :3]) @ c + true_T[:3, 3] - est_T[:3, 3]
+    return est_T[:3, :3].T @ moved
+
+
+def centre_coverage(e: np.ndarray, R: np.ndarray, sigma: np.ndarray, c: np.ndarray):
+    """``(d2, inside, inside allowing TRUTH_BOX)`` of the box centre `c`'s error `e` (see the
+    module docstring) under the covariance `sigma` `(6, 6)` of an estimate with rotation `R`."""
+    J = np.hstack([np.eye(3), -_skew(c)])
+    free = ~np.isfinite(np.diag(sigma))
+    finite = sigma[np.ix_(~free, ~free)]
+    S = J[:, ~free] @ finite @ J[:, ~free].T
+    values, vectors = np.linalg.eigh((S + S.T) / 2)
+    W = vectors.T / np.sqrt(np.maximum(values, 1e-18))[:, None]  # W^T W = S^-1
+    moves = W @ J[:, free]  # whitened directions the free axes move c along, unbounded
+    dof = 3 - (np.linalg.matrix_rank(moves, tol=1e-9) if free.any() else 0)
+    quantile = chi2.ppf(0.95, dof) if dof else np.inf
+    target = W @ e
+    unbounded = np.full(moves.shape[1], np.inf)
+    if free.any():
+        x = np.linalg.lstsq(moves, target, rcond=None)[0]
+        d2 = float(np.sum((target - moves @ x) ** 2))
+    else:
+        d2 = float(target @ target)
+    # the truth may sit anywhere in a box of +-TRUTH_BOX per camera axis: e - R^T b
+    system = np.hstack([W @ R.T, moves])
+    bound = np.concatenate([np.full(3, TRUTH_BOX), unbounded])
+    fit = lsq_linear(system, target, bounds=(-bound, bound))
+    d2_allowing = float(np.sum((system @ fit.x - target) ** 2))
+    return d2, bool(d2 <= quantile), bool(d2_allowing <= quantile)
+
+
+def reason_group(reason: str) -> str:
+    """The words of a refusal's reason before its first number, at most ten."""
+    head = re.split(r"[\d(]", reason, maxsplit=1)[0]
+    return " ".join(head.split()[:10]) or reason[:40]
+
+
+# ---------------------------------------------------------------------------------------------
+# Open3D
+
+
+def cube_rotations() -> np.ndarray:
+    """``(24, 3, 3)`` the rotations of the cube: signed permutation matrices with det +1."""
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1, -1), repeat=3):
+            matrix = np.zeros((3, 3))
+            matrix[range(3), perm] = signs
+            if np.linalg.det(matrix) > 0:
+                out.append(matrix)
+    return np.stack(out)
+
+
+def run_open3d(o3d, frame, mask, target, model_centre) -> tuple[np.ndarray, float]:
+    """``(camera_T_object (4, 4), ms)`` from Open3D's toolbox (see the module docstring);
+    `target` is the model's point cloud with normals."""
+    reg = o3d.pipelines.registration
+    start = time.perf_counter()
+    points = np.asarray(frame.points(mask)).reshape(-1, 3)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[np.isfinite(points[:, 0])]))
+    cloud, _ = cloud.remove_statistical_outlier(nb_neighbors=20, std_ratio=2.0)
+    source = cloud.voxel_down_sample(VOXEL)
+    centroid = source.get_center()
+    best, best_key = None, None
+    for rotation in cube_rotations():
+        # the model turned by `rotation` with its centre on the segment's centroid; ICP moves
+        # the segment onto the model, so it starts from that pose's inverse
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = rotation, centroid - rotation @ model_centre
+        fit = reg.registration_icp(
+            source, target, ICP_DISTANCE, np.linalg.inv(pose),
+            reg.TransformationEstimationPointToPlane(),
+            reg.ICPConvergenceCriteria(max_iteration=ICP_ITERATIONS),
+        )  # fmt: skip
+        key = (-fit.fitness, fit.inlier_rmse)
+        if best_key is None or key < best_key:
+            best, best_key = np.linalg.inv(fit.transformation), key
+    return best, (time.perf_counter() - start) * 1e3
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def score(instance, pose: np.ndarray | None, model_diameter: float) -> dict:
+    if pose is None:
+        return {"add_mm": "", "adds_mm": "", "diameter_mm": f"{model_diameter * 1e3:.1f}"}
+    est = jr.SE3.from_matrix(pose.astype(np.float32))
+    points = instance.model_points
+    return {
+        "add_mm": f"{float(jr.add(points, est, instance.truth)) * 1e3:.2f}",
+        "adds_mm": f"{float(jr.add_s(points, est, instance.truth)) * 1e3:.2f}",
+        "diameter_mm": f"{model_diameter * 1e3:.1f}",
+    }
+
+
+def run_jaxreg(frame, instance):
+    start = time.perf_counter()
+    try:
+        intrinsics = frame.frame.intrinsics
+        noise = jr.DepthNoise.structured_light((float(intrinsics.fx), float(intrinsics.fy)))
+        est = jr.estimate_pose(
+            frame.frame, instance.model_points, mask=instance.mask, depth_noise=noise
+        )
+    except ValueError as error:  # a refusal by exception still answers the user
+        return None, f"ValueError: {error}", None, (time.perf_counter() - start) * 1e3
+    ms = (time.perf_counter() - start) * 1e3
+    if not est.success:
+        return None, est.reason, est, ms
+    return np.asarray(est.pose.as_matrix(), np.float64), est.reason, est, ms
+
+
+def summarise(name: str, rows: list[dict], first_ms: float | None) -> list[object]:
+    found = [r for r in rows if r["found"]]
+    posed = [r for r in found if r["posed"]]
+    wrong = [r for r in found if not r["posed"]]
+    refused = len(rows) - len(found)
+    covered = [r for r in posed if r["centre_inside"] != ""]
+    inside = sum(r["centre_inside"] for r in covered)
+    allowing = sum(r["centre_inside_allowing"] for r in covered)
+    coverage = f"{inside}/{len(covered)}" if covered else "-"
+    coverage_allowing = f"{allowing}/{len(covered)}" if covered else "-"
+    return [
+        name, len(rows), f"{len(posed)} ({len(posed) / len(rows):.0%})", len(wrong), refused,
+        coverage, coverage_allowing, f"{statistics.median(r['ms'] for r in rows):.0f}",
+        "-" if first_ms is None else f"{first_ms:.0f}",
+    ]  # fmt: skip
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=DATA / "ycbv",
+                        help="YCB-Video folder (default $JAXREG_DATA/ycbv)")  # fmt: skip
+    parser.add_argument("--csv", type=Path, default=CSV, help=f"per-instance rows (default {CSV})")
+    parser.add_argument("--no-open3d", action="store_true")
+    args = parser.parse_args()
+    if not args.data.exists():
+        raise SystemExit(f"no YCB-Video frames at {args.data}: pass --data or set JAXREG_DATA")
+    frames = jr.io.read_ycbv(args.data)
+    problems = [(f, i) for f in frames for i in f.instances]
+    if any(i.model_points is None for _, i in problems):
+        raise SystemExit(f"no models/ beside {args.data}'s data/: the scores need the models")
+    o3d = None
+    if not args.no_open3d:
+        try:
+            import open3d as o3d
+        except (ImportError, OSError) as err:
+            print(f"Open3D unavailable ({err}): jaxreg only")
+    print(f"{platform.processor() or platform.machine()}, {jax.devices()[0].platform}, "
+          f"jax {jax.__version__}" + (f", Open3D {o3d.__version__}" if o3d else "")
+          + f"; {len(problems)} instances in {len(frames)} frames of {args.data}")  # fmt: skip
+
+    models = {}
+    for _, instance in problems:
+        if instance.model_name not in models:
+            points = instance.model_points.astype(np.float64)
+            box_centre = (points.min(0) + points.max(0)) / 2
+            target = None
+            if o3d is not None:
+                target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+                target.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
+            models[instance.model_name] = (diameter(points), box_centre, target, points.mean(0))
+
+    print("per instance: frame  object  jaxreg found  ADD-S mm  first call ms  ms  "
+          "| Open3D ADD-S mm  ms")  # fmt: skip
+    rows, equivalent, first_calls = {"jaxreg": [], "Open3D": []}, [], []
+    for frame, instance in problems:
+        model_diameter, box_centre, target, centroid = models[instance.model_name]
+        truth = np.asarray(instance.truth.as_matrix(), np.float64)
+        first_calls.append(run_jaxreg(frame, instance)[-1])  # may compile
+        pose, reason, est, ms = run_jaxreg(frame, instance)
+        row = {"frame": frame.name, "object": instance.model_name, "method": "jaxreg",
+               "found": pose is not None, "reason": reason, "ms": ms,
+               **score(instance, pose, model_diameter)}  # fmt: skip
+        if pose is not None:
+            e = centre_error(pose, truth, box_centre)
+            sigma = np.asarray(est.covariance, np.float64)
+            d2, inside, allowing = centre_coverage(e, pose[:3, :3], sigma, box_centre)
+            row |= {"centre_err_mm": f"{np.linalg.norm(e) * 1e3:.2f}", "centre_d2": f"{d2:.2f}",
+                    "centre_inside": inside, "centre_inside_allowing": allowing}  # fmt: skip
+            turns = getattr(est, "equivalent_poses", None)
+            equivalent.append(None if turns is None else len(turns))
+        rows["jaxreg"].append(row)
+        line = f"{frame.name}  {instance.model_name}  {row['found']}  {row['adds_mm'] or '-'}"
+        line += f"  {first_calls[-1]:.0f}  {ms:.0f}"
+        if o3d is not None:
+            pose, ms = run_open3d(o3d, frame.frame, instance.mask, target, centroid)
+            err = np.linalg.norm(centre_error(pose, truth, box_centre))
+            rows["Open3D"].append({
+                "frame": frame.name, "object": instance.model_name, "method": "Open3D",
+                "found": True, "reason": "", "ms": ms, **score(instance, pose, model_diameter),
+                "centre_err_mm": f"{err * 1e3:.2f}",
+            })  # fmt: skip
+            line += f"  |  {rows['Open3D'][-1]['adds_mm']}  {ms:.0f}"
+        print(line, flush=True)
+
+    for method_rows in rows.values():
+        for row in method_rows:
+            row["posed"] = row["found"] and float(row["adds_mm"]) < POSED * float(
+                row["diameter_mm"]
+            )
+            for key in FIELDS:
+                row.setdefault(key, "")
+    methods = [m for m in rows if rows[m]]
+    print_table(
+        f"Real frames: {len(problems)} YCB-Video instances, dataset masks, default settings "
+        f"(posed: ADD-S < {POSED:.0%} of the diameter; box centre in the 95% region, over the "
+        "posed; ms: median per instance, warm)",
+        ["method", "instances", "posed", "wrong successes", "refused", "centre inside",
+         "inside allowing 2 mm", "ms", "first call ms"],
+        [summarise(m, rows[m], first_calls[0] if m == "jaxreg" else None) for m in methods],
+    )  # fmt: skip
+    print(f"\njaxreg's first call on each instance (compiles for new sizes included): the first "
+          f"instance {first_calls[0] / 1e3:.1f} s, the largest {max(first_calls) / 1e3:.1f} s, "
+          f"{sum(t > 10e3 for t in first_calls)} over 10 s")  # fmt: skip
+    wrong = [r for m in methods for r in rows[m] if r["found"] and not r["posed"]]
+    if wrong:
+        print_table(
+            "Wrong successes (found, ADD-S >= 10% of the diameter)",
+            ["method", "frame", "object", "ADD-S mm", "ADD mm", "diameter mm"],
+            [[r["method"], r["frame"], r["object"], r["adds_mm"], r["add_mm"], r["diameter_mm"]]
+             for r in wrong],
+        )  # fmt: skip
+    else:
+        print("\nWrong successes (found, ADD-S >= 10% of the diameter): none")
+    refusals: dict[str, int] = {}
+    for row in rows["jaxreg"]:
+        if not row["found"]:
+            group = reason_group(row["reason"])
+            refusals[group] = refusals.get(group, 0) + 1
+    if refusals:
+        print_table(
+            "jaxreg's refusals by reason (its words before the first number)",
+            ["reason", "instances"],
+            sorted(([k, v] for k, v in refusals.items()), key=lambda kv: -kv[1]),
+        )
+    else:
+        print("\njaxreg's refusals: none")
+    if not equivalent or all(n is None for n in equivalent):
+        print("\njaxreg equivalent_poses: not reported (PoseEstimate has no equivalent_poses)")
+    else:
+        counts = sorted({n for n in equivalent if n is not None})
+        print_table(
+            "jaxreg equivalent_poses per posed estimate",
+            ["equivalent poses", "estimates"],
+            [[n, equivalent.count(n)] for n in counts],
+        )
+
+    args.csv.parent.mkdir(parents=True, exist_ok=True)
+    with args.csv.open("w", newline="") as file:
+        writer = csv.DictWriter(file, FIELDS, extrasaction="ignore")
+        writer.writeheader()
+        for m in methods:
+            for row in rows[m]:
+                writer.writerow(row | {"ms": f"{row['ms']:.0f}"})
+    shown = args.csv.resolve()
+    if shown.is_relative_to(Path.cwd()):
+        shown = shown.relative_to(Path.cwd())
+    print(f"\nper-instance rows: {shown}")
+
+
+if __name__ == "__main__":
+    main()

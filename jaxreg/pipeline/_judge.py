@@ -1,0 +1,203 @@
+"""The depth image's evidence about a model pose, for the stages of :func:`jaxreg.estimate_pose`:
+which model points the image confirms, contradicts or cannot judge (:func:`visibility`), how
+much of a segment the model explains, and how far a segment reaches beyond the model
+(:func:`overhang`). The model comes prepared by :mod:`jaxreg.pipeline._model`.
+
+Conventions of :mod:`jaxreg.pipeline.estimate`: the segment (source, base frame) is registered
+into the model (target, object frame), so ICP's poses are ``object_T_base``.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxlie import SE3
+from jaxtyping import Array, Float
+from scipy.spatial.transform import Rotation
+
+from jaxreg.camera.model import RGBDFrame
+from jaxreg.core._program_cache import persistent_jit
+from jaxreg.pipeline._model import _Model
+from jaxreg.pipeline.segment import TablePlane
+from jaxreg.registration.solver import apply_pose as _apply
+from jaxreg.search.neighbors import query_nearest
+
+__all__ = ["visibility"]
+
+NOISE_SIGMAS = 4  # a depth within this many sigma_z(z) of the model agrees (see visibility)
+# depth agreement (metres) of the image's judgement of a pose; more where the depth noise's
+# NOISE_SIGMAS sigma_z(z) is more (see visibility)
+TOLERANCE = np.float32(0.01)
+
+
+@eqx.filter_jit
+def visibility(
+    frame: RGBDFrame,
+    base_T_object: SE3,
+    model_points: Float[Array, "M 3"],
+    tolerance: Float[Array, ""],
+    plane: TablePlane | None = None,
+    cell: int = 4,
+    *,
+    sigma_z: Float[Array, " C"] | None = None,
+) -> Float[Array, " 5"]:
+    """How the depth image judges the model at a pose: counts ``(confirmed, contradicted,
+    occluded, unknown, self_hidden)`` of the model points (jittable).
+
+    With a table ``plane``, every model point more than ``tolerance`` below it is
+    contradicted, facing the camera or not: an object cannot stand in the table.
+
+    The model points are moved into the camera and z-buffered among themselves on a grid of
+    ``cell`` x ``cell`` pixels: a point more than ``tolerance`` behind the nearest model
+    point of its cell is hidden by the model itself (its far side). Each point the camera
+    could see is compared with the depth measured at its pixel: within ``tolerance``
+    (metres) it is confirmed; measured farther, the camera sees through where the surface
+    should be (contradicted, evidence against the pose or the object's presence); measured
+    nearer, something else hides it (occluded); a hole or a pixel outside the image is
+    unknown. NaN rows of ``model_points`` (a model padded to a bucketed size) count nowhere.
+
+    With ``sigma_z`` (ascending polynomial coefficients of the depth noise's standard
+    deviation in the camera depth ``z``, as :class:`~jaxreg.uncertainty.DepthNoise` holds
+    them) each point's tolerance is ``tolerance`` or ``NOISE_SIGMAS`` times ``sigma_z`` at
+    its depth, whichever is larger: the floor covers the model's own error (voxels,
+    samples), the noise term a far or noisy view.
+    """
+    poses = SE3(base_T_object.wxyz_xyz[None])
+    return _visibilities(frame, poses, model_points, tolerance, plane, cell, sigma_z)[0]
+
+
+def _visibilities(frame, base_T_object: SE3, model_points, tolerance, plane, cell, sigma_z):
+    """:func:`visibility` counts ``(S, 5)`` of a batch of poses ``base_T_object`` ``(S,)``
+    (traced). The per-point geometry is vmapped over the poses, the points moved by rotation
+    matrices (jaxlie's quaternion ``apply`` gathers its Hamilton products' terms: ~50x
+    slower on XLA's CPU backend for a batch of poses); the z-buffer is one scatter into
+    ``S`` cell grids laid end to end (a vmapped scatter is ~20x slower on a CPU)."""
+    h, w = frame.depth.shape
+    hc, wc = -(-h // cell), -(-w // cell)
+
+    def place(pose):
+        """Camera-frame points ``(M, 3)``, clipped pixel ``(row, col)``, whether each lies in
+        front of the camera and inside the image, its tolerance and its cell ``(M,)``."""
+        camera_T_object = frame.base_T_camera.inverse() @ pose
+        cam = _apply(camera_T_object, jnp.asarray(model_points, frame.depth.dtype))
+        pix = frame.intrinsics.project(cam)
+        col = jnp.round(pix[:, 0]).astype(jnp.int32)
+        row = jnp.round(pix[:, 1]).astype(jnp.int32)
+        inside = (cam[:, 2] > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        limit = jnp.broadcast_to(tolerance, cam[:, 2].shape).astype(cam.dtype)
+        if sigma_z is not None:
+            powers = cam[:, 2:3] ** jnp.arange(sigma_z.shape[0], dtype=cam.dtype)
+            limit = jnp.maximum(tolerance, NOISE_SIGMAS * (powers @ sigma_z.astype(cam.dtype)))
+        row, col = jnp.clip(row, 0, h - 1), jnp.clip(col, 0, w - 1)
+        code = (row // cell) * wc + col // cell
+        below = jnp.zeros(cam.shape[0], bool)
+        if plane is not None:
+            height = plane.height(_apply(pose, jnp.asarray(model_points, cam.dtype)))
+            below = height < -limit
+        return cam, row, col, inside, limit, code, below
+
+    cam, row, col, inside, limit, code, below = jax.vmap(place)(base_T_object)
+    count = cam.shape[0]
+    slot = code + (jnp.arange(count, dtype=code.dtype) * (hc * wc))[:, None]
+    zbuf = (
+        jnp.full(count * hc * wc, jnp.inf, cam.dtype)
+        .at[slot.reshape(-1)]
+        .min(jnp.where(inside, cam[..., 2], jnp.inf).reshape(-1))
+    )
+    facing = inside & (cam[..., 2] <= zbuf[slot] + limit)
+    measured = frame.depth[row, col]
+    known = facing & jnp.isfinite(measured)
+    diff = measured - cam[..., 2]
+    confirmed = known & (jnp.abs(diff) <= limit)
+    contradicted = known & (diff > limit)
+    if plane is not None:
+        contradicted = contradicted | below  # seen or hidden, it cannot be there
+        known = known | below
+        confirmed = confirmed & ~below
+    occluded = known & (diff < -limit) & ~contradicted
+    unknown = ~known & (facing | ~inside) & jnp.all(jnp.isfinite(cam), -1)
+    flags = [confirmed, contradicted, occluded, unknown, inside & ~facing]
+    return jnp.stack([flag.sum(-1) for flag in flags], -1)
+
+
+def overhang(model: _Model, object_T_base: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """How far a segment spans beyond the model, along each of the model's principal axes
+    (metres, ``(3,)``): the span of ``points`` ``(N, 3)`` (base frame) moved by
+    ``object_T_base`` ``(7,)`` (wxyz_xyz), between their 2% and 98% quantiles, less the model's
+    full span. An object's own points stay within its extent up to the depth noise, whatever
+    part of it is visible (a partial view spans less: negative), so a positive overhang of
+    several millimetres says the segment is a larger object of a similar shape, or the object
+    merged with a neighbour."""
+    rotation = Rotation.from_quat(np.asarray(object_T_base[:4], np.float64), scalar_first=True)
+    moved = rotation.apply(np.asarray(points, np.float64)) + object_T_base[4:]
+    along = (moved - model.centroid) @ model.axes
+    low, high = np.quantile(along, [0.02, 0.98], axis=0)
+    return (high - low) - (model.bounds[1] - model.bounds[0])
+
+
+def _confirmed_share(counts: Array) -> Array:
+    """Confirmed over judged (confirmed, contradicted, occluded) model points, ``(...)``, of
+    numpy or JAX counts ``(..., 5)`` (array methods only: host counts stay on the host)."""
+    return counts[..., 0] / counts[..., :3].sum(-1).clip(min=1)
+
+
+def _support(counts: np.ndarray) -> tuple[float, float]:
+    """(confirmed share, contradicted share) of the model points facing the camera that the
+    image can judge (confirmed, contradicted or occluded)."""
+    confirmed, contradicted, occluded = (float(c) for c in counts[:3])
+    judged = max(confirmed + contradicted + occluded, 1.0)
+    return confirmed / judged, contradicted / judged
+
+
+@persistent_jit
+def _near_model(grid, object_T_base, points, distance):
+    """``(...)`` bool: which of ``points`` ``(..., 3)`` (base frame; NaN rows never) lie
+    within ``distance`` of the model at a pose."""
+    flat = points.reshape(-1, 3)
+    ok = jnp.all(jnp.isfinite(flat), -1)
+    moved = _apply(SE3(object_T_base), jnp.where(ok[:, None], flat, 0.0))
+    _, _, near = query_nearest(grid, moved, distance)
+    return (near & ok).reshape(points.shape[:-1])
+
+
+@persistent_jit
+def _judge(frame, plane, object_T_base, model_points, tolerance, sigma_z):
+    """:func:`visibility` counts ``(S, 5)`` of a batch of object_T_base ``(S, 7)``."""
+    return _visibilities(frame, SE3(object_T_base).inverse(), model_points, tolerance, plane, 4,
+                         sigma_z)  # fmt: skip
+
+
+# Edge (metres) of the cubic patches of a segment whose errors are independent of one
+# another (neighbouring pixels share a stereo camera's matching window, a structured-light
+# camera's pattern, the model's local mismatch); the error budget sums its fit term over them.
+PATCH = 0.012
+
+
+def patch_count(points: np.ndarray) -> int:
+    """The number of ``PATCH`` cubes that base-frame ``points`` ``(N, 3)`` occupy."""
+    cells = np.floor(np.asarray(points, np.float64) / PATCH).astype(np.int64)
+    return len(np.unique(cells, axis=0)) if len(cells) else 0
+
+
+def evidence_gap(scores, rmses, score: float, rmse: float, patches: int) -> np.ndarray:
+    """``(S,)`` how much worse than the answer (``score``, ``rmse``) each fit is (``scores``:
+    explained share times confirmed share, ``rmses``: inlier RMSE in metres, ``(S,)`` each),
+    in standard errors of the difference, judged over ``patches`` independent patches: the
+    larger of the score's shortfall over ``sqrt(2 score (1 - score) / patches)`` (at least
+    that of a share of 0.1) and the mean squared residual's excess over ``2 / sqrt(patches)``
+    of the answer's (two means of ``patches`` squares, each ``sqrt(2 / patches)`` relative).
+    0 for a fit at least as good; NaN residuals count as infinitely worse."""
+    n = max(int(patches), 1)
+    scores, rmses = np.asarray(scores, np.float64), np.asarray(rmses, np.float64)
+    share = (score - scores) / np.sqrt(2 * max(score * (1.0 - score), 0.09) / n)
+    squares = (rmses**2 / max(rmse**2, 1e-12) - 1.0) * np.sqrt(n) / 2
+    gap = np.maximum(np.maximum(share, squares), 0.0)
+    return np.where(np.isfinite(gap), gap, np.inf)
+
+
+def equally_good(scores, rmses, score: float, rmse: float, patches: int) -> np.ndarray:
+    """``(S,)`` bool: the fits the evidence cannot tell from the answer: within two standard
+    errors of it (:func:`evidence_gap`)."""
+    return evidence_gap(scores, rmses, score, rmse, patches) <= 2.0

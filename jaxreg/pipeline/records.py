@@ -1,0 +1,288 @@
+"""What the stages of :func:`jaxreg.estimate_pose` find. Each stage returns one frozen record of
+its output (:class:`Segmented`, :class:`CoarseSearch`, :class:`LiftedSegment`,
+:class:`Registration`) holding its evidence record (:class:`SegmentRecord`,
+:class:`LiftRecord`, :class:`RegisterRecord`): what the stage measured, read by attribute
+(``estimate.stages["lift"].valid_depth_fraction``), and :meth:`as_dict` for JSON (a stage that
+stopped early leaves its later, optional fields ``None``, and they are left out).
+
+Units are in the field names: ``_mm`` millimetres, ``ms`` milliseconds of wall time; counts
+are pixels, grid points (every ``stride``-th pixel of every ``stride``-th row) or points.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any
+
+import numpy as np
+from jaxlie import SE3
+
+from jaxreg.pipeline.segment import Segmentation, TablePlane
+from jaxreg.uncertainty.budget import PoseBudget
+
+__all__ = [
+    "Candidate", "CoarseSearch", "EquivalentPose", "LiftRecord", "LiftedSegment",
+    "RegisterRecord", "Registration", "SegmentRecord", "Segmented",
+]  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class _Record:
+    def as_dict(self) -> dict[str, Any]:
+        """The fields as plain Python (nested records as dicts); optional fields (default
+        ``None``) that were not measured are left out."""
+        optional = {f.name for f in dataclasses.fields(self) if f.default is None}
+        return {
+            k: v for k, v in dataclasses.asdict(self).items() if v is not None or k not in optional
+        }
+
+    def with_ms(self, start: float, **changes):
+        """This record with ``changes`` and ``ms`` the wall time since ``start``
+        (``time.perf_counter()``, to 0.01 ms)."""
+        ms = round((time.perf_counter() - start) * 1e3, 2)
+        return dataclasses.replace(self, **changes, ms=ms)
+
+
+@dataclasses.dataclass(frozen=True)
+class Candidate(_Record):
+    """One candidate segment scored by the coarse registration.
+
+    Attributes:
+        clusters: the cluster indices it joins (``[]``: the caller's mask).
+        score: ``explained * confirmed share`` of its best coarse pose.
+        explained: fraction of its points within 6 mm of the model at that pose.
+        contradicted: share of the model's judged surface the image sees through.
+        overhang_mm: its largest span beyond the model along a principal axis.
+    """
+
+    clusters: list[int]
+    score: float
+    explained: float
+    contradicted: float
+    overhang_mm: float
+
+
+@dataclasses.dataclass(frozen=True)
+class SegmentRecord(_Record):
+    """The segment stage: the table plane and clusters (table route), or the caller's mask.
+
+    Attributes:
+        ms: wall time.
+        plane_inliers, plane_inlier_fraction: grid points on the table plane (and their share
+            of the valid ones); with a mask, ``None`` when the frame shows no table under it.
+        valid_grid_points: grid points with depth.
+        above_plane: grid points in the band above the plane (table route).
+        cluster_sizes, cluster_radii_mm: grid points and radius of each cluster (table route).
+        overflow: the clustering's capacity overflowed (table route).
+        mask_pixels: pixels of the caller's mask (mask route).
+        surface_pixels: of them, pixels on the object's surface (mask route: with depth, and
+            connected to the object by the depth image, not the background behind it or an
+            occluder in front).
+        mask_grid_points: of them, grid points (above the table band when there is a table):
+            the one candidate (mask route).
+    """
+
+    ms: float
+    valid_grid_points: int
+    plane_inliers: int | None = None
+    plane_inlier_fraction: float | None = None
+    above_plane: int | None = None
+    cluster_sizes: list[int] | None = None
+    cluster_radii_mm: list[float] | None = None
+    overflow: bool | None = None
+    mask_pixels: int | None = None
+    surface_pixels: int | None = None
+    mask_grid_points: int | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class LiftRecord(_Record):
+    """The lift stage (:func:`jaxreg.pipeline._lift_stage.lift_region`'s counts).
+
+    Attributes:
+        ms: wall time.
+        footprint_pixels: pixels of the segment's footprint (with the holes inside it).
+        valid_depth_fraction: share of them with depth.
+        pixels: pixels kept after the filters.
+        flying_pixels_removed, below_band_removed: pixels each filter removed.
+        isolated_points_removed: voxels removed as isolated.
+        points: base-frame points left to register.
+    """
+
+    ms: float
+    footprint_pixels: int
+    valid_depth_fraction: float
+    pixels: int | None = None
+    flying_pixels_removed: int | None = None
+    below_band_removed: int | None = None
+    isolated_points_removed: int | None = None
+    points: int | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class RegisterRecord(_Record):
+    """The register stage: the coarse search over the candidates (before the lift), then the
+    refinement of the winner (after it; these fields are ``None`` when the lift failed).
+
+    Attributes:
+        ms: wall time of both parts.
+        starts: coarse starts per candidate.
+        candidates: the candidates scored by the coarse search, best first.
+        coarse_kept_starts: coarse poses of the winner kept for refinement.
+        chosen_clusters: the clusters lifted (table route; ``None`` with a mask).
+        refined_starts: distinct coarse poses refined on the lifted points.
+        trim_fraction: the refinement's trimmed overlap.
+        iterations, icp_status: the chosen refinement's ICP iterations and status message.
+        inlier_rmse_mm: its residual (``None`` when no segment point is matched).
+        inlier_fraction: fraction of the segment within the final correspondence distance.
+        equally_good_starts: refined starts as good as the chosen one.
+        start_agreement_mm, start_agreement_deg: their largest offset and angle to it.
+        model_confirmed, model_contradicted: shares of the model's judged surface the image
+            confirms and sees through.
+        overhang_mm: the segment's span beyond the model along its three principal axes.
+        equally_good_probes: the answer turned about the model's axes and refined again, as
+            good as the answer (each widens the ambiguity term of the error budget).
+        resting_on_table: whether the answer was settled on the table plane.
+        contact_shift_mm: how far settling moved the model's lowest point onto the table.
+    """
+
+    ms: float
+    starts: int
+    candidates: list[Candidate]
+    coarse_kept_starts: int
+    chosen_clusters: list[int] | None = None
+    refined_starts: int | None = None
+    trim_fraction: float | None = None
+    iterations: int | None = None
+    icp_status: str | None = None
+    inlier_rmse_mm: float | None = None
+    inlier_fraction: float | None = None
+    equally_good_starts: int | None = None
+    start_agreement_mm: float | None = None
+    start_agreement_deg: float | None = None
+    model_confirmed: float | None = None
+    model_contradicted: float | None = None
+    overhang_mm: list[float] | None = None
+    equally_good_probes: int | None = None
+    resting_on_table: bool | None = None
+    contact_shift_mm: float | None = None
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class EquivalentPose:
+    """A turn of the model that fits the view as well as the answer: depth alone cannot tell
+    it from the answer (a box's half turn, a can seen from its side).
+
+    Attributes:
+        pose: ``base_T_object`` of the turned answer, refined.
+        axis: ``(3,)`` the model's principal axis it was turned about (object frame, unit).
+        angle_deg: the turn (degrees) before refinement.
+        score: its explained share times the image's confirmed share (the answer's evidence).
+        inlier_rmse: its residual (metres).
+        weight: how likely it is against the answer (1: the evidence cannot prefer either;
+            ``exp(-gap^2 / 2)`` with ``gap`` its shortfall in standard errors).
+    """
+
+    pose: SE3
+    axis: np.ndarray
+    angle_deg: float
+    score: float
+    inlier_rmse: float
+    weight: float
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready: the pose as a 4x4 list, lengths in millimetres."""
+        return {
+            "pose": np.asarray(self.pose.as_matrix()).tolist(),
+            "axis": [round(float(a), 4) for a in self.axis],
+            "angle_deg": round(self.angle_deg, 1),
+            "score": round(self.score, 3),
+            "inlier_rmse_mm": round(self.inlier_rmse * 1e3, 3),
+            "weight": round(self.weight, 3),
+        }
+
+
+# --------------------------------------------------------------------------------------------
+# What each stage returns.
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Segmented:
+    """The segment stage's output.
+
+    Attributes:
+        plane: the table plane (base frame), or ``None`` (a mask on an object not standing on
+            a table, or a frame without one).
+        candidates: ``(clusters, cloud)`` per candidate segment: the cluster indices it joins
+            (``()``: the caller's mask) and its grid points ``(N, 3)`` (base frame, metres).
+        clusters: the table route's :class:`~jaxreg.pipeline.segment.Segmentation` (labels,
+            points, footprints), or ``None`` with a mask.
+        mask: the caller's mask ``(H, W)`` bool, or ``None`` on the table route.
+        record: the stage's evidence.
+    """
+
+    plane: TablePlane | None
+    candidates: list[tuple[tuple[int, ...], np.ndarray]]
+    clusters: Segmentation | None
+    mask: np.ndarray | None
+    record: SegmentRecord
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CoarseSearch:
+    """The register stage's coarse search over the candidates.
+
+    Attributes:
+        region: ``(H, W)`` bool footprint to lift (the winner with the clusters its coarse
+            pose explains, or the caller's mask).
+        poses: ``(K, 7)`` the winner's coarse poses, ``object_T_base`` wxyz_xyz, best first.
+        explained: fraction of the winner's points its best coarse pose explains.
+        tolerances: the register stage's distances and gates for the segment's depth
+            (:class:`~jaxreg.pipeline._register_stage.Tolerances`).
+        record: the register stage's record so far (its coarse part).
+    """
+
+    region: np.ndarray
+    poses: np.ndarray
+    explained: float
+    tolerances: Any
+    record: RegisterRecord
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class LiftedSegment:
+    """The lift stage's output.
+
+    Attributes:
+        mask: ``(H, W)`` bool pixels lifted (after the filters).
+        points: ``(K, 3)`` float32 base-frame points (voxelled, isolated points removed).
+        record: the stage's evidence.
+    """
+
+    mask: np.ndarray
+    points: np.ndarray
+    record: LiftRecord
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Registration:
+    """The register stage's answer.
+
+    Attributes:
+        pose: ``base_T_object``.
+        inlier_rmse, inlier_fraction: the final fit's residual (metres) and share of the
+            segment explained.
+        budget: the pose's error budget.
+        reason: a one-line summary of the success.
+        record: the register stage's whole record.
+        equivalent_poses: the turns of the model that fit the view as well.
+    """
+
+    pose: SE3
+    inlier_rmse: float
+    inlier_fraction: float
+    budget: PoseBudget
+    reason: str
+    record: RegisterRecord
+    equivalent_poses: tuple[EquivalentPose, ...] = ()

@@ -1,0 +1,182 @@
+"""The settings of :func:`jaxreg.estimate_pose`, grouped by the stage that reads them: frozen
+records with documented defaults (metres, counts, fractions). ``estimate_pose`` takes them as
+``settings=PipelineSettings(...)`` or as its keywords (``voxel_size=0.003``), which fill the
+group that holds the name.
+
+Counts that size compiled programs (``coarse_points``, ``max_points``, ``max_candidates``,
+``num_starts``, ``resting_yaws``, ``coarse_survivors``, ``coarse_keep``) are static: a new value
+compiles the pipeline's programs once more.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+__all__ = ["LiftSettings", "PipelineSettings", "RegisterSettings", "SegmentSettings"]
+
+
+@dataclasses.dataclass(frozen=True)
+class SegmentSettings:
+    """The segment stage (:func:`jaxreg.pipeline.segment.segment_frame` and the candidates).
+
+    Attributes:
+        stride: every ``stride``-th pixel of every ``stride``-th row is a grid point.
+        plane_distance: table-plane inlier distance (metres).
+        min_height: a grid point belongs to a cluster this high above the plane (metres).
+        cluster_distance: grid points nearer than this (metres) join one cluster.
+        cluster_margin: a candidate's diameter may exceed the model's by this (metres): a
+            partial view's points can lie farther from its centroid than the model's radius.
+        max_candidates: the largest clusters (by grid points) scored by registration.
+    """
+
+    stride: int = 4
+    plane_distance: float = 0.008
+    min_height: float = 0.01
+    cluster_distance: float = 0.015
+    cluster_margin: float = 0.02
+    max_candidates: int = 4
+
+
+@dataclasses.dataclass(frozen=True)
+class LiftSettings:
+    """The lift stage (:func:`jaxreg.pipeline._lift_stage.lift_region`).
+
+    Attributes:
+        min_height: the lifted segment keeps points this high above the table (metres; lower
+            than the segment's: a low part such as a tray's floor pins the object's height).
+        min_valid_fraction: fewest pixels with depth in the segment's footprint, as a fraction.
+        min_consistent_neighbors: a pixel needs this many of its 8 neighbours within the
+            depth tolerance (a mixed-depth pixel floating between two surfaces has none).
+        min_segment_points: fewest lifted points worth registering.
+    """
+
+    min_height: float = 0.003
+    min_valid_fraction: float = 0.5
+    min_consistent_neighbors: int = 3
+    min_segment_points: int = 30
+
+
+@dataclasses.dataclass(frozen=True)
+class RegisterSettings:
+    """The register stage: the coarse search over the candidates, the refinement of the
+    winner and the evidence that may refuse it.
+
+    Attributes:
+        num_starts: rotation-grid starts of the coarse search (plus the 4 PCA frames).
+        resting_yaws: headings of the starts resting on the table on each of the model's six
+            principal half-axes (``6 * resting_yaws`` more starts; 0: none).
+        coarse_points: grid points of a candidate given to the coarse search.
+        coarse_screen: coarse ICP iterations (of 20) that every start takes.
+        coarse_survivors: starts per candidate (those whose model explains most of it after
+            ``coarse_screen`` iterations) that go on to ``coarse_first`` iterations and are
+            judged against the depth image sparsely.
+        coarse_first: the coarse iteration after which the survivors are judged (of 20).
+        coarse_keep: distinct survivors per candidate that take the remaining coarse
+            iterations and are judged against the depth image at full density.
+        max_points: cloud size given to ICP (larger segments are subsampled).
+        refined_starts: distinct coarse poses of the winner refined on the lifted points
+            (the best first; each differs from the others by 1 cm or 0.2 rad); 1 to
+            ``coarse_keep``.
+        rest_tolerance: an answer whose model has a flat face within this distance (metres)
+            of the table, facing it, is moved onto the table and settled there; 0 turns this
+            off.
+        min_inlier_fraction: fewest segment points the model must explain (within the final
+            correspondence distance, which follows the depth noise at the segment's depth
+            and the model's sampling), as a fraction.
+        max_inlier_rmse: largest RMS distance (metres) of the explained segment points;
+            ``None``: 1.5 times what the depth noise at the segment's depth, the model's
+            sampling and the model-sensor mismatch explain
+            (:func:`~jaxreg.pipeline._register_stage.tolerances`).
+        max_contradicted: largest share of the model's judged surface the image may see
+            through.
+        max_overhang: how far (metres) the segment may span beyond the model along one of
+            its principal axes at the fitted pose (2% to 98% quantiles), beyond the depth
+            noise's spread (4 sigma_z at the segment's depth): a larger object of a similar
+            shape fits well by every other measure but reaches beyond the model.
+    """
+
+    num_starts: int = 24
+    resting_yaws: int = 8
+    coarse_points: int = 128
+    coarse_screen: int = 2
+    coarse_survivors: int = 24
+    coarse_first: int = 6
+    coarse_keep: int = 6
+    max_points: int = 768
+    refined_starts: int = 4
+    rest_tolerance: float = 0.015
+    min_inlier_fraction: float = 0.7
+    max_inlier_rmse: float | None = None
+    max_contradicted: float = 0.25
+    max_overhang: float = 0.003
+
+    def __post_init__(self):
+        count = self.refined_starts
+        if not (isinstance(count, int) and 1 <= count <= self.coarse_keep):
+            raise ValueError(
+                f"refined_starts must be an integer from 1 to coarse_keep ({self.coarse_keep}), "
+                f"got {self.refined_starts!r}"
+            )
+
+
+@dataclasses.dataclass(frozen=True)
+class PipelineSettings:
+    """Every setting of :func:`jaxreg.estimate_pose`, by stage.
+
+    Attributes:
+        voxel_size: voxel (metres) of the lifted segment and of the model; the refinement's
+            last correspondence distance is 1.5 voxels.
+        segment, lift, register: the stages' settings.
+    """
+
+    voxel_size: float = 0.004
+    segment: SegmentSettings = SegmentSettings()
+    lift: LiftSettings = LiftSettings()
+    register: RegisterSettings = RegisterSettings()
+
+    @property
+    def coarse_distances(self) -> np.ndarray:
+        """The coarse search's correspondence distances (metres, 40 mm down to 10 mm, 20)."""
+        return np.geomspace(0.04, 0.01, 20).astype(np.float32)
+
+    @property
+    def fine_distances(self) -> np.ndarray:
+        """The refinement's correspondence distances (metres, 15 mm down to 1.5 voxels, 30)."""
+        return np.geomspace(0.015, 1.5 * self.voxel_size, 30).astype(np.float32)
+
+    def replace(self, **keywords) -> PipelineSettings:
+        """These settings with ``keywords`` changed, each a field of one group (the lift's
+        ``min_height`` is ``lift_min_height`` here, the segment's keeps its name) or
+        ``voxel_size``; ``ValueError`` names a keyword no group has."""
+        groups = {"segment": {}, "lift": {}, "register": {}}
+        top = {}
+        for name, value in keywords.items():
+            if name == "voxel_size":
+                top[name] = value
+            elif name == "lift_min_height":
+                groups["lift"]["min_height"] = value
+            elif name in _FIELDS["segment"]:
+                groups["segment"][name] = value
+            elif name in _FIELDS["lift"] and name != "min_height":
+                groups["lift"][name] = value
+            elif name in _FIELDS["register"]:
+                groups["register"][name] = value
+            else:
+                raise ValueError(
+                    f"estimate_pose got an unknown setting {name!r}; the settings are "
+                    f"voxel_size, lift_min_height and the fields of SegmentSettings, "
+                    f"LiftSettings and RegisterSettings"
+                )
+        return dataclasses.replace(
+            self, **top,
+            **{g: dataclasses.replace(getattr(self, g), **kw) for g, kw in groups.items() if kw},
+        )  # fmt: skip
+
+
+_FIELDS = {
+    "segment": {f.name for f in dataclasses.fields(SegmentSettings)},
+    "lift": {f.name for f in dataclasses.fields(LiftSettings)},
+    "register": {f.name for f in dataclasses.fields(RegisterSettings)},
+}

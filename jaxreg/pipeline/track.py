@@ -1,0 +1,238 @@
+"""Tracking: the pose in the next frame of a stream, from the pose in the previous one.
+
+:func:`track` needs no segmentation: the model at the ``previous`` pose, projected into the new
+frame, says which pixels to look at (its footprint grown by the motion allowed between frames,
+the depths near the model's, on one surface: :func:`jaxreg.pipeline._surface.mask_surface`).
+ICP from the previous pose, trimmed to its better pairs, follows the object there; the pixels
+around the model's footprint at the followed pose are the segment, and the register stage
+refines that pose on them: no candidates, no coarse search. The same evidence as
+:func:`jaxreg.estimate_pose` refuses an answer (the share of the segment the model explains,
+the residual, the image seeing through the model, the segment reaching beyond it), and the
+same error budget gives its covariance. A refusal says the object is lost (it moved farther
+than ``max_motion``, left the view, or is hidden): re-detect it with ``estimate_pose``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any
+
+import numpy as np
+from jaxlie import SE3
+from jaxtyping import Float
+from scipy import ndimage
+
+from jaxreg.camera.model import RGBDFrame
+from jaxreg.geometry.lie import geodesic_angle
+from jaxreg.geometry.metrics import Symmetry
+from jaxreg.pipeline._coarse import _register_starts
+from jaxreg.pipeline._error_sources import Calibration
+from jaxreg.pipeline._judge import _near_model
+from jaxreg.pipeline._lift_stage import lift_pixels, lift_stage
+from jaxreg.pipeline._model import _prepare_model
+from jaxreg.pipeline._register_stage import refine_stage, tolerances
+from jaxreg.pipeline._stages import _Failed, _padded
+from jaxreg.pipeline._surface import mask_surface
+from jaxreg.pipeline.estimate import PoseEstimate, _checked_model, _found, _noise, _refused
+from jaxreg.pipeline.records import CoarseSearch, RegisterRecord, SegmentRecord
+from jaxreg.pipeline.settings import PipelineSettings
+from jaxreg.uncertainty import DepthNoise
+
+__all__ = ["track"]
+
+
+def track(
+    frame: RGBDFrame,
+    model_points: Float[Any, "M 3"],
+    previous: SE3 | Float[Any, "4 4"] | PoseEstimate,
+    *,
+    max_motion: float = 0.05,
+    max_turn_deg: float = 20.0,
+    model_normals: Float[Any, "M 3"] | None = None,
+    symmetry: Symmetry | None = None,
+    depth_noise: DepthNoise | None = None,
+    hand_eye_covariance: Float[Any, "6 6"] | None = None,
+    intrinsics_sigma: Float[Any, " 4"] | None = None,
+    depth_scale_sigma: float = 0.0,
+    settings: PipelineSettings | None = None,
+    **keywords,
+) -> PoseEstimate:
+    """``base_T_object`` in ``frame`` starting from its pose in the previous frame.
+
+    Args:
+        frame: the new depth frame.
+        model_points: ``(M, 3)`` the model's points (object frame, metres).
+        previous: the previous ``base_T_object``: an ``SE3``, a ``(4, 4)`` matrix, or the
+            previous :class:`PoseEstimate` (which must hold a pose).
+        max_motion: the farthest (metres) the object's points may move between the frames:
+            the footprint grows by it, the depths looked at reach it beyond the model's, and
+            an answer farther from ``previous`` is refused as lost.
+        max_turn_deg: the largest turn (degrees) between the frames; a larger one is
+            refused as lost.
+        model_normals, symmetry, depth_noise, hand_eye_covariance, intrinsics_sigma,
+        depth_scale_sigma, settings, **keywords: as for :func:`jaxreg.estimate_pose`.
+
+    Returns:
+        A :class:`PoseEstimate`; its ``stages`` are ``segment`` (the projected footprint:
+        ``mask_pixels`` the pixels looked at, ``mask_grid_points`` those on the surface),
+        ``lift`` and ``register``. A refusal (``failed_stage``) means the object is lost.
+
+    Raises:
+        ValueError: bad input as for ``estimate_pose``, a ``previous`` that is not a pose or
+            an estimate without one, or a non-positive ``max_motion`` / ``max_turn_deg``.
+    """
+    model_points, model_normals = _checked_model(frame, model_points, model_normals)
+    base_T_object = _previous_pose(previous)
+    if not (max_motion > 0 and max_turn_deg > 0):
+        raise ValueError(
+            f"max_motion and max_turn_deg must be positive, got {max_motion}, {max_turn_deg}"
+        )
+    settings = (settings or PipelineSettings()).replace(**keywords)
+    calibration = Calibration(hand_eye_covariance, intrinsics_sigma, depth_scale_sigma)
+    model = _prepare_model(
+        model_points, model_normals, settings.voxel_size, float(settings.coarse_distances[0]),
+        float(settings.fine_distances.max()),
+    )  # fmt: skip
+    noise = _noise(depth_noise, frame)
+    records: dict[str, Any] = {}
+    try:
+        region, coarse, records["segment"] = _follow(
+            frame, model, base_T_object, max_motion, noise, settings
+        )
+        lifted = lift_stage(frame, region, None, noise, settings.lift, settings.voxel_size)
+        records["lift"] = lifted.record
+        explained = _near_model(
+            model.fine_grid, coarse.poses[0], lifted.points, np.float32(0.01)
+        )
+        coarse = dataclasses.replace(coarse, explained=float(np.mean(explained)))
+        found = refine_stage(
+            frame, model, coarse, lifted, None, settings, noise, symmetry, calibration,
+            np.random.default_rng(0),
+        )  # fmt: skip
+        records["register"] = found.record
+        _check_motion(base_T_object, found, max_motion, max_turn_deg, lifted)
+        return _found(found, lifted, records, None)
+    except _Failed as failure:
+        failure.reason += "; re-detect with estimate_pose"
+        return _refused(frame, failure, records, None, prefix="lost: ")
+
+
+def _previous_pose(previous) -> SE3:
+    """``previous`` as an ``SE3`` (float64 host values), or ``ValueError``."""
+    if isinstance(previous, PoseEstimate):
+        if previous.pose is None:
+            raise ValueError(
+                "the previous estimate holds no pose (it failed at "
+                f"{previous.failed_stage}): re-detect with estimate_pose"
+            )
+        previous = previous.pose
+    if isinstance(previous, SE3):
+        wxyz_xyz = np.asarray(previous.wxyz_xyz, np.float64)
+        if wxyz_xyz.shape != (7,) or not np.all(np.isfinite(wxyz_xyz)):
+            raise ValueError("previous must be one finite pose, without batch axes")
+        return SE3(wxyz_xyz)
+    matrix = np.asarray(previous, np.float64)
+    if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
+        raise ValueError(
+            f"previous must be an SE3, a finite (4, 4) matrix or a PoseEstimate, got shape "
+            f"{matrix.shape}"
+        )
+    if not np.allclose(matrix[:3, :3] @ matrix[:3, :3].T, np.eye(3), atol=1e-4):
+        raise ValueError("previous's (4, 4) matrix must hold a rotation")
+    return SE3.from_matrix(matrix)
+
+
+def _projection(frame, model, base_T_object: SE3):
+    """The model's footprint ``(H, W)`` bool at ``base_T_object`` (its points' pixels) and
+    its points' camera depths (metres, those in front of the camera)."""
+    depth = np.asarray(frame.depth)
+    h, w = depth.shape
+    points = model.points[np.all(np.isfinite(model.points), axis=1)].astype(np.float64)
+    camera_T_object = frame.base_T_camera.inverse() @ SE3(
+        np.asarray(base_T_object.wxyz_xyz, np.float32)
+    )
+    cam = np.asarray(camera_T_object @ points)
+    cam = cam[cam[:, 2] > 1e-3]
+    footprint = np.zeros((h, w), bool)
+    if len(cam):
+        pixels = np.rint(np.asarray(frame.intrinsics.project(cam))).astype(int)
+        inside = np.all((pixels >= 0) & (pixels < (w, h)), axis=1)
+        footprint[pixels[inside, 1], pixels[inside, 0]] = True
+    return footprint, cam[:, 2]
+
+
+def _around(frame, model, base_T_object: SE3, reach: float, noise) -> np.ndarray:
+    """``(H, W)`` bool: the model's footprint at ``base_T_object`` grown by ``reach`` metres
+    (at its nearest depth), the pixels with depth within ``reach`` of the model's depths,
+    on one surface with the largest piece (:func:`~jaxreg.pipeline._surface.mask_surface`)."""
+    depth = np.asarray(frame.depth)
+    footprint, z = _projection(frame, model, base_T_object)
+    if len(z) == 0:
+        return footprint
+    fx = float(frame.intrinsics.fx)
+    grow = int(np.clip(np.ceil(reach * fx / max(float(z.min()), 1e-3)), 1, 200))
+    grown = ndimage.binary_dilation(footprint, iterations=grow)
+    near = np.isfinite(depth) & (depth >= z.min() - reach) & (depth <= z.max() + reach)
+    return mask_surface(depth, grown & near, np.asarray(noise.coefficients), fx)
+
+
+def _follow(frame, model, base_T_object: SE3, max_motion, noise, settings):
+    """The object followed from the previous pose: ICP (trimmed to the better 60% of its
+    pairs) of the pixels around the previous footprint (:func:`_around`, within
+    ``max_motion``), then the pixels around the footprint at that pose (two voxels): the
+    segment to judge. Returns that segment ``(H, W)``, the followed pose as a coarse search
+    result, and the segment record; ``_Failed`` when too few pixels are found."""
+    start = time.perf_counter()
+    looked = _around(frame, model, base_T_object, max_motion, noise)
+    need = settings.lift.min_segment_points
+    record = SegmentRecord(
+        ms=0.0, valid_grid_points=int(np.isfinite(np.asarray(frame.depth)).sum()),
+        mask_pixels=int(looked.sum()),
+    )  # fmt: skip
+    if looked.sum() < need:
+        raise _Failed(
+            "segment",
+            f"the model at the previous pose meets {int(looked.sum())} pixels with depth "
+            f"within {max_motion * 1e3:.0f} mm of it (need {need}): it moved farther, left "
+            "the view or is hidden",
+            record.with_ms(start),
+        )
+    depth = np.asarray(frame.depth)
+    gates = tolerances(model, noise, float(np.median(depth[looked])), settings)
+    rows, cols = np.nonzero(looked)
+    points = lift_pixels(frame, rows, cols)
+    source = _padded(points, settings.register.max_points, np.random.default_rng(0))
+    start_pose = np.asarray(base_T_object.inverse().wxyz_xyz, np.float32)[None]
+    followed = _register_starts(
+        source, model.points, model.normals, model.fine_grid, SE3(start_pose),
+        gates.distances, np.float32(0.6), 30,
+    )  # fmt: skip
+    object_T_base = np.asarray(followed.pose.wxyz_xyz, np.float32)
+    if not np.all(np.isfinite(object_T_base)):
+        object_T_base = start_pose
+    pose = SE3(object_T_base[0].astype(np.float64)).inverse()
+    region = _around(frame, model, pose, 2 * settings.voxel_size, noise)
+    record = dataclasses.replace(record, surface_pixels=int(region.sum()))
+    register = RegisterRecord(ms=0.0, starts=1, candidates=[], coarse_kept_starts=1)
+    coarse = CoarseSearch(region, object_T_base, 1.0, gates, register)
+    return region, coarse, record.with_ms(start)
+
+
+def _check_motion(previous: SE3, found, max_motion, max_turn_deg, lifted) -> None:
+    """``_Failed`` (register) when the answer moved more than ``max_motion`` metres or
+    turned more than ``max_turn_deg`` degrees from ``previous``."""
+    moved = float(
+        np.linalg.norm(
+            np.asarray(found.pose.translation()) - np.asarray(previous.translation())
+        )
+    )
+    turned = float(np.degrees(geodesic_angle(found.pose.rotation(), previous.rotation())))
+    if moved > max_motion or turned > max_turn_deg:
+        raise _Failed(
+            "register",
+            f"the answer moved {moved * 1e3:.0f} mm and turned {turned:.0f} deg from the previous "
+            f"pose (at most {max_motion * 1e3:.0f} mm and {max_turn_deg:g} deg)",
+            found.record, mask=lifted.mask, points=lifted.points,
+        )  # fmt: skip
+

@@ -1,0 +1,65 @@
+"""jaxreg.track: the pose in the next frame from the previous one, without segmentation; it
+follows a moved object and refuses (lost) when the object is not where the previous pose says."""
+
+import numpy as np
+import pytest
+from jaxlie import SE3, SO3
+
+import jaxreg as jr
+from jaxreg.geometry.metrics import add_s
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return jr.synth.tabletop_scene(5, object="box", distractors=1)
+
+
+def _moved(pose: SE3, shift, degrees) -> SE3:
+    """``pose`` shifted by ``shift`` (metres, base frame) and turned ``degrees`` about the
+    base z axis through the object's origin."""
+    turn = SO3.from_z_radians(np.radians(degrees))
+    return SE3.from_rotation_and_translation(
+        turn @ pose.rotation(), pose.translation() + np.asarray(shift, np.float32)
+    )
+
+
+def test_follows_an_object_from_a_nearby_previous_pose(scene):
+    previous = _moved(scene.truth, (0.02, -0.01, 0.0), 6.0)  # 2.2 cm and 6 degrees off
+    est = jr.track(scene.frame, scene.model_points, previous, symmetry=scene.symmetry)
+    assert est.success, est.reason
+    assert float(add_s(scene.model_points, est.pose, scene.truth)) < 0.005
+    assert set(est.stages) == {"segment", "lift", "register"}
+    assert est.stages["register"].candidates == []  # no coarse search
+    sigmas = np.sqrt(np.diag(est.covariance)[:3])
+    assert np.all(np.isfinite(sigmas)) and sigmas.max() < 0.005
+    # the 4x4 matrix and the previous estimate are the same start
+    again = jr.track(scene.frame, scene.model_points, np.asarray(previous.as_matrix()))
+    assert again.success
+    chained = jr.track(scene.frame, scene.model_points, est, symmetry=scene.symmetry)
+    assert chained.success
+    assert float(add_s(scene.model_points, chained.pose, scene.truth)) < 0.005
+
+
+def test_refuses_as_lost_when_the_object_is_not_where_it_was(scene):
+    far = _moved(scene.truth, (0.35, 0.3, 0.0), 0.0)  # a previous pose on empty table
+    est = jr.track(scene.frame, scene.model_points, far)
+    assert not est.success and est.pose is None
+    assert est.reason.startswith("lost: ") and "re-detect with estimate_pose" in est.reason
+    # the object gone from the frame (its pixels without depth)
+    depth = np.where(scene.mask, np.nan, np.asarray(scene.frame.depth))
+    gone = jr.RGBDFrame(depth, scene.frame.intrinsics, None, scene.frame.base_T_camera)
+    lost = jr.track(gone, scene.model_points, scene.truth)
+    assert not lost.success and lost.reason.startswith("lost: ")
+
+
+def test_bad_previous_poses_are_refused_clearly(scene):
+    with pytest.raises(ValueError, match="previous must be"):
+        jr.track(scene.frame, scene.model_points, np.eye(3))
+    with pytest.raises(ValueError, match="rotation"):
+        jr.track(scene.frame, scene.model_points, np.diag([2.0, 1.0, 1.0, 1.0]))
+    failed = jr.estimate_pose(scene.frame, scene.model_points * 3)
+    assert not failed.success
+    with pytest.raises(ValueError, match="holds no pose"):
+        jr.track(scene.frame, scene.model_points, failed)
+    with pytest.raises(ValueError, match="max_motion"):
+        jr.track(scene.frame, scene.model_points, scene.truth, max_motion=0.0)
