@@ -180,7 +180,7 @@ def add_convert_ycbv_parser(subparsers) -> argparse.ArgumentParser:
 
 def run_convert_ycbv(args) -> int:
     """Runs ``jaxreg convert-ycbv`` with parsed ``args``; returns the exit status (0)."""
-    from jaxreg.io._ycbv_bop import ycbv_to_bop
+    from jaxreg.io import ycbv_to_bop
     from jaxreg.io.bop import read_bop
 
     folder = ycbv_to_bop(args.source, args.out, args.split, models=args.models)
