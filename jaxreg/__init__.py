@@ -46,7 +46,15 @@ _EXPORTS = {
         "Symmetry", "add", "add_s", "canonicalise", "pose_error", "rotation_error",
     ),
     "jaxreg.pipeline.batch": ("estimate_poses",),
-    "jaxreg.pipeline.estimate": ("PoseEstimate", "estimate_pose"),
+    "jaxreg.pipeline.estimate": ("PoseEstimate", "estimate_pose", "visibility"),
+    "jaxreg.pipeline.records": (
+        "Candidate", "CoarseSearch", "EquivalentPose", "LiftRecord", "LiftedSegment",
+        "RegisterRecord", "Registration", "SegmentRecord", "Segmented",
+    ),
+    "jaxreg.pipeline.segment": (
+        "Clusters", "SegmentStatus", "Segmentation", "TablePlane", "choose_cluster",
+        "cluster_mask", "euclidean_clusters", "fit_plane", "segment_frame",
+    ),
     "jaxreg.pipeline.settings": (
         "LiftSettings", "PipelineSettings", "RegisterSettings", "SegmentSettings",
     ),
@@ -199,6 +207,29 @@ if TYPE_CHECKING:  # what type checkers and editors see; the same names as _EXPO
     from jaxreg.pipeline.estimate import (
         PoseEstimate as PoseEstimate,
         estimate_pose as estimate_pose,
+        visibility as visibility,
+    )
+    from jaxreg.pipeline.records import (
+        Candidate as Candidate,
+        CoarseSearch as CoarseSearch,
+        EquivalentPose as EquivalentPose,
+        LiftedSegment as LiftedSegment,
+        LiftRecord as LiftRecord,
+        RegisterRecord as RegisterRecord,
+        Registration as Registration,
+        Segmented as Segmented,
+        SegmentRecord as SegmentRecord,
+    )
+    from jaxreg.pipeline.segment import (
+        Clusters as Clusters,
+        Segmentation as Segmentation,
+        SegmentStatus as SegmentStatus,
+        TablePlane as TablePlane,
+        choose_cluster as choose_cluster,
+        cluster_mask as cluster_mask,
+        euclidean_clusters as euclidean_clusters,
+        fit_plane as fit_plane,
+        segment_frame as segment_frame,
     )
     from jaxreg.pipeline.settings import (
         LiftSettings as LiftSettings,
