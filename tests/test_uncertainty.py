@@ -225,7 +225,7 @@ def test_bad_arguments_raise():
         icp_covariance(src, tgt, truth, source_noise=np.ones(3), **opts)
     with pytest.raises(ValueError, match="PointCovariance"):
         icp_covariance(src, tgt, truth, target_noise=PointCovariance(np.zeros((3, 3, 3))), **opts)
-    with pytest.raises(TypeError, match="unexpected keyword argument 'max_corr'"):
+    with pytest.raises(TypeError, match="unknown keyword argument 'max_corr'"):
         icp_covariance(src, tgt, truth, point_sigma=0.001, max_corr=0.01)
 
 

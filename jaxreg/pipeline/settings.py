@@ -93,7 +93,7 @@ class RegisterSettings:
             through.
         max_overhang: how far (metres) the segment may span beyond the model along one of
             its principal axes at the fitted pose (2% to 98% quantiles), beyond the depth
-            noise's spread (4 sigma_z at the segment's depth): a larger object of a similar
+            noise's spread (2 sigma_z at the segment's depth): a larger object of a similar
             shape fits well by every other measure but reaches beyond the model.
     """
 

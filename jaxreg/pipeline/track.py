@@ -4,7 +4,7 @@
 frame, says which pixels to look at (its footprint grown by the motion allowed between frames,
 the depths near the model's, on one surface: :func:`jaxreg.pipeline._surface.mask_surface`).
 ICP from the previous pose, trimmed to its better pairs, follows the object there; the pixels
-around the model's footprint at the followed pose are the segment, and the register stage
+whose depth agrees with the model's at the followed pose are the segment, and the register stage
 refines that pose on them: no candidates, no coarse search. The same evidence as
 :func:`jaxreg.estimate_pose` refuses an answer (the share of the segment the model explains,
 the residual, the image seeing through the model, the segment reaching beyond it), and the
@@ -28,7 +28,7 @@ from jaxreg.geometry.lie import geodesic_angle
 from jaxreg.geometry.metrics import Symmetry
 from jaxreg.pipeline._coarse import _register_starts
 from jaxreg.pipeline._error_sources import Calibration
-from jaxreg.pipeline._judge import _near_model
+from jaxreg.pipeline._judge import NOISE_SIGMAS, TOLERANCE, _near_model
 from jaxreg.pipeline._lift_stage import lift_pixels, lift_stage
 from jaxreg.pipeline._model import _prepare_model
 from jaxreg.pipeline._register_stage import refine_stage, tolerances
@@ -177,12 +177,39 @@ def _around(frame, model, base_T_object: SE3, reach: float, noise) -> np.ndarray
     return mask_surface(depth, grown & near, np.asarray(noise.coefficients), fx)
 
 
+def _on_model(frame, model, base_T_object: SE3, noise) -> np.ndarray:
+    """``(H, W)`` bool: the pixels whose depth agrees with the model's own at
+    ``base_T_object`` (its points' nearest depth per pixel, spread over 5 x 5 pixels to
+    close the gaps between a sparse model's points; within 1 cm or 4 sigma_z, as the image's
+    judgement allows): the object's surface, without the table or background beside it."""
+    depth = np.asarray(frame.depth)
+    h, w = depth.shape
+    points = model.points[np.all(np.isfinite(model.points), axis=1)].astype(np.float64)
+    camera_T_object = frame.base_T_camera.inverse() @ SE3(
+        np.asarray(base_T_object.wxyz_xyz, np.float32)
+    )
+    cam = np.asarray(camera_T_object @ points)
+    cam = cam[cam[:, 2] > 1e-3]
+    nearest = np.full((h, w), np.inf)
+    if len(cam):
+        pixels = np.rint(np.asarray(frame.intrinsics.project(cam))).astype(int)
+        inside = np.all((pixels >= 0) & (pixels < (w, h)), axis=1)
+        np.minimum.at(nearest, (pixels[inside, 1], pixels[inside, 0]), cam[inside, 2])
+    nearest = ndimage.grey_erosion(nearest, size=5)
+    sigma = np.polynomial.polynomial.polyval(
+        np.where(np.isfinite(nearest), nearest, 0.0), np.asarray(noise.coefficients)
+    )
+    limit = np.maximum(float(TOLERANCE), NOISE_SIGMAS * sigma)
+    return np.isfinite(nearest) & np.isfinite(depth) & (np.abs(depth - nearest) <= limit)
+
+
 def _follow(frame, model, base_T_object: SE3, max_motion, noise, settings):
     """The object followed from the previous pose: ICP (trimmed to the better 60% of its
     pairs) of the pixels around the previous footprint (:func:`_around`, within
-    ``max_motion``), then the pixels around the footprint at that pose (two voxels): the
-    segment to judge. Returns that segment ``(H, W)``, the followed pose as a coarse search
-    result, and the segment record; ``_Failed`` when too few pixels are found."""
+    ``max_motion``), then the pixels whose depth agrees with the model's at that pose
+    (:func:`_on_model`): the segment to judge. Returns that segment ``(H, W)``, the followed
+    pose as a coarse search result, and the segment record; ``_Failed`` when too few pixels
+    are found."""
     start = time.perf_counter()
     looked = _around(frame, model, base_T_object, max_motion, noise)
     need = settings.lift.min_segment_points
@@ -212,7 +239,7 @@ def _follow(frame, model, base_T_object: SE3, max_motion, noise, settings):
     if not np.all(np.isfinite(object_T_base)):
         object_T_base = start_pose
     pose = SE3(object_T_base[0].astype(np.float64)).inverse()
-    region = _around(frame, model, pose, 2 * settings.voxel_size, noise)
+    region = _on_model(frame, model, pose, noise)
     record = dataclasses.replace(record, surface_pixels=int(region.sum()))
     register = RegisterRecord(ms=0.0, starts=1, candidates=[], coarse_kept_starts=1)
     coarse = CoarseSearch(region, object_T_base, 1.0, gates, register)
