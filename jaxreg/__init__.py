@@ -48,11 +48,11 @@ _EXPORTS = {
     "jaxreg.pipeline.batch": ("estimate_poses",),
     "jaxreg.pipeline.estimate": ("PoseEstimate", "estimate_pose", "visibility"),
     "jaxreg.pipeline.records": (
-        "Candidate", "CoarseSearch", "EquivalentPose", "LiftRecord", "LiftedSegment",
-        "RegisterRecord", "Registration", "SegmentRecord", "Segmented",
+        "Candidate", "CoarseSearch", "EquivalentPose", "LiftedSegment", "LiftRecord",
+        "RegisterRecord", "Registration", "Segmented", "SegmentRecord",
     ),
     "jaxreg.pipeline.segment": (
-        "Clusters", "SegmentStatus", "Segmentation", "TablePlane", "choose_cluster",
+        "Clusters", "Segmentation", "SegmentStatus", "TablePlane", "choose_cluster",
         "cluster_mask", "euclidean_clusters", "fit_plane", "segment_frame",
     ),
     "jaxreg.pipeline.settings": (
