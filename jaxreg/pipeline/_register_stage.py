@@ -87,8 +87,8 @@ def tolerances(model, noise, depth: float, settings: PipelineSettings) -> Tolera
     surface in the model's widest gap (``hypot(gap, 3 sigma_z)``, at least 1.5 voxels, the
     measured points' own spacing, at most 15 mm); a fit's residual may be ``RESIDUAL_FACTOR``
     times ``sqrt(rms^2 + sigma_z^2 + MISMATCH_SIGMA^2)`` (``max_inlier_rmse`` when set); the
-    segment may span ``max_overhang`` plus ``2 sigma_z`` beyond the model (the noise's tail
-    past the 2% and 98% quantiles of its ends)."""
+    segment may span ``max_overhang`` beyond the model (its 2% and 98% quantiles hold the
+    noise's tails: a partial view of a 10% larger box reaches only a few millimetres beyond)."""
     r = settings.register
     sigma = float(np.polynomial.polynomial.polyval(depth, np.asarray(noise.coefficients)))
     rms, gap = model.sampling
@@ -99,7 +99,7 @@ def tolerances(model, noise, depth: float, settings: PipelineSettings) -> Tolera
         distances = np.geomspace(0.015, final, 30).astype(np.float32)
     expected = float(np.sqrt(rms**2 + sigma**2 + MISMATCH_SIGMA**2))
     max_rmse = RESIDUAL_FACTOR * expected if r.max_inlier_rmse is None else r.max_inlier_rmse
-    return Tolerances(distances, max_rmse, r.max_overhang + 2 * sigma, sigma)
+    return Tolerances(distances, max_rmse, r.max_overhang, sigma)
 
 
 def _camera_depth(frame, points: np.ndarray) -> float:

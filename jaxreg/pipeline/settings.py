@@ -92,9 +92,9 @@ class RegisterSettings:
         max_contradicted: largest share of the model's judged surface the image may see
             through.
         max_overhang: how far (metres) the segment may span beyond the model along one of
-            its principal axes at the fitted pose (2% to 98% quantiles), beyond the depth
-            noise's spread (2 sigma_z at the segment's depth): a larger object of a similar
-            shape fits well by every other measure but reaches beyond the model.
+            its principal axes at the fitted pose (2% to 98% quantiles, which hold the depth
+            noise's tails): a larger object of a similar shape fits well by every other
+            measure but reaches beyond the model.
     """
 
     num_starts: int = 24

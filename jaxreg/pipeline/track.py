@@ -24,8 +24,7 @@ from jaxtyping import Float
 from scipy import ndimage
 
 from jaxreg.camera.model import RGBDFrame
-from jaxreg.geometry.lie import geodesic_angle
-from jaxreg.geometry.metrics import Symmetry
+from jaxreg.geometry.metrics import Symmetry, pose_error
 from jaxreg.pipeline._coarse import _register_starts
 from jaxreg.pipeline._error_sources import Calibration
 from jaxreg.pipeline._judge import NOISE_SIGMAS, TOLERANCE, _near_model
@@ -111,7 +110,7 @@ def track(
             np.random.default_rng(0),
         )  # fmt: skip
         records["register"] = found.record
-        _check_motion(base_T_object, found, max_motion, max_turn_deg, lifted)
+        _check_motion(base_T_object, found, max_motion, max_turn_deg, lifted, symmetry)
         return _found(found, lifted, records, None)
     except _Failed as failure:
         failure.reason += "; re-detect with estimate_pose"
@@ -246,15 +245,15 @@ def _follow(frame, model, base_T_object: SE3, max_motion, noise, settings):
     return region, coarse, record.with_ms(start)
 
 
-def _check_motion(previous: SE3, found, max_motion, max_turn_deg, lifted) -> None:
+def _check_motion(previous: SE3, found, max_motion, max_turn_deg, lifted, symmetry) -> None:
     """``_Failed`` (register) when the answer moved more than ``max_motion`` metres or
-    turned more than ``max_turn_deg`` degrees from ``previous``."""
-    moved = float(
-        np.linalg.norm(
-            np.asarray(found.pose.translation()) - np.asarray(previous.translation())
-        )
-    )
-    turned = float(np.degrees(geodesic_angle(found.pose.rotation(), previous.rotation())))
+    turned more than ``max_turn_deg`` degrees from ``previous`` (a ``symmetry``'s turns are
+    no motion)."""
+    moved, turned = (
+        float(x) for x in pose_error(found.pose, SE3(np.asarray(previous.wxyz_xyz, np.float32)),
+                                     symmetry=symmetry)
+    )  # fmt: skip
+    turned = float(np.degrees(turned))
     if moved > max_motion or turned > max_turn_deg:
         raise _Failed(
             "register",
@@ -262,4 +261,3 @@ def _check_motion(previous: SE3, found, max_motion, max_turn_deg, lifted) -> Non
             f"pose (at most {max_motion * 1e3:.0f} mm and {max_turn_deg:g} deg)",
             found.record, mask=lifted.mask, points=lifted.points,
         )  # fmt: skip
-
