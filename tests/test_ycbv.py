@@ -6,25 +6,12 @@ import shutil
 
 import numpy as np
 import pytest
-from conftest import data_root
 from scipy.io import loadmat, savemat
 from scipy.spatial import ConvexHull, cKDTree
 
 import jaxreg as jr
 
 SUFFIXES = ("-color.png", "-depth.png", "-label.png", "-meta.mat")
-
-
-@pytest.fixture(scope="module")
-def ycbv_dir():
-    """`<data>/ycbv`, or skip with the reason when the shared data is not present."""
-    root = data_root()
-    if root is None or not (root / "ycbv" / "data").is_dir():
-        pytest.skip(
-            "YCB-Video frames not found: set JAXREG_DATA or place ../shared/data (with ycbv/) "
-            "beside the repo"
-        )
-    return root / "ycbv"
 
 
 @pytest.fixture(scope="module")

@@ -142,23 +142,22 @@ def _previous_pose(previous) -> SE3:
     return SE3.from_matrix(matrix)
 
 
-def _projection(frame, model, base_T_object: SE3):
-    """The model's footprint ``(H, W)`` bool at ``base_T_object`` (its points' pixels) and
-    its points' camera depths (metres, those in front of the camera)."""
-    depth = np.asarray(frame.depth)
-    h, w = depth.shape
+def _projection(frame, model, base_T_object: SE3) -> np.ndarray:
+    """``(H, W)`` the model's nearest camera depth per pixel at ``base_T_object`` (metres;
+    ``inf`` where no model point projects)."""
+    h, w = np.asarray(frame.depth).shape
     points = model.points[np.all(np.isfinite(model.points), axis=1)].astype(np.float64)
     camera_T_object = frame.base_T_camera.inverse() @ SE3(
         np.asarray(base_T_object.wxyz_xyz, np.float32)
     )
     cam = np.asarray(camera_T_object @ points)
     cam = cam[cam[:, 2] > 1e-3]
-    footprint = np.zeros((h, w), bool)
+    nearest = np.full((h, w), np.inf)
     if len(cam):
         pixels = np.rint(np.asarray(frame.intrinsics.project(cam))).astype(int)
         inside = np.all((pixels >= 0) & (pixels < (w, h)), axis=1)
-        footprint[pixels[inside, 1], pixels[inside, 0]] = True
-    return footprint, cam[:, 2]
+        np.minimum.at(nearest, (pixels[inside, 1], pixels[inside, 0]), cam[inside, 2])
+    return nearest
 
 
 def _around(frame, model, base_T_object: SE3, reach: float, noise) -> np.ndarray:
@@ -166,9 +165,11 @@ def _around(frame, model, base_T_object: SE3, reach: float, noise) -> np.ndarray
     (at its nearest depth), the pixels with depth within ``reach`` of the model's depths,
     on one surface with the largest piece (:func:`~jaxreg.pipeline._surface.mask_surface`)."""
     depth = np.asarray(frame.depth)
-    footprint, z = _projection(frame, model, base_T_object)
-    if len(z) == 0:
+    nearest = _projection(frame, model, base_T_object)
+    footprint = np.isfinite(nearest)
+    if not footprint.any():
         return footprint
+    z = nearest[footprint]
     fx = float(frame.intrinsics.fx)
     grow = int(np.clip(np.ceil(reach * fx / max(float(z.min()), 1e-3)), 1, 200))
     grown = ndimage.binary_dilation(footprint, iterations=grow)
@@ -182,18 +183,7 @@ def _on_model(frame, model, base_T_object: SE3, noise) -> np.ndarray:
     close the gaps between a sparse model's points; within 1 cm or 4 sigma_z, as the image's
     judgement allows): the object's surface, without the table or background beside it."""
     depth = np.asarray(frame.depth)
-    h, w = depth.shape
-    points = model.points[np.all(np.isfinite(model.points), axis=1)].astype(np.float64)
-    camera_T_object = frame.base_T_camera.inverse() @ SE3(
-        np.asarray(base_T_object.wxyz_xyz, np.float32)
-    )
-    cam = np.asarray(camera_T_object @ points)
-    cam = cam[cam[:, 2] > 1e-3]
-    nearest = np.full((h, w), np.inf)
-    if len(cam):
-        pixels = np.rint(np.asarray(frame.intrinsics.project(cam))).astype(int)
-        inside = np.all((pixels >= 0) & (pixels < (w, h)), axis=1)
-        np.minimum.at(nearest, (pixels[inside, 1], pixels[inside, 0]), cam[inside, 2])
+    nearest = _projection(frame, model, base_T_object)
     nearest = ndimage.grey_erosion(nearest, size=5)
     sigma = np.polynomial.polynomial.polyval(
         np.where(np.isfinite(nearest), nearest, 0.0), np.asarray(noise.coefficients)
