@@ -137,7 +137,7 @@ class PoseEstimate:
         failed_stage: ``None``, ``"segment"``, ``"lift"`` or ``"register"``.
         reason: why that stage failed, or a one-line summary of a success.
         stages: ``{stage: record}`` for the stages that ran: a
-            :class:`~jaxreg.pipeline._records.SegmentRecord`, ``LiftRecord`` or
+            :class:`~jaxreg.pipeline.records.SegmentRecord`, ``LiftRecord`` or
             ``RegisterRecord`` (``ms`` and the stage's diagnostics as attributes;
             ``as_dict()`` for JSON).
         mask: ``(H, W)`` bool pixels of the lifted segment (all False if lift did not run).
