@@ -198,9 +198,10 @@ def estimate_pose(
         model_points: ``(M, 3)`` points on the model's surface in its own frame (metres),
             e.g. :func:`jaxreg.io.load_points` of a mesh or scan.
         mask: ``(H, W)`` bool (or integer, nonzero = object) image of the object's pixels
-            from your own segmenter: the table plane and clusters are skipped (see
-            :func:`~jaxreg.pipeline._segment_stage.segment_stage`; its surface only); the lift's filters and
-            the registration's evidence, which can still refuse, are kept.
+            from your own segmenter: the table plane and clusters are skipped and the
+            object's surface inside the mask is the segment (see
+            :func:`~jaxreg.pipeline._segment_stage.segment_stage`); the lift's filters and the
+            registration's evidence, which can still refuse, are kept.
         model_normals: ``(M, 3)`` unit normals of the model points (a mesh's face normals),
             used instead of normals estimated from the points; give them for thin-walled
             objects, whose two faces a point neighbourhood mixes.
