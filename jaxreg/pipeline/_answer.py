@@ -324,7 +324,7 @@ def _alternatives(
     """The refined starts (``answers`` ``(S, 7)`` object_T_base, their ``scores`` and
     ``rmses``, ``best`` the answer's row) and the answer's probes (:func:`_probe`) judged
     against the answer over the segment's ``patches``: which fit as well (within two
-    standard errors, :func:`~jaxreg.pipeline._judge.equally_good`), each one's weight for
+    standard errors of :func:`~jaxreg.pipeline._judge.evidence_gap`), each one's weight for
     the error budget's ambiguity term, the rotations a contiguous arc of equally good probes
     leaves free (:func:`_unfixed_turns`), and the equivalent poses: the probes that stay
     turned after refinement (half their turn or more, on the answer's ``symmetry`` branch:

@@ -30,7 +30,9 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from jaxreg.core._program_cache import persistent_jit
+from jaxreg.core._sizes import power_of_two
 from jaxreg.pipeline._answer import CONTACT_WEIGHT
+from jaxreg.pipeline._judge import PATCH
 from jaxreg.pipeline._lift_stage import lift_pixels
 from jaxreg.pipeline._surface import depth_step
 from jaxreg.registration.icp import ICPStatus, icp
@@ -189,7 +191,7 @@ def _pixels(frame, points: np.ndarray) -> np.ndarray:
     program per padded count: the rows padded to a power of two)."""
     camera = frame.base_T_camera
     cam = (points - np.asarray(camera.translation())) @ np.asarray(camera.rotation().as_matrix())
-    size = max(1024, 1 << (max(len(cam), 1) - 1).bit_length())
+    size = power_of_two(len(cam), 1024)
     padded = np.ones((size, 3), np.float32)  # in front of the camera: a finite projection
     padded[: len(cam)] = cam
     u, v = np.asarray(frame.intrinsics.project(padded))[: len(cam)].T
@@ -369,7 +371,7 @@ def pose_budget(
     hessian = jac.T @ jac
     inverse = np.linalg.pinv(hessian, rcond=1e-9, hermitian=True)
     depth_base = _depth_base(jac, pairs_points, noise, inverse, sensed)
-    blocks = _blocks(pairs_points, 0.012)
+    blocks = _blocks(pairs_points, PATCH)
     fit_base = _fit_term(jac, residual, blocks, inverse, depth_base)
     mismatch_base = _mismatch_term(jac, blocks, sensed, inverse, MISMATCH_SIGMA)
 

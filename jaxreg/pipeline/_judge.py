@@ -195,9 +195,3 @@ def evidence_gap(scores, rmses, score: float, rmse: float, patches: int) -> np.n
     squares = (rmses**2 / max(rmse**2, 1e-12) - 1.0) * np.sqrt(n) / 2
     gap = np.maximum(np.maximum(share, squares), 0.0)
     return np.where(np.isfinite(gap), gap, np.inf)
-
-
-def equally_good(scores, rmses, score: float, rmse: float, patches: int) -> np.ndarray:
-    """``(S,)`` bool: the fits the evidence cannot tell from the answer: within two standard
-    errors of it (:func:`evidence_gap`)."""
-    return evidence_gap(scores, rmses, score, rmse, patches) <= 2.0
