@@ -3,8 +3,10 @@ pytest-xdist: the numba host loops compiled once before the workers start, and f
 compile the same programs run on one worker."""
 
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import jax
@@ -37,10 +39,27 @@ build_grid(points.astype(np.float32), 0.01)
 )
 
 
+# XLA's persistent compilation cache for the test session: one temporary folder that the
+# controller makes and its workers inherit, so a program compiled in one worker (the pipeline's
+# ~70 s of XLA work per frame size) loads in the other. Set on the test processes' JAX config
+# only (the library never sets it; subprocesses started by tests see no cache); removed at the end.
+_XLA_CACHE = "JAXREG_TESTS_XLA_CACHE"
+
+
+def _share_compiled_programs(config) -> None:
+    if not hasattr(config, "workerinput") and _XLA_CACHE not in os.environ:
+        os.environ[_XLA_CACHE] = tempfile.mkdtemp(prefix="jaxreg-tests-xla-")
+        config.add_cleanup(lambda: shutil.rmtree(os.environ.pop(_XLA_CACHE), ignore_errors=True))
+    jax.config.update("jax_compilation_cache_dir", os.environ[_XLA_CACHE])
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
 def pytest_configure(config):
-    """With ``-n N`` (the controller, before it starts the workers): fills numba's cache, so
-    the workers load the kernels instead of each compiling all of them at once (on an empty
-    cache, ~35 s of CPU per process). A failed warm-up is a warning; the tests still run."""
+    """Shares compiled programs between the test processes; with ``-n N`` (the controller,
+    before it starts the workers) also fills numba's cache, so the workers load the kernels
+    instead of each compiling all of them at once (on an empty cache, ~35 s of CPU per
+    process). A failed warm-up is a warning; the tests still run."""
+    _share_compiled_programs(config)
     if hasattr(config, "workerinput") or not config.getoption("numprocesses", None):
         return
     runs = [
@@ -92,6 +111,15 @@ def pytest_xdist_make_scheduler(config, log):
             return _SAME_WORKER.get(scope, scope)
 
     return SharedProgramsScheduling(config, log)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def no_compilation_cache():
+    """The commands turn on JAX's persistent cache and jaxreg's program store; the tests, module
+    fixtures included, leave the user's cache folder alone (``JAXREG_CACHE_DIR=""``)."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("JAXREG_CACHE_DIR", "")
+        yield
 
 
 @pytest.fixture(scope="session")

@@ -30,11 +30,6 @@ def _frame(depth, intrinsics=INTRINSICS):
     return RGBDFrame(np.asarray(depth, np.float32), intrinsics)
 
 
-@pytest.fixture(autouse=True)
-def no_compilation_cache(monkeypatch):
-    monkeypatch.setenv("JAXREG_CACHE_DIR", "")
-
-
 def test_depth_without_a_finite_value_is_a_named_segment_failure():
     depth = np.full((H, W), np.nan)
     depth[::2] = np.inf

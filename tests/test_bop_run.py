@@ -20,12 +20,6 @@ from jaxreg.cli import main
 OBJECTS = ("box",)
 
 
-@pytest.fixture(autouse=True)
-def no_compilation_cache(monkeypatch):
-    # the commands enable JAX's persistent cache; tests leave the user's cache alone
-    monkeypatch.setenv("JAXREG_CACHE_DIR", "")
-
-
 @pytest.fixture(scope="module")
 def split_root(tmp_path_factory):
     root = tmp_path_factory.mktemp("bop") / "tiny"
@@ -37,10 +31,8 @@ def one_process(split_root, tmp_path_factory):
     """`jaxreg bop` in this process: (exit status, stdout, stderr, CSV path)."""
     out = tmp_path_factory.mktemp("one") / "results.csv"
     stdout, stderr = io.StringIO(), io.StringIO()
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("JAXREG_CACHE_DIR", "")  # the user's cache is left alone
-        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
-            status = main(["bop", str(split_root), "--out", str(out)])
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        status = main(["bop", str(split_root), "--out", str(out)])
     return status, stdout.getvalue(), stderr.getvalue(), out
 
 

@@ -21,12 +21,6 @@ KEYS = (
 )
 
 
-@pytest.fixture(autouse=True)
-def no_compilation_cache(monkeypatch):
-    # the commands enable JAX's persistent cache; tests leave the user's cache alone
-    monkeypatch.setenv("JAXREG_CACHE_DIR", "")
-
-
 def test_demo_reports_stages_error_vs_truth_error_bars_grasp_and_pictures(capsys, tmp_path):
     assert main(["demo", "--json", "--out", str(tmp_path), "--seed", "4", "--object", "box"]) == 0
     report = json.loads(capsys.readouterr().out)
