@@ -259,3 +259,17 @@ def test_pose_on_a_ycbv_frame_refuses_an_object_not_in_it(ycbv_dir, capsys):
     assert "--model cannot be given with --ycbv" in capsys.readouterr().err
     assert main(["pose", "--ycbv", str(ycbv_dir / "data" / "0000"), "--object", "14"]) == 2
     assert "names 5 frames" in capsys.readouterr().err
+
+
+def test_an_internal_error_is_not_reported_as_bad_input(monkeypatch, capsys):
+    """A bug inside a command (here a TypeError raised by the pipeline) exits 3 with its
+    traceback and a line saying it is not the input's fault; bad input stays exit 2."""
+
+    def broken(*_, **__):
+        raise TypeError("unsupported operand type(s) for +: 'SE3' and 'NoneType'")
+
+    monkeypatch.setattr("jaxreg.pipeline.estimate.estimate_pose", broken)
+    assert main(["demo", "--seed", "4", "--object", "box"]) == 3
+    err = capsys.readouterr().err
+    assert "Traceback" in err and "TypeError" in err
+    assert "internal error (TypeError), not a problem with the input" in err

@@ -25,7 +25,9 @@ drawn at the estimated pose) to DIR, over the colour image when the frame has on
 
 Exit status: 0 when a pose is found; 1 when the evidence says the object is not there (the
 report, or the JSON, is still printed, with the failed stage and its reason); 2 on bad input
-or any other error (one line on stderr, no traceback).
+(a malformed or missing file, an argument out of range, a missing optional package: one line on
+stderr, no traceback); 3 on an internal error (a bug in jaxreg, not the input: the traceback,
+then a line saying so).
 
 Compilation cache: the commands (never ``import jaxreg``) call
 :func:`jaxreg.enable_compilation_cache`: JAX's persistent compilation cache, and the compiled
@@ -48,6 +50,7 @@ import json
 import math
 import sys
 import time
+import traceback
 from pathlib import Path
 
 import numpy as np
@@ -613,7 +616,15 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"jaxreg {args.command}: interrupted", file=sys.stderr)
         return 130
-    except Exception as err:  # bad input: one clear line, never a traceback
+    except (ValueError, OSError, ImportError) as err:  # bad input: one clear line
         message = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         print(f"jaxreg {args.command}: {message}", file=sys.stderr)
         return 2
+    except Exception as err:  # a bug: never reported as the user's mistake
+        traceback.print_exc()
+        print(
+            f"jaxreg {args.command}: internal error ({type(err).__name__}), not a problem with "
+            "the input: please report it with the traceback above",
+            file=sys.stderr,
+        )
+        return 3
