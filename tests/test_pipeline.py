@@ -192,6 +192,33 @@ def test_an_overhang_that_cannot_be_measured_refuses(scene, monkeypatch):
     assert "could not be measured (NaN" in est.reason
 
 
+def test_no_judged_surface_and_too_little_confirmed_surface_refuse(scene, monkeypatch):
+    """Evidence is counted, never assumed: a pose where the image judges none of the model's
+    surface (every point unknown) is refused as such, not passed as "0% contradicted"; and a
+    pose whose confirmed share is below ``min_confirmed`` is refused with both numbers."""
+    from jaxreg.pipeline import _register_stage as stage
+
+    scene, model, symmetry = scene
+    strict = estimate_pose(scene.frame, model, symmetry=symmetry, min_confirmed=0.99)
+    assert strict.failed_stage == "register" and strict.pose is None
+    assert "the image confirms only" in strict.reason and "(need 99%)" in strict.reason
+    assert 0.2 < strict.stages["register"].model_confirmed < 0.99
+
+    judge = stage._judge
+
+    def unknown(*args):
+        counts = np.array(judge(*args))
+        counts[..., 3] += counts[..., :3].sum(-1)  # confirmed, contradicted, occluded: unknown
+        counts[..., :3] = 0
+        return counts
+
+    monkeypatch.setattr(stage, "_judge", unknown)
+    est = estimate_pose(scene.frame, model, symmetry=symmetry)
+    assert est.failed_stage == "register" and est.pose is None
+    assert "the image judges none of the model's surface" in est.reason
+    assert est.stages["register"].model_confirmed is None
+
+
 def test_the_image_judges_a_pose_within_the_depth_noise_at_its_depth():
     """A model patch 2 cm in front of a wall the camera sees 1 m away: beyond the 1 cm floor
     of the depth agreement the wall contradicts it, but under a sensor whose sigma_z(1 m) is
@@ -483,3 +510,28 @@ def test_the_budgets_border_distances_are_the_whole_images():
         near = whole <= 4
         np.testing.assert_array_equal(outside[near], whole[near])
         assert np.all(outside[~near] > 4)
+
+
+def test_identical_twins_on_the_table_are_refused_naming_both():
+    """Two identical boxes side by side: depth cannot say which one is meant, so no pose is
+    claimed; the reason names both segments and what to give. A pixel on either twin then
+    poses that twin."""
+    from jaxreg.synth import object_mesh, tabletop_scene
+
+    box, symmetry = object_mesh("box")
+    twins = trimesh.util.concatenate([box, box.copy().apply_translation((0.16, 0.0, 0.0))])
+    scene = tabletop_scene(6, mesh=twins, distractors=0, symmetry=symmetry)
+    model = trimesh.sample.sample_surface(box, 6000, seed=1)[0].astype(np.float32)
+    est = estimate_pose(scene.frame, model, symmetry=symmetry)
+    assert est.failed_stage == "register" and est.pose is None
+    assert "two separate segments fit the model equally well" in est.reason
+    assert est.reason.count("at pixel (") == 2 and "give pixel=, box= or mask=" in est.reason
+    truth = np.asarray(scene.truth.as_matrix())
+    second = scene.truth @ jax.numpy.asarray([0.16, 0.0, 0.0])
+    for centre in (truth[:3, 3], np.asarray(second)):
+        camera = scene.frame.base_T_camera.inverse() @ jax.numpy.asarray(centre)
+        u, v = np.asarray(scene.frame.intrinsics.project(camera))
+        chosen = estimate_pose(scene.frame, model, symmetry=symmetry, pixel=(u, v))
+        assert chosen.success, chosen.reason
+        found = np.asarray(chosen.pose.translation())
+        assert np.linalg.norm(found[:2] - centre[:2]) < 0.01

@@ -216,8 +216,12 @@ def print_report(report: dict, stages: dict, title: str, out=sys.stdout) -> None
             f"  register {reg.ms:8.1f} ms  {reg.starts} starts, best {reg.refined_starts} "
             f"refined: {reg.inlier_fraction:.0%} inliers, residual {residual}; "
             f"{reg.equally_good_starts} equally good starts agree within "
-            f"{reg.start_agreement_mm:.1f} mm / {reg.start_agreement_deg:.1f} deg; image "
-            f"confirms {reg.model_confirmed:.0%} of the visible model"
+            f"{reg.start_agreement_mm:.1f} mm / {reg.start_agreement_deg:.1f} deg; "
+            + (
+                "the image judges none of the visible model"
+                if reg.model_confirmed is None
+                else f"image confirms {reg.model_confirmed:.0%} of the visible model"
+            )
         )
     if report["failed_stage"]:
         line(f"  FAILED at {report['failed_stage']}: {report['reason']} (no pose claimed)")

@@ -144,7 +144,7 @@ def _machine() -> str:
             next((line for line in lines if line.startswith(field)), "")
             for field in ("model name", "flags")
         )
-    return f"{jax.devices()[0].client.platform_version} {cpu}"
+    return f"{jax.local_devices()[0].client.platform_version} {cpu}"
 
 
 def _missing():
@@ -294,7 +294,7 @@ def _load(blob: bytes, in_tree, out_tree, custom_calls: list[str]) -> Callable:
 
         initialize_lapack()
     compiled = serialize_executable.deserialize_and_load(
-        blob, in_tree, out_tree, execution_devices=jax.devices()[:1]
+        blob, in_tree, out_tree, execution_devices=jax.local_devices()[:1]
     )
     jax.monitoring.record_event_duration_secs(
         "/jaxreg/program_cache/executable_load_duration", time.perf_counter() - start

@@ -21,7 +21,13 @@ from jaxreg.core._program_cache import persistent_jit
 from jaxreg.geometry.lie import geodesic_angle
 from jaxreg.geometry.metrics import Symmetry, canonicalise
 from jaxreg.pipeline._coarse import _register_starts
-from jaxreg.pipeline._judge import TOLERANCE, _confirmed_share, _judge, evidence_gap
+from jaxreg.pipeline._judge import (
+    EQUAL_WITHIN,
+    TOLERANCE,
+    _confirmed_share,
+    _judge,
+    evidence_gap,
+)
 from jaxreg.pipeline._model import _bucketed_symmetry, _Model
 from jaxreg.pipeline.records import EquivalentPose
 from jaxreg.pipeline.settings import PipelineSettings
@@ -332,13 +338,13 @@ def _alternatives(
     pose (1 cm or 0.2 rad apart), best first."""
     padded = _bucketed_symmetry(symmetry)
     gaps = evidence_gap(scores, rmses, scores[best], rmses[best], patches)
-    equal = gaps <= 2.0
+    equal = gaps <= EQUAL_WITHIN
     pose, spread, tangents = _finish(answers, np.int32(best), equal, padded)
     probes, probe_scores, probe_rmses = _probe(
         frame, plane, model, source, answers[best], trim, noise, distances, settings
     )
     probe_gaps = evidence_gap(probe_scores, probe_rmses, scores[best], rmses[best], patches)
-    equal_probes = probe_gaps <= 2.0
+    equal_probes = probe_gaps <= EQUAL_WITHIN
     _, _, probe_tangents = _finish(
         np.concatenate([answers[best][None], probes]), np.int32(0),
         np.concatenate([[False], equal_probes]), padded,

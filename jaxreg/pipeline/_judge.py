@@ -143,12 +143,15 @@ def _confirmed_share(counts: Array) -> Array:
     return counts[..., 0] / counts[..., :3].sum(-1).clip(min=1)
 
 
-def _support(counts: np.ndarray) -> tuple[float, float]:
-    """(confirmed share, contradicted share) of the model points facing the camera that the
-    image can judge (confirmed, contradicted or occluded)."""
+def _support(counts: np.ndarray) -> tuple[float, float, int]:
+    """(confirmed share, contradicted share, judged count) of the model points facing the
+    camera that the image can judge (confirmed, contradicted or occluded). With nothing judged
+    both shares are 0: no evidence is not agreement."""
     confirmed, contradicted, occluded = (float(c) for c in counts[:3])
-    judged = max(confirmed + contradicted + occluded, 1.0)
-    return confirmed / judged, contradicted / judged
+    judged = confirmed + contradicted + occluded
+    if judged == 0:
+        return 0.0, 0.0, 0
+    return confirmed / judged, contradicted / judged, int(judged)
 
 
 @persistent_jit
@@ -179,6 +182,11 @@ def patch_count(points: np.ndarray) -> int:
     """The number of ``PATCH`` cubes that base-frame ``points`` ``(N, 3)`` occupy."""
     cells = np.floor(np.asarray(points, np.float64) / PATCH).astype(np.int64)
     return len(np.unique(cells, axis=0)) if len(cells) else 0
+
+
+# Two fits whose evidence differs by at most this many standard errors of the difference
+# (:func:`evidence_gap`) are equally good: the frame cannot tell them apart.
+EQUAL_WITHIN = 2.0
 
 
 def evidence_gap(scores, rmses, score: float, rmse: float, patches: int) -> np.ndarray:

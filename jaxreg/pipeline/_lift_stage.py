@@ -94,13 +94,14 @@ def lift_region(
     plane_offset: float | None,
     *,
     min_height: float,
+    max_height: float,
     voxel_size: float,
     min_consistent_neighbors: int,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """Lift the pixels ``(rows, cols)`` (each with depth; ``sigma`` its depth noise, metres)
     into the base frame and filter them: flying pixels (fewer than
     ``min_consistent_neighbors`` of 8 neighbours within ``max(4 mm, 4 sigma)``), points not
-    between ``min_height`` and 0.5 m above the plane ``n . x + d = 0`` (no such filter when
+    between ``min_height`` and ``max_height`` above the plane ``n . x + d = 0`` (no such filter when
     ``plane_normal`` is ``None``: a frame without a table), a ``voxel_size`` downsample, and
     isolated voxels.
 
@@ -116,7 +117,7 @@ def lift_region(
         band = np.ones(len(lifted), bool)
     else:
         height = lifted @ plane_normal + plane_offset
-        band = (height > min_height) & (height < 0.5)
+        band = (height > min_height) & (height < max_height)
     rows, cols, lifted = rows[band], cols[band], lifted[band]
     mask = np.zeros(shape, bool)
     mask[rows, cols] = True
@@ -135,12 +136,12 @@ def lift_region(
 
 def lift_stage(
     frame, region, plane: TablePlane | None, noise: DepthNoise, settings: LiftSettings,
-    voxel_size: float,
+    voxel_size: float, max_height: float = np.inf,
 ) -> LiftedSegment:  # fmt: skip
     """The lift stage of :func:`jaxreg.estimate_pose`: the segment's footprint ``region``
-    ``(H, W)`` lifted and filtered (:func:`lift_region`; the band above the ``plane``, if any)
-    and voxelled at ``voxel_size``. Raises ``_Failed`` with too little valid depth or too few
-    points left."""
+    ``(H, W)`` lifted and filtered (:func:`lift_region`; the band above the ``plane``, if any,
+    up to ``max_height`` metres) and voxelled at ``voxel_size``. Raises ``_Failed`` with too
+    little valid depth or too few points left."""
     s = settings
     start = time.perf_counter()
     depth = np.asarray(frame.depth)
@@ -166,7 +167,7 @@ def lift_stage(
     normal, offset = (None, None) if plane is None else (np.asarray(plane.normal), plane.offset)
     mask, points, counts = lift_region(
         frame, rows, cols, sigma, normal, None if offset is None else float(offset),
-        min_height=s.min_height, voxel_size=voxel_size,
+        min_height=s.min_height, max_height=max_height, voxel_size=voxel_size,
         min_consistent_neighbors=s.min_consistent_neighbors,
     )  # fmt: skip
     record = record.with_ms(start, **counts)

@@ -4,8 +4,10 @@
 from many starts in one compiled call (:func:`jaxreg.pipeline._coarse._score_candidates`) and
 scored by the fraction of its points the model explains times the share of the model's
 camera-facing surface the depth image confirms; the best candidate wins unless its points
-reach beyond the model (a larger object of a similar shape), and on the table route the
-clusters its coarse pose explains (60% of their points within 1 cm) join it.
+reach beyond the model (a larger object of a similar shape), or a candidate sharing no cluster
+with it fits the model as well (identical twins: refused, naming both, since depth cannot tell
+which one is meant), and on the table route the clusters its coarse pose explains (60% of their
+points within 1 cm) join it.
 
 :func:`refine_stage` (after it): the winner's best distinct coarse poses refined on the lifted
 points, ranked by inlier fraction times the confirmed share, the answer settled on the table
@@ -26,11 +28,13 @@ from jaxreg.pipeline._answer import _alternatives, _distinct, _rest
 from jaxreg.pipeline._coarse import _coarse_problem, _register_starts, _score_candidates
 from jaxreg.pipeline._error_sources import MISMATCH_SIGMA, pose_budget
 from jaxreg.pipeline._judge import (
+    EQUAL_WITHIN,
     TOLERANCE,
     _confirmed_share,
     _judge,
     _near_model,
     _support,
+    evidence_gap,
     overhang,
     patch_count,
 )
@@ -122,6 +126,22 @@ def coarse_search(
     _, explained, _, _, chosen = scored[0]
     poses = np.asarray(coarse.poses[chosen])  # object_T_base per start, best first
     candidates = [_candidate(list(segmented.candidates[i][0]), *rest) for *rest, i in scored]
+    r = settings.register
+    starts = r.num_starts + 4 + 6 * r.resting_yaws
+    twin = _twin(segmented.candidates, scored, gates.max_overhang)
+    if twin is not None:
+        groups = (segmented.candidates[chosen], segmented.candidates[twin])
+        pixels = _pixels(frame, [cloud for _, cloud in groups])
+        places = "; ".join(
+            f"clusters {list(group)} at pixel ({u:.0f}, {v:.0f})"
+            for (group, _), (u, v) in zip(groups, pixels, strict=True)
+        )
+        raise _Failed(
+            "register",
+            f"two separate segments fit the model equally well ({places}): the depth cannot "
+            "tell which is the object; give pixel=, box= or mask= to say which",
+            RegisterRecord(ms=0.0, starts=starts, candidates=candidates).with_ms(start),
+        )
     joined, region = None, segmented.mask
     if segmented.clusters is not None:  # pieces the clustering split off the winner
         seg = segmented.clusters
@@ -136,13 +156,40 @@ def coarse_search(
         group = segmented.candidates[chosen][0]
         joined = sorted({*group, *(k for k in live if near[member_labels == k].mean() >= 0.6)})
         region = cluster_mask(seg, joined, frame.depth.shape)
-    r = settings.register
     record = RegisterRecord(
-        ms=0.0, starts=r.num_starts + 4 + 6 * r.resting_yaws, candidates=candidates,
+        ms=0.0, starts=starts, candidates=candidates,
         coarse_kept_starts=int(poses.shape[0]),
         chosen_clusters=None if joined is None else list(joined),
     )  # fmt: skip
     return CoarseSearch(region, poses, explained, gates, record.with_ms(start))
+
+
+def _twin(candidates, scored, max_overhang: float) -> int | None:
+    """The slot of the best candidate that shares no cluster with the winner (``scored[0]``)
+    and fits the model as well (score within ``EQUAL_WITHIN`` standard errors over the
+    winner's ``PATCH`` cubes, its span within ``max_overhang``), or None. ``candidates``:
+    ``(clusters, cloud)`` per slot; ``scored``: :func:`_score`'s tuples, best first."""
+    score, *_, chosen = scored[0]
+    group = set(candidates[chosen][0])
+    others = [
+        (other, slot)
+        for other, _, _, reach, slot in scored[1:]
+        if reach <= max_overhang and not group & set(candidates[slot][0])
+    ]
+    if not others:
+        return None
+    other, slot = others[0]
+    same = np.ones(1)  # the coarse fits are compared on their scores alone
+    gap = evidence_gap([other], same, score, 1.0, patch_count(candidates[chosen][1]))
+    return slot if gap[0] <= EQUAL_WITHIN else None
+
+
+def _pixels(frame, clouds) -> list[tuple[float, float]]:
+    """The pixel ``(u, v)`` of each base-frame cloud's centroid."""
+    camera_T_base = frame.base_T_camera.inverse()
+    centres = np.stack([np.mean(cloud, axis=0) for cloud in clouds])
+    pixels = frame.intrinsics.project(np.asarray(camera_T_base @ centres))
+    return [(float(u), float(v)) for u, v in np.asarray(pixels)]
 
 
 def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, gates):
@@ -169,7 +216,7 @@ def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, 
     )  # fmt: skip
     scored = []
     for i, cloud in enumerate(clouds):
-        confirmed, contradicted = _support(np.asarray(coarse.visibility[i, 0]))
+        confirmed, contradicted, _ = _support(np.asarray(coarse.visibility[i, 0]))
         explained = float(coarse.explained[i, 0])
         reach = float(overhang(model, np.asarray(coarse.poses[i, 0]), cloud).max())
         scored.append((explained * confirmed, explained, contradicted, reach, i))
@@ -217,7 +264,7 @@ def refine_stage(
     ranked = np.lexsort((rmses, -np.round(scores, 2)))
     best = results[int(ranked[0])]
     fraction, rmse = float(fractions[ranked[0]]), float(rmses[ranked[0]])
-    confirmed, contradicted = _support(seen[ranked[0]])
+    confirmed, contradicted, judged = _support(seen[ranked[0]])
     reach = overhang(model, np.asarray(results.pose.wxyz_xyz[ranked[0]]), points)
     answers, contact, lowest = _rest(
         source, model, results, ranked[0], plane, trim, fine_distances, settings
@@ -240,8 +287,8 @@ def refine_stage(
         equally_good_probes=int(found.equal_probes.sum()),
         start_agreement_mm=round(spread_mm * 1e3, 3),
         start_agreement_deg=round(spread_deg, 3),
-        model_confirmed=round(confirmed, 3),
-        model_contradicted=round(contradicted, 3),
+        model_confirmed=round(confirmed, 3) if judged else None,
+        model_contradicted=round(contradicted, 3) if judged else None,
         overhang_mm=[round(float(r) * 1e3, 1) for r in reach],
         resting_on_table=contact is not None,
         contact_shift_mm=None if lowest is None else round(-lowest * 1e3, 2),
@@ -267,6 +314,16 @@ def refine_stage(
         problems.append(
             f"the residual is {rmse * 1e3:.1f} mm (at most {gates.max_rmse * 1e3:.1f} at "
             f"sigma_z {gates.sigma_z * 1e3:.1f} mm)"
+        )
+    if not judged:
+        problems.append(
+            "the image judges none of the model's surface facing the camera at the fitted pose "
+            "(no depth where the model would be seen)"
+        )
+    elif confirmed < s.min_confirmed:
+        problems.append(
+            f"the image confirms only {confirmed:.0%} of the model's surface facing it (need "
+            f"{s.min_confirmed:.0%})"
         )
     if contradicted > s.max_contradicted:
         problems.append(

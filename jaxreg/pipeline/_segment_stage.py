@@ -38,13 +38,21 @@ def segment_stage(
     return _table_route(frame, model, settings, key, pixel, box)
 
 
-def _segment(frame: RGBDFrame, settings: SegmentSettings, key):
+def height_ceiling(model, settings: SegmentSettings) -> float:
+    """How high above the table (metres) the segment and the lift reach: ``max_height``, or
+    the model's diameter plus ``cluster_margin`` when that is more (an object standing on the
+    table reaches no higher than its diameter)."""
+    return max(settings.max_height, model.diameter + settings.cluster_margin)
+
+
+def _segment(frame: RGBDFrame, model, settings: SegmentSettings, key):
     """:func:`segment_frame` with the stage's settings, finished."""
     s = settings
     return jax.block_until_ready(
         segment_frame(
             frame, key=key, stride=s.stride, plane_distance=s.plane_distance,
-            min_height=s.min_height, cluster_distance=s.cluster_distance,
+            min_height=s.min_height, max_height=height_ceiling(model, s),
+            cluster_distance=s.cluster_distance,
         )
     )  # fmt: skip
 
@@ -55,7 +63,7 @@ def _table_route(frame, model, settings: SegmentSettings, key, pixel, box) -> Se
     ``cluster_margin``; the ``max_candidates`` largest."""
     s = settings
     start = time.perf_counter()
-    seg = _segment(frame, s, key)
+    seg = _segment(frame, model, s, key)
     sizes = np.asarray(seg.clusters.sizes)
     radii = np.asarray(seg.radii)
     record = SegmentRecord(
@@ -135,7 +143,7 @@ def _mask_route(frame, model, settings: SegmentSettings, mask, key, noise) -> Se
     depth = np.asarray(frame.depth)
     outside = RGBDFrame(np.where(mask, np.nan, depth), frame.intrinsics, frame.rgb,
                         frame.base_T_camera)  # fmt: skip
-    seg = _segment(outside, s, key)
+    seg = _segment(outside, model, s, key)
     grid = np.zeros_like(mask)
     grid[:: s.stride, :: s.stride] = True
     sigma_z = np.asarray(noise.coefficients)

@@ -106,7 +106,7 @@ from jaxreg.pipeline._judge import visibility as visibility
 from jaxreg.pipeline._lift_stage import lift_stage
 from jaxreg.pipeline._model import _prepare_model
 from jaxreg.pipeline._register_stage import coarse_search, refine_stage
-from jaxreg.pipeline._segment_stage import segment_stage
+from jaxreg.pipeline._segment_stage import height_ceiling, segment_stage
 from jaxreg.pipeline._stages import _Failed
 from jaxreg.pipeline.records import EquivalentPose, LiftRecord, RegisterRecord, SegmentRecord
 from jaxreg.pipeline.segment import TablePlane
@@ -260,8 +260,9 @@ def estimate_pose(
         records["register"] = coarse.record
         progress("lift")
         lifted = lift_stage(
-            frame, coarse.region, plane, noise, settings.lift, settings.voxel_size
-        )
+            frame, coarse.region, plane, noise, settings.lift, settings.voxel_size,
+            height_ceiling(model, settings.segment),
+        )  # fmt: skip
         records["lift"] = lifted.record
         progress("register")
         found = refine_stage(

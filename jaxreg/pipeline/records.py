@@ -139,7 +139,7 @@ class RegisterRecord(_Record):
         equally_good_starts: refined starts as good as the chosen one.
         start_agreement_mm, start_agreement_deg: their largest offset and angle to it.
         model_confirmed, model_contradicted: shares of the model's judged surface the image
-            confirms and sees through.
+            confirms and sees through (``None`` when the image judges none of it).
         overhang_mm: the segment's span beyond the model along its three principal axes.
         equally_good_probes: the answer turned about the model's axes and refined again, as
             good as the answer (each widens the ambiguity term of the error budget).

@@ -25,6 +25,10 @@ class SegmentSettings:
         stride: every ``stride``-th pixel of every ``stride``-th row is a grid point.
         plane_distance: table-plane inlier distance (metres).
         min_height: a grid point belongs to a cluster this high above the plane (metres).
+        max_height: grid points higher than this above the plane (metres) are ignored
+            (walls, people, the robot), and the lift keeps the segment below it; raised to
+            the model's diameter plus ``cluster_margin`` when the model is taller, so a
+            target is never cut.
         cluster_distance: grid points nearer than this (metres) join one cluster.
         cluster_margin: a candidate's diameter may exceed the model's by this (metres): a
             partial view's points can lie farther from its centroid than the model's radius.
@@ -34,6 +38,7 @@ class SegmentSettings:
     stride: int = 4
     plane_distance: float = 0.008
     min_height: float = 0.01
+    max_height: float = 0.5
     cluster_distance: float = 0.015
     cluster_margin: float = 0.02
     max_candidates: int = 4
@@ -89,6 +94,9 @@ class RegisterSettings:
             ``None``: 1.5 times what the depth noise at the segment's depth, the model's
             sampling and the model-sensor mismatch explain
             (:func:`~jaxreg.pipeline._register_stage.tolerances`).
+        min_confirmed: smallest share of the model's judged surface (facing the camera,
+            where the image has depth) the image must confirm: the rest is seen through or
+            hidden by an occluder. With no judged surface at all the pose is refused.
         max_contradicted: largest share of the model's judged surface the image may see
             through.
         max_overhang: how far (metres) the segment may span beyond the model along one of
@@ -109,6 +117,7 @@ class RegisterSettings:
     rest_tolerance: float = 0.015
     min_inlier_fraction: float = 0.7
     max_inlier_rmse: float | None = None
+    min_confirmed: float = 0.2
     max_contradicted: float = 0.25
     max_overhang: float = 0.003
 
