@@ -8,7 +8,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench bench-report figs lint clean system-libs
+.PHONY: demo test test-slow bench bench-report figs lint clean system-libs
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -35,6 +35,10 @@ demo: $(STAMP)
 test: $(STAMP) system-libs
 	$(PY) -m ruff check jaxreg tests benchmarks examples paper_figs
 	$(PY) -m pytest -q -n 2 --dist loadfile
+
+# The long studies and numerical cross-checks marked slow (about 15 minutes more on 2 cores).
+test-slow: $(STAMP) system-libs
+	$(PY) -m pytest -q -n 2 --dist loadfile -m slow
 
 # Every benchmark table, peers in the same run. The whole output (the date, the machine, the
 # CPU and the peers' versions first, the load average before each script) is kept in

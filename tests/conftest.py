@@ -3,10 +3,8 @@ pytest-xdist: the numba host loops compiled once before the workers start, and f
 compile the same programs run on one worker."""
 
 import os
-import shutil
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import jax
@@ -39,27 +37,10 @@ build_grid(points.astype(np.float32), 0.01)
 )
 
 
-# XLA's persistent compilation cache for the test session: one temporary folder that the
-# controller makes and its workers inherit, so a program compiled in one worker (the pipeline's
-# ~70 s of XLA work per frame size) loads in the other. Set on the test processes' JAX config
-# only (the library never sets it; subprocesses started by tests see no cache); removed at the end.
-_XLA_CACHE = "JAXREG_TESTS_XLA_CACHE"
-
-
-def _share_compiled_programs(config) -> None:
-    if not hasattr(config, "workerinput") and _XLA_CACHE not in os.environ:
-        os.environ[_XLA_CACHE] = tempfile.mkdtemp(prefix="jaxreg-tests-xla-")
-        config.add_cleanup(lambda: shutil.rmtree(os.environ.pop(_XLA_CACHE), ignore_errors=True))
-    jax.config.update("jax_compilation_cache_dir", os.environ[_XLA_CACHE])
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-
-
 def pytest_configure(config):
-    """Shares compiled programs between the test processes; with ``-n N`` (the controller,
-    before it starts the workers) also fills numba's cache, so the workers load the kernels
-    instead of each compiling all of them at once (on an empty cache, ~35 s of CPU per
-    process). A failed warm-up is a warning; the tests still run."""
-    _share_compiled_programs(config)
+    """With ``-n N`` (the controller, before it starts the workers): fills numba's cache, so
+    the workers load the kernels instead of each compiling all of them at once (on an empty
+    cache, ~35 s of CPU per process). A failed warm-up is a warning; the tests still run."""
     if hasattr(config, "workerinput") or not config.getoption("numprocesses", None):
         return
     runs = [
@@ -88,14 +69,17 @@ def data_root() -> Path | None:
 
 
 # Files whose tests compile the same JAX programs, mapped to the file they run beside (with
-# ``--dist loadfile`` each file is a unit of work): the demo command estimates the pose on
-# test_pipeline's scene (seed 4 box, 20,000 model samples), ~40 s of CPU compiled once, and
-# ``jaxreg bop`` runs the same programs on its 848x480 synthetic BOP frames.
+# ``--dist loadfile`` each file is a unit of work): every file that runs ``estimate_pose`` or
+# ``track`` on 848x480 synthetic frames (the demo command, ``jaxreg bop``'s synthetic BOP
+# frames) or on 640x480 YCB-Video frames shares one worker, which compiles the pipeline's
+# programs (~90 s of CPU for each frame size) once.
 _SAME_WORKER = {
-    "tests/test_cli.py": "tests/test_pipeline.py",
-    "tests/test_bop_run.py": "tests/test_pipeline.py",
-    "tests/test_pipeline_batch.py": "tests/test_pipeline.py",
-}
+    f"tests/{name}.py": "tests/test_pipeline.py"
+    for name in (
+        "test_cli", "test_bop_run", "test_pipeline_batch", "test_equivalent", "test_track",
+        "test_mask_surface", "test_budget", "test_ycbv",
+    )
+}  # fmt: skip
 
 
 @pytest.hookimpl(optionalhook=True)

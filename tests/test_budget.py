@@ -255,6 +255,7 @@ def test_perturbed_segments_erode_grow_and_drop_pieces(box):
 # Coverage: frames of every object that nothing tunes on.
 
 
+@pytest.mark.slow
 def test_the_region_covers_the_truth_on_most_unseen_frames_of_every_object():
     from jaxreg.studies import calibration_study
 

@@ -78,6 +78,7 @@ def test_demo_view_serves_the_scene_after_the_report(capsys, monkeypatch):
     assert len(scene.points["object"]) > 100 and len(scene.points["table"]) > 10_000
 
 
+@pytest.mark.slow
 def test_pose_finds_the_carton_and_makes_no_claim_where_it_is_not(pcl_dir, tmp_path, capsys):
     from jaxreg.io import load_points, write_pcd
 

@@ -483,6 +483,7 @@ def test_singular_information_gives_inf_covariance_and_degenerate_status(general
     np.testing.assert_allclose(full.covariance, 0.25 * np.linalg.inv(J.T @ J), rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_pose_gradient_matches_central_differences(general, x64):
     """jacrev through the implicit adjoint of Levenberg-Marquardt equals central differences
     of the refined pose tangent with respect to the image points (float64, rel. error < 1e-3)."""
@@ -626,6 +627,7 @@ def test_closed_form_covariance_equals_the_eigendecomposition(planar):
         np.testing.assert_array_equal(a, e)
 
 
+@pytest.mark.slow
 def test_a_lane_refines_alike_alone_and_in_a_large_batch(planar):
     """The refinement steps the planar fixture's 2,260 starts 282 at a time, the first ones
     still running gathered afresh at every step; which lanes share a step changes neither a
@@ -649,6 +651,7 @@ def test_a_lane_refines_alike_alone_and_in_a_large_batch(planar):
         assert min(gaps) < 2e-5, (lane, gaps)  # float32 rounding differs by batch size
 
 
+@pytest.mark.slow
 def test_tag_counts_that_change_call_by_call_share_one_compiled_solver(planar):
     """A tracker's tag count changes frame by frame: 5, 6 and 7 tags all run as a batch of 8
     (padded with copies of the last tag, trimmed away), so the solver compiles at most once

@@ -101,6 +101,7 @@ def test_clusters_by_size_with_small_ones_dropped_and_overflow_flagged():
     assert int(clusters(points, mask, 0.004, 4).num_clusters) == 0
 
 
+@pytest.mark.slow
 def test_compact_and_whole_grid_propagation_find_the_same_clusters(scene):
     """The masked points alone (capacity above their count) and the whole grid (capacity
     below it) give identical clusters: on the objects (a few hundred points) and on the

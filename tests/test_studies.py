@@ -160,6 +160,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_same_answer_on_one_device_two_devices_and_two_processes(sweep):
     """The acceptance check of the sharded sweep: one device here, two forced host devices
     in one process, and two processes (one device each) joined by jax.distributed."""

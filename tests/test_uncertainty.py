@@ -174,6 +174,7 @@ def test_covariance_is_the_implicit_jacobian_sandwich(method, x64):
     np.testing.assert_allclose(both, expected, rtol=1e-6, atol=1e-6 * np.abs(expected).max())
 
 
+@pytest.mark.slow
 def test_float32_covariance_matches_float64_on_a_large_problem():
     """Regression: jax.jacrev's vmapped scatter-add is miscompiled on CPU in float32 once a
     cloud has more than ~1800 matched points (XLA, jax 0.10.2); icp_covariance must not be."""
@@ -290,6 +291,7 @@ def monte_carlo_sigmas(setup, method, draws):
     return np.sqrt(np.diag(np.asarray(cov))), measured
 
 
+@pytest.mark.slow
 def test_point_to_plane_covariance_agrees_with_monte_carlo(milk_scan_to_model):
     """Measured: predicted / Monte Carlo sigma 0.87-0.96 per axis (200 draws)."""
     predicted, measured = monte_carlo_sigmas(milk_scan_to_model, "point_to_plane", 200)
@@ -312,6 +314,7 @@ def test_point_to_point_closed_form_is_overconfident(milk_scan_to_model):
 # Initialisation spread.
 
 
+@pytest.mark.slow
 def test_init_spread_is_zero_for_a_unique_fixed_point_and_large_outside_the_basin():
     src, tgt, truth, opts = _box_problem("point_to_plane", n=200, resample=False, noise=1e-5)
     # One grid for every call: the 13-start loop compiles once for init_spread and the total.
