@@ -69,15 +69,14 @@ def data_root() -> Path | None:
 
 
 # Files whose tests compile the same JAX programs, mapped to the file they run beside (with
-# ``--dist loadfile`` each file is a unit of work): every file that runs ``estimate_pose`` or
-# ``track`` on 848x480 synthetic frames (the demo command, ``jaxreg bop``'s synthetic BOP
-# frames) or on 640x480 YCB-Video frames shares one worker, which compiles the pipeline's
-# programs (~90 s of CPU for each frame size) once.
+# ``--dist loadfile`` each file is a unit of work): the files that run ``estimate_pose`` or
+# ``track`` on 848x480 synthetic frames with models of the first size class (the demo command,
+# ``jaxreg bop``'s synthetic BOP frames) share one worker, which compiles the pipeline's
+# programs (~90 s of CPU) once.
 _SAME_WORKER = {
     f"tests/{name}.py": "tests/test_pipeline.py"
     for name in (
         "test_cli", "test_bop_run", "test_pipeline_batch", "test_equivalent", "test_track",
-        "test_mask_surface", "test_budget", "test_ycbv",
     )
 }  # fmt: skip
 

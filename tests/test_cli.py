@@ -205,6 +205,7 @@ def test_pose_draws_its_pictures_on_the_colour_image_given_by_rgb(tmp_path, caps
 YCBV_OBJECT = ("0000/000001", "025_mug", 14)  # frame, model, class index: an instance posed
 
 
+@pytest.mark.slow
 def test_pose_on_a_ycbv_frame_reports_errors_against_its_truth(ycbv_dir, capsys, tmp_path):
     """``--ycbv PREFIX --object NAME_OR_INDEX``: the dataset's frame, model and label mask; the
     report's ADD, ADD-S and errors agree with its own pose and truth."""

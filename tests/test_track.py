@@ -65,7 +65,11 @@ def test_bad_previous_poses_are_refused_clearly(scene):
         jr.track(scene.frame, scene.model_points, np.eye(3))
     with pytest.raises(ValueError, match="rotation"):
         jr.track(scene.frame, scene.model_points, np.diag([2.0, 1.0, 1.0, 1.0]))
-    failed = jr.estimate_pose(scene.frame, scene.model_points * 3)
+    blank = jr.camera.RGBDFrame(
+        np.full_like(np.asarray(scene.frame.depth), np.nan), scene.frame.intrinsics,
+        base_T_camera=scene.frame.base_T_camera,
+    )  # fmt: skip
+    failed = jr.estimate_pose(blank, scene.model_points)
     assert not failed.success
     with pytest.raises(ValueError, match="holds no pose"):
         jr.track(scene.frame, scene.model_points, failed)

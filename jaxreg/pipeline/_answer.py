@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 from jaxreg.core._program_cache import persistent_jit
 from jaxreg.geometry.lie import geodesic_angle
 from jaxreg.geometry.metrics import Symmetry, canonicalise
-from jaxreg.pipeline._coarse import _register_starts
+from jaxreg.pipeline._coarse import DISTINCT_ANGLE, DISTINCT_DISTANCE, _register_starts
 from jaxreg.pipeline._judge import (
     EQUAL_WITHIN,
     TOLERANCE,
@@ -251,15 +251,15 @@ def _finish(object_T_base, best, equal, symmetry):
     return pose.wxyz_xyz, spread, tangents
 
 
-def _distinct(poses: np.ndarray, count: int, min_distance: float) -> list[int]:
-    """The first ``count`` rows of ``poses`` (``(S, 7)`` wxyz_xyz, best first) that differ
-    from every earlier pick by ``min_distance`` metres or 0.2 rad."""
+def _distinct(poses: np.ndarray, count: int) -> list[int]:
+    """The first ``count`` rows of ``poses`` (``(S, 7)`` wxyz_xyz, best first) that are
+    distinct from every earlier pick (``DISTINCT_DISTANCE`` or ``DISTINCT_ANGLE``)."""
     quats, trans = poses[:, :4], poses[:, 4:]
     chosen: list[int] = []
     for i in range(len(poses)):
         if all(
-            np.linalg.norm(trans[i] - trans[j]) > min_distance
-            or 2 * np.arccos(min(1.0, abs(float(quats[i] @ quats[j])))) > 0.2
+            np.linalg.norm(trans[i] - trans[j]) > DISTINCT_DISTANCE
+            or 2 * np.arccos(min(1.0, abs(float(quats[i] @ quats[j])))) > DISTINCT_ANGLE
             for j in chosen
         ):
             chosen.append(i)
@@ -362,7 +362,7 @@ def _alternatives(
     listed = np.flatnonzero(kept & stayed)
     listed = listed[np.argsort(probe_gaps[listed], kind="stable")]
     ordered = np.concatenate([answers[best][None], probes[listed]])
-    distinct = _distinct(ordered, len(listed) + 1, 0.01)
+    distinct = _distinct(ordered, len(listed) + 1)
     axes = np.asarray(model.axes, np.float64).T
     equivalent = tuple(
         EquivalentPose(

@@ -118,14 +118,21 @@ def _resting_starts(cloud, ok, model_points, model_axes, plane, eye, yaws: int) 
     return placed.inverse()
 
 
-def _spread_best(poses: Array, score: Array, count: int, min_distance: float) -> Array:
+# Two poses are distinct answers when their translations differ by more than DISTINCT_DISTANCE
+# (metres) or their rotations by more than DISTINCT_ANGLE (radians, ~11 degrees): farther apart
+# than the refinement's basin, so refining both is not refining one answer twice.
+DISTINCT_DISTANCE = 0.01
+DISTINCT_ANGLE = 0.2
+
+
+def _spread_best(poses: Array, score: Array, count: int) -> Array:
     """Indices ``(count,)`` of the best-scoring rows of ``poses`` ``(S, 7)`` (wxyz_xyz) that
-    differ from every earlier pick by ``min_distance`` metres or 0.2 rad; when fewer rows
-    are that distinct, the best remaining ones fill the rest (jittable)."""
+    are distinct from every earlier pick (``DISTINCT_DISTANCE`` or ``DISTINCT_ANGLE``); when
+    fewer rows are that distinct, the best remaining ones fill the rest (jittable)."""
     quats, trans = poses[:, :4], poses[:, 4:]
     gap = jnp.linalg.norm(trans[:, None] - trans[None], axis=-1)
-    cos = jnp.abs(quats @ quats.T)
-    near = (gap <= min_distance) & (cos >= jnp.cos(0.1))  # half-angle of 0.2 rad
+    cos = jnp.abs(quats @ quats.T)  # cos of half the angle between two rotations
+    near = (gap <= DISTINCT_DISTANCE) & (cos >= jnp.cos(DISTINCT_ANGLE / 2))
     rank = jnp.where(jnp.isfinite(score), score, -1.0)
 
     def pick(carry, _):
@@ -202,7 +209,7 @@ def _score_candidates(
         alive = jnp.argsort(-near)[:survivors]
         first = icp(p, first_opts, SE3(screened.wxyz_xyz[alive]))
         explained, seen = evidence(first.pose, screen_points, 16)
-        kept = _spread_best(first.pose.wxyz_xyz, explained * _confirmed_share(seen), keep, 0.01)
+        kept = _spread_best(first.pose.wxyz_xyz, explained * _confirmed_share(seen), keep)
         results = icp(p, rest_opts, SE3(first.pose.wxyz_xyz[kept]))
         explained, seen = evidence(results.pose, model_points, 4)
         score = explained * _confirmed_share(seen)

@@ -140,7 +140,10 @@ def coarse_search(
             "register",
             f"two separate segments fit the model equally well ({places}): the depth cannot "
             "tell which is the object; give pixel=, box= or mask= to say which",
-            RegisterRecord(ms=0.0, starts=starts, candidates=candidates).with_ms(start),
+            RegisterRecord(
+                ms=0.0, starts=starts, candidates=candidates,
+                coarse_kept_starts=int(poses.shape[0]),
+            ).with_ms(start),  # fmt: skip
         )
     joined, region = None, segmented.mask
     if segmented.clusters is not None:  # pieces the clustering split off the winner
@@ -249,7 +252,7 @@ def refine_stage(
     fine_distances = gates.distances
     start = time.perf_counter()
     source = _padded(points, s.max_points, rng)
-    picks = _distinct(coarse_poses, s.refined_starts, 0.01)
+    picks = _distinct(coarse_poses, s.refined_starts)
     inits = SE3(jax.device_put(coarse_poses[picks]))
     trim = np.float32(np.clip(coarse_fraction, 0.6, 0.95))  # an argument: one program for all
     results = _register_starts(
