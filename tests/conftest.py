@@ -77,6 +77,7 @@ _SAME_WORKER = {
     f"tests/{name}.py": "tests/test_pipeline.py"
     for name in (
         "test_cli", "test_bop_run", "test_pipeline_batch", "test_equivalent", "test_track",
+        "test_mask_surface",
     )
 }  # fmt: skip
 
