@@ -123,6 +123,9 @@ def _decode(rows: np.ndarray) -> list[BopResult]:
     ]
 
 
+GATHER_TIMEOUT_MS = 24 * 3600 * 1000  # how long a process waits for the others' shares
+
+
 def gather_bop_results(results: Sequence[BopResult]) -> list[BopResult]:
     """Every process's `results` on every process (call it in all of them), in image order
     (each image's rows in the order its process made them). One process: `results` as given.
@@ -132,6 +135,12 @@ def gather_bop_results(results: Sequence[BopResult]) -> list[BopResult]:
 
     if jax.process_count() == 1:
         return list(results)
+    # The processes finish their images minutes apart; the collectives' transport (gloo on a
+    # CPU) gives up on a peer after 30 s, so they meet first at the coordination service's
+    # barrier, which waits as long as the slowest share takes.
+    from jax._src.distributed import global_state
+
+    global_state.client.wait_at_barrier("jaxreg_gather_bop_results", GATHER_TIMEOUT_MS)
     rows = _encode(results)
     counts = np.asarray(multihost_utils.process_allgather(np.int32(len(rows))))
     padded = np.zeros((int(counts.max()), _FIELDS), np.float64)
