@@ -14,6 +14,7 @@ The goals (silent-answers issue): no wrong pose reported as found, refusals at m
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from collections import Counter
 
@@ -50,16 +51,16 @@ def main():
             )
             times.append(time.perf_counter() - start)
             if not est.success:
-                counts[name]["refused"] += 1
+                outcome = "refused"
                 refused.append((seed, name, est.failed_stage, est.reason))
-                continue
-            error = float(add_s(scene.model_points, est.pose, scene.truth))
-            diameter = _diameter(scene.model)
-            if error > 0.1 * diameter:
-                counts[name]["wrong"] += 1
-                wrong.append((seed, name, error, diameter))
             else:
-                counts[name]["right"] += 1
+                error = float(add_s(scene.model_points, est.pose, scene.truth))
+                diameter = _diameter(scene.model)
+                outcome = "wrong" if error > 0.1 * diameter else "right"
+                if outcome == "wrong":
+                    wrong.append((seed, name, error, diameter))
+            counts[name][outcome] += 1
+            print(f"seed {seed} {name}: {outcome}", file=sys.stderr, flush=True)
     total = Counter()
     for c in counts.values():
         total.update(c)
