@@ -26,7 +26,7 @@ from jaxlie import SE3
 
 from jaxreg.pipeline._answer import _alternatives, _distinct, _rest
 from jaxreg.pipeline._coarse import _coarse_problem, _register_starts, _score_candidates
-from jaxreg.pipeline._error_sources import MISMATCH_SIGMA, pose_budget
+from jaxreg.pipeline._error_sources import MISMATCH_SIGMA, _pixels, pose_budget
 from jaxreg.pipeline._judge import (
     EQUAL_WITHIN,
     TOLERANCE,
@@ -131,10 +131,10 @@ def coarse_search(
     twin = _twin(segmented.candidates, scored, gates.max_overhang)
     if twin is not None:
         groups = (segmented.candidates[chosen], segmented.candidates[twin])
-        pixels = _pixels(frame, [cloud for _, cloud in groups])
+        centres = np.stack([np.mean(cloud, axis=0) for _, cloud in groups])
         places = "; ".join(
-            f"clusters {list(group)} at pixel ({u:.0f}, {v:.0f})"
-            for (group, _), (u, v) in zip(groups, pixels, strict=True)
+            f"clusters {list(group)} at pixel ({col}, {row})"
+            for (group, _), (row, col) in zip(groups, _pixels(frame, centres), strict=True)
         )
         raise _Failed(
             "register",
@@ -185,14 +185,6 @@ def _twin(candidates, scored, max_overhang: float) -> int | None:
     same = np.ones(1)  # the coarse fits are compared on their scores alone
     gap = evidence_gap([other], same, score, 1.0, patch_count(candidates[chosen][1]))
     return slot if gap[0] <= EQUAL_WITHIN else None
-
-
-def _pixels(frame, clouds) -> list[tuple[float, float]]:
-    """The pixel ``(u, v)`` of each base-frame cloud's centroid."""
-    camera_T_base = frame.base_T_camera.inverse()
-    centres = np.stack([np.mean(cloud, axis=0) for cloud in clouds])
-    pixels = frame.intrinsics.project(np.asarray(camera_T_base @ centres))
-    return [(float(u), float(v)) for u, v in np.asarray(pixels)]
 
 
 def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, gates):
