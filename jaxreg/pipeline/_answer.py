@@ -323,6 +323,12 @@ def _pivoted(tangents: np.ndarray, centre: np.ndarray) -> np.ndarray:
     return np.concatenate([moved - np.cross(w, centre), w], axis=1)
 
 
+def _axis_angle(rotation: np.ndarray) -> tuple[np.ndarray, float]:
+    """The unit axis ``(3,)`` and angle (degrees) of a rotation vector ``(3,)``."""
+    angle = float(np.linalg.norm(rotation))
+    return np.asarray(rotation, np.float64) / max(angle, 1e-12), float(np.degrees(angle))
+
+
 def _alternatives(
     frame, plane, model, source, answers, best, scores, rmses, patches, trim, noise, distances,
     symmetry, settings,
@@ -332,10 +338,11 @@ def _alternatives(
     against the answer over the segment's ``patches``: which fit as well (within two
     standard errors of :func:`~jaxreg.pipeline._judge.evidence_gap`), each one's weight for
     the error budget's ambiguity term, the rotations a contiguous arc of equally good probes
-    leaves free (:func:`_unfixed_turns`), and the equivalent poses: the probes that stay
-    turned after refinement (half their turn or more, on the answer's ``symmetry`` branch:
-    a declared symmetry's copies are the answer itself) and fit as well, one per distinct
-    pose (1 cm or 0.2 rad apart), best first."""
+    leaves free (:func:`_unfixed_turns`), and the equivalent poses: the refined starts that
+    fit as well turned ``DISTINCT_ANGLE`` or more from the answer, and the probes that fit as
+    well and stay turned after refinement (half their turn or more), both on the answer's
+    ``symmetry`` branch (a declared symmetry's copies are the answer itself), one per
+    distinct pose (1 cm or 0.2 rad apart), best first."""
     padded = _bucketed_symmetry(symmetry)
     gaps = evidence_gap(scores, rmses, scores[best], rmses[best], patches)
     equal = gaps <= EQUAL_WITHIN
@@ -355,26 +362,34 @@ def _alternatives(
     view_free, view_reason, turned = _unfixed_turns(model, equal_probes & stayed)
     kept = equal_probes & ~turned
     others = equal & (np.arange(len(equal)) != best)
+    start_tangents = np.asarray(tangents)
     tangents = _pivoted(
-        np.concatenate([np.asarray(tangents)[others], probe_tangents[kept]]), model.centre
+        np.concatenate([start_tangents[others], probe_tangents[kept]]), model.centre
     )
     weights = np.exp(-0.5 * np.concatenate([gaps[others], probe_gaps[kept]]) ** 2)
-    listed = np.flatnonzero(kept & stayed)
-    listed = listed[np.argsort(probe_gaps[listed], kind="stable")]
-    ordered = np.concatenate([answers[best][None], probes[listed]])
-    distinct = _distinct(ordered, len(listed) + 1)
     axes = np.asarray(model.axes, np.float64).T
+    # turned answers: refined starts that came to rest turned, then probes that stayed turned
+    alternatives = [
+        (gaps[i], answers[i], *_axis_angle(start_tangents[i, 3:]), scores[i], rmses[i])
+        for i in np.flatnonzero(others)
+        if np.linalg.norm(start_tangents[i, 3:]) >= DISTINCT_ANGLE
+    ] + [
+        (probe_gaps[i], probes[i], axes[i // len(PROBE_ANGLES_DEG)],
+         PROBE_ANGLES_DEG[i % len(PROBE_ANGLES_DEG)], probe_scores[i], probe_rmses[i])
+        for i in np.flatnonzero(kept & stayed)
+    ]  # fmt: skip
+    alternatives.sort(key=lambda alternative: alternative[0])  # stable: best first
+    ordered = np.stack([answers[best], *(alternative[1] for alternative in alternatives)])
     equivalent = tuple(
         EquivalentPose(
-            pose=SE3(np.asarray(probes[i], np.float64)).inverse(),
-            axis=axes[i // len(PROBE_ANGLES_DEG)],
-            angle_deg=float(PROBE_ANGLES_DEG[i % len(PROBE_ANGLES_DEG)]),
-            score=float(probe_scores[i]),
-            inlier_rmse=float(probe_rmses[i]),
-            weight=float(np.exp(-0.5 * probe_gaps[i] ** 2)),
+            pose=SE3(np.asarray(other, np.float64)).inverse(), axis=np.asarray(axis, np.float64),
+            angle_deg=float(angle), score=float(score), inlier_rmse=float(rmse),
+            weight=float(np.exp(-0.5 * gap**2)),
         )
-        for i in listed[np.asarray(distinct[1:], int) - 1]
-    )
+        for gap, other, axis, angle, score, rmse in (
+            alternatives[k - 1] for k in _distinct(ordered, len(alternatives) + 1)[1:]
+        )
+    )  # fmt: skip
     return _Alternatives(
         np.asarray(pose), np.asarray(spread), equal, equal_probes, tangents, weights, view_free,
         view_reason, equivalent,

@@ -176,8 +176,9 @@ class EquivalentPose:
 
     Attributes:
         pose: ``base_T_object`` of the turned answer, refined.
-        axis: ``(3,)`` the model's principal axis it was turned about (object frame, unit).
-        angle_deg: the turn (degrees) before refinement.
+        axis: ``(3,)`` the axis of the turn (object frame, unit): the model's principal axis
+            a probe was turned about, or the axis of a refined start's rotation from the answer.
+        angle_deg: the turn (degrees): a probe's before refinement, a refined start's after.
         score: its explained share times the image's confirmed share (the answer's evidence).
         inlier_rmse: its residual (metres).
         weight: how likely it is against the answer (1: the evidence cannot prefer either;
