@@ -169,22 +169,31 @@ def coarse_search(
 
 def _twin(candidates, scored, max_overhang: float) -> int | None:
     """The slot of the best candidate that shares no cluster with the winner (``scored[0]``)
-    and fits the model as well (score within ``EQUAL_WITHIN`` standard errors over the
-    winner's ``PATCH`` cubes, its span within ``max_overhang``), or None. ``candidates``:
-    ``(clusters, cloud)`` per slot; ``scored``: :func:`_score`'s tuples, best first."""
-    score, *_, chosen = scored[0]
+    and fits the model as well, or None. As well: its score within ``EQUAL_WITHIN``
+    standard errors of the winner's over the winner's ``PATCH`` cubes, either as scored or
+    with hidden model surface not held against either (explained share times the share not
+    contradicted: a twin partly hidden behind a neighbour fits what is seen of it as well),
+    its span within ``max_overhang``. ``candidates``: ``(clusters, cloud)`` per slot;
+    ``scored``: :func:`_score`'s tuples, best first."""
+    score, explained, contradicted, _, chosen = scored[0]
     group = set(candidates[chosen][0])
     others = [
-        (other, slot)
-        for other, _, _, reach, slot in scored[1:]
-        if reach <= max_overhang and not group & set(candidates[slot][0])
+        item
+        for item in scored[1:]
+        if item[3] <= max_overhang and not group & set(candidates[item[-1]][0])
     ]
     if not others:
         return None
-    other, slot = others[0]
-    same = np.ones(1)  # the coarse fits are compared on their scores alone
-    gap = evidence_gap([other], same, score, 1.0, patch_count(candidates[chosen][1]))
-    return slot if gap[0] <= EQUAL_WITHIN else None
+    other_score, other_explained, other_contradicted, _, slot = others[0]
+    patches = patch_count(candidates[chosen][1])
+    gaps = [  # the coarse fits are compared on their scores alone (equal dummy residuals)
+        evidence_gap([theirs], [1.0], ours, 1.0, patches)[0]
+        for theirs, ours in (
+            (other_score, score),
+            (other_explained * (1.0 - other_contradicted), explained * (1.0 - contradicted)),
+        )
+    ]
+    return slot if min(gaps) <= EQUAL_WITHIN else None
 
 
 def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, gates):
