@@ -6,8 +6,8 @@ scored by the fraction of its points the model explains times the share of the m
 camera-facing surface the depth image confirms; the best candidate wins unless its points
 reach beyond the model (a larger object of a similar shape), or a candidate sharing no cluster
 with it fits the model as well (identical twins: refused, naming both, since depth cannot tell
-which one is meant), and on the table route the clusters its coarse pose explains (60% of their
-points within 1 cm) join it.
+which one is meant). On the table route the clusters its coarse pose explains (60% of their
+points within 1 cm) join it first: pieces of one object are no twins.
 
 :func:`refine_stage` (after it): the winner's best distinct coarse poses refined on the lifted
 points, ranked by inlier fraction times the confirmed share, the answer settled on the table
@@ -128,7 +128,8 @@ def coarse_search(
     candidates = [_candidate(list(segmented.candidates[i][0]), *rest) for *rest, i in scored]
     r = settings.register
     starts = r.num_starts + 4 + 6 * r.resting_yaws
-    twin = _twin(segmented.candidates, scored, gates.max_overhang)
+    joined = _joined(model, segmented, chosen, poses[0])
+    twin = _twin(segmented.candidates, scored, gates.max_overhang, joined)
     if twin is not None:
         groups = (segmented.candidates[chosen], segmented.candidates[twin])
         centres = np.stack([np.mean(cloud, axis=0) for _, cloud in groups])
@@ -145,20 +146,9 @@ def coarse_search(
                 coarse_kept_starts=int(poses.shape[0]),
             ).with_ms(start),  # fmt: skip
         )
-    joined, region = None, segmented.mask
-    if segmented.clusters is not None:  # pieces the clustering split off the winner
-        seg = segmented.clusters
-        grid_points = np.asarray(seg.points)
-        labels = np.asarray(seg.clusters.labels)
-        sizes = np.asarray(seg.clusters.sizes)
-        live = [k for k in range(len(sizes)) if sizes[k] > 0]
-        members = labels >= 0  # the whole grid, non-members NaN: one shape for every frame
-        points = np.where(members[..., None], grid_points, np.nan).astype(np.float32)
-        near = np.asarray(_near_model(model.fine_grid, poses[0], points, np.float32(0.01)))
-        near, member_labels = near[members], labels[members]
-        group = segmented.candidates[chosen][0]
-        joined = sorted({*group, *(k for k in live if near[member_labels == k].mean() >= 0.6)})
-        region = cluster_mask(seg, joined, frame.depth.shape)
+    region = segmented.mask
+    if joined is not None:
+        region = cluster_mask(segmented.clusters, joined, frame.depth.shape)
     record = RegisterRecord(
         ms=0.0, starts=starts, candidates=candidates,
         coarse_kept_starts=int(poses.shape[0]),
@@ -167,33 +157,45 @@ def coarse_search(
     return CoarseSearch(region, poses, explained, gates, record.with_ms(start))
 
 
-def _twin(candidates, scored, max_overhang: float) -> int | None:
+def _joined(model, segmented: Segmented, chosen: int, pose: np.ndarray) -> list[int] | None:
+    """On the table route, the winner's clusters (slot ``chosen``) and every cluster its
+    coarse ``pose`` ``(7,)`` (object_T_base) explains (60% of its grid points within 1 cm of
+    the model): pieces the clustering split off the object. ``None`` on the mask route."""
+    if segmented.clusters is None:
+        return None
+    seg = segmented.clusters
+    grid_points = np.asarray(seg.points)
+    labels = np.asarray(seg.clusters.labels)
+    sizes = np.asarray(seg.clusters.sizes)
+    live = [k for k in range(len(sizes)) if sizes[k] > 0]
+    members = labels >= 0  # the whole grid, non-members NaN: one shape for every frame
+    points = np.where(members[..., None], grid_points, np.nan).astype(np.float32)
+    near = np.asarray(_near_model(model.fine_grid, pose, points, np.float32(0.01)))
+    near, member_labels = near[members], labels[members]
+    group = segmented.candidates[chosen][0]
+    return sorted({*group, *(k for k in live if near[member_labels == k].mean() >= 0.6)})
+
+
+def _twin(candidates, scored, max_overhang: float, joined: list[int] | None) -> int | None:
     """The slot of the best candidate that shares no cluster with the winner (``scored[0]``)
-    and fits the model as well, or None. As well: its score within ``EQUAL_WITHIN``
-    standard errors of the winner's over the winner's ``PATCH`` cubes, either as scored or
-    with hidden model surface not held against either (explained share times the share not
-    contradicted: a twin partly hidden behind a neighbour fits what is seen of it as well),
-    its span within ``max_overhang``. ``candidates``: ``(clusters, cloud)`` per slot;
-    ``scored``: :func:`_score`'s tuples, best first."""
-    score, explained, contradicted, _, chosen = scored[0]
-    group = set(candidates[chosen][0])
+    nor with the pieces its pose explains (``joined``, :func:`_joined`: parts of one object
+    are no twins), and fits the model as well (score within ``EQUAL_WITHIN`` standard errors
+    over the winner's ``PATCH`` cubes, its span within ``max_overhang``), or None.
+    ``candidates``: ``(clusters, cloud)`` per slot; ``scored``: :func:`_score`'s tuples, best
+    first."""
+    score, *_, chosen = scored[0]
+    group = set(candidates[chosen][0]) | set(joined or ())
     others = [
-        item
-        for item in scored[1:]
-        if item[3] <= max_overhang and not group & set(candidates[item[-1]][0])
+        (other, slot)
+        for other, _, _, reach, slot in scored[1:]
+        if reach <= max_overhang and not group & set(candidates[slot][0])
     ]
     if not others:
         return None
-    other_score, other_explained, other_contradicted, _, slot = others[0]
-    patches = patch_count(candidates[chosen][1])
-    gaps = [  # the coarse fits are compared on their scores alone (equal dummy residuals)
-        evidence_gap([theirs], [1.0], ours, 1.0, patches)[0]
-        for theirs, ours in (
-            (other_score, score),
-            (other_explained * (1.0 - other_contradicted), explained * (1.0 - contradicted)),
-        )
-    ]
-    return slot if min(gaps) <= EQUAL_WITHIN else None
+    other, slot = others[0]
+    same = np.ones(1)  # the coarse fits are compared on their scores alone
+    gap = evidence_gap([other], same, score, 1.0, patch_count(candidates[chosen][1]))
+    return slot if gap[0] <= EQUAL_WITHIN else None
 
 
 def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, gates):
