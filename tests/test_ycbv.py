@@ -226,3 +226,24 @@ def test_a_cans_turn_that_fits_as_well_is_reported(frames):
     answers = [est.pose, *(turn.pose for turn in est.equivalent_poses)]
     tilts = [float(np.degrees(jr.rotation_error(p, instance.truth, spin))) for p in answers]
     assert min(tilts) < 15.0, (tilts, [turn.angle_deg for turn in est.equivalent_poses])
+
+
+def test_track_follows_the_mug_through_consecutive_real_frames(frames):
+    """``jr.track`` from the first frame's annotated pose through the next four frames of the
+    sequence (the camera moves between them), each step from the previous step's answer:
+    every answer within 10% of the mug's diameter by ADD-S."""
+    sequence = [f for f in frames if f.name.startswith("0000/")]
+    first = next(i for i in sequence[0].instances if i.model_name == "025_mug")
+    points = first.model_points
+    hull = points[ConvexHull(points).vertices]
+    diameter = np.sqrt(((hull[:, None] - hull[None]) ** 2).sum(-1).max())
+    K = sequence[0].frame.intrinsics
+    noise = jr.DepthNoise.structured_light((float(K.fx), float(K.fy)))
+    previous = first.truth
+    for frame in sequence[1:]:
+        instance = next(i for i in frame.instances if i.model_name == "025_mug")
+        est = jr.track(frame.frame, points, previous, depth_noise=noise)
+        assert est.success, (frame.name, est.reason)
+        adds = float(jr.add_s(points, est.pose, instance.truth))
+        assert adds < 0.1 * diameter, (frame.name, adds)
+        previous = est
