@@ -24,6 +24,7 @@ from jaxtyping import Float
 from scipy import ndimage
 
 from jaxreg.camera.model import RGBDFrame
+from jaxreg.core._sizes import pad_rows, power_of_two
 from jaxreg.geometry.metrics import Symmetry, pose_error
 from jaxreg.pipeline._coarse import _register_starts
 from jaxreg.pipeline._error_sources import Calibration
@@ -101,10 +102,11 @@ def track(
         )
         lifted = lift_stage(frame, region, None, noise, settings.lift, settings.voxel_size)
         records["lift"] = lifted.record
-        explained = _near_model(
-            model.fine_grid, coarse.poses[0], lifted.points, np.float32(0.01)
-        )
-        coarse = dataclasses.replace(coarse, explained=float(np.mean(explained)))
+        count = len(lifted.points)  # padded with NaN rows: one program for every count
+        rows = pad_rows(lifted.points.astype(np.float32), power_of_two(count, 1024), np.nan)
+        near = _near_model(model.fine_grid, coarse.poses[0], rows, np.float32(0.01))
+        explained = np.asarray(near)
+        coarse = dataclasses.replace(coarse, explained=float(explained[:count].mean()))
         found = refine_stage(
             frame, model, coarse, lifted, None, settings, noise, symmetry, calibration,
             np.random.default_rng(0),
