@@ -7,8 +7,9 @@ Frames: ``tabletop_scene(seed, object=name, distractors=D)`` for every object of
 distractors are boxes, cans and balls: shapes like the targets'). The model is the scene's
 2,048 surface samples, with the object's symmetry and the sensor's noise model. Seeds 9900
 onward are used by no test and no tuning (9300-9349 were looked at while the twin test was
-written, and 9309 is a test; 9800-9849 once, to choose between two versions of it). A pose reported as found is right when its ADD-S is at
-most 10% of the object's diameter, else wrong; every wrong one and every refusal is listed.
+written, and 9309 is a test; 9800-9849 once, to choose between two versions of it). A pose
+reported as found is right when its ADD-S is at most 10% of the object's diameter, else
+wrong; every wrong one and every refusal is listed.
 The goals (silent-answers issue): no wrong pose reported as found, refusals at most 5%.
 """
 
