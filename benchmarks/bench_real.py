@@ -130,6 +130,27 @@ def reason_group(reason: str) -> str:
 # Open3D
 
 
+def open3d_unless(skip: bool):
+    """Open3D's module, or ``None`` when ``skip`` (``--no-open3d``) or when it does not import
+    (said on stdout: the jaxreg rows still run)."""
+    if skip:
+        return None
+    try:
+        import open3d
+    except (ImportError, OSError) as err:
+        print(f"Open3D unavailable ({err}): jaxreg only")
+        return None
+    return open3d
+
+
+def model_target(o3d, points: np.ndarray):
+    """The model's points ``(M, 3)`` (metres) as Open3D's ICP target: a cloud with normals
+    from 20 neighbours."""
+    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+    target.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
+    return target
+
+
 def cube_rotations() -> np.ndarray:
     """``(24, 3, 3)`` the rotations of the cube: signed permutation matrices with det +1."""
     out = []
@@ -230,12 +251,7 @@ def main():
     problems = [(f, i) for f in frames for i in f.instances]
     if any(i.model_points is None for _, i in problems):
         raise SystemExit(f"no models/ beside {args.data}'s data/: the scores need the models")
-    o3d = None
-    if not args.no_open3d:
-        try:
-            import open3d as o3d
-        except (ImportError, OSError) as err:
-            print(f"Open3D unavailable ({err}): jaxreg only")
+    o3d = open3d_unless(args.no_open3d)
     print(f"{platform.processor() or platform.machine()}, {jax.devices()[0].platform}, "
           f"jax {jax.__version__}" + (f", Open3D {o3d.__version__}" if o3d else "")
           + f"; {len(problems)} instances in {len(frames)} frames of {args.data}")  # fmt: skip
@@ -245,10 +261,7 @@ def main():
         if instance.model_name not in models:
             points = instance.model_points.astype(np.float64)
             box_centre = (points.min(0) + points.max(0)) / 2
-            target = None
-            if o3d is not None:
-                target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-                target.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
+            target = None if o3d is None else model_target(o3d, points)
             models[instance.model_name] = (diameter(points), box_centre, target, points.mean(0))
 
     print("per instance: frame  object  jaxreg found  ADD-S mm  first call ms  ms  "

@@ -27,12 +27,11 @@ from pathlib import Path
 
 import numpy as np
 from _timing import DATA, print_table
-from bench_real import diameter
+from bench_real import ICP_DISTANCE, ICP_ITERATIONS, VOXEL, diameter, model_target, open3d_unless
 
 import jaxreg as jr
 
 REACH = 0.05  # metres beyond the model's radius that Open3D's crop keeps (track's max_motion)
-VOXEL, ICP_DISTANCE, ICP_ITERATIONS = 0.004, 0.015, 50
 FOLLOWED = 0.1  # ADD-S below this fraction of the diameter
 
 
@@ -62,12 +61,7 @@ def main():
     args = parser.parse_args()
     if not args.data.exists():
         raise SystemExit(f"no YCB-Video frames at {args.data}: pass --data or set JAXREG_DATA")
-    o3d = None
-    if not args.no_open3d:
-        try:
-            import open3d as o3d
-        except (ImportError, OSError) as err:
-            print(f"Open3D unavailable ({err}): jaxreg only")
+    o3d = open3d_unless(args.no_open3d)
     sequences: dict[str, list] = {}
     for frame in jr.io.read_ycbv(args.data):
         sequences.setdefault(frame.name.split("/")[0], []).append(frame)
@@ -80,11 +74,7 @@ def main():
             size = diameter(points)
             centre = points.astype(np.float64).mean(0)
             radius = float(np.linalg.norm(points - centre, axis=1).max())
-            target = None
-            if o3d is not None:
-                cloud = o3d.utility.Vector3dVector(points.astype(np.float64))
-                target = o3d.geometry.PointCloud(cloud)
-                target.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
+            target = None if o3d is None else model_target(o3d, points)
             ours, theirs = first.truth, np.asarray(first.truth.as_matrix(), np.float64)
             for frame in frames[1:]:
                 instance = next(
