@@ -65,6 +65,18 @@ def _patch_view(monkeypatch):
     return scenes, pages
 
 
+def test_demo_track_finds_then_follows_the_object_frame_by_frame(capsys):
+    assert main(["demo", "--track", "3", "--seed", "12", "--object", "cylinder", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    rows = report["frames"]
+    assert [row["method"] for row in rows] == ["estimate_pose", "track", "track"]
+    diameter_mm = np.hypot(70.0, 120.0)  # the synthetic can: 70 mm across, 120 mm tall
+    assert all(row["found"] and row["add_s_mm"] < 0.1 * diameter_mm for row in rows)
+    assert all(10.0 <= row["step_mm"] <= 50.0 for row in rows[1:])
+    assert main(["demo", "--track", "1"]) == 2
+    assert "at least 2 frames" in capsys.readouterr().err
+
+
 def test_demo_view_serves_the_scene_after_the_report(capsys, monkeypatch):
     scenes, pages = _patch_view(monkeypatch)
     args = ["demo", "--json", "--seed", "4", "--object", "box", "--view", "--view-port", "0"]

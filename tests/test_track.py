@@ -75,3 +75,37 @@ def test_bad_previous_poses_are_refused_clearly(scene):
         jr.track(scene.frame, scene.model_points, failed)
     with pytest.raises(ValueError, match="max_motion"):
         jr.track(scene.frame, scene.model_points, scene.truth, max_motion=0.0)
+
+
+@pytest.fixture(scope="module")
+def pushed():
+    """A box pushed across the table over six frames (1-5 cm and 2-10 degrees a frame), a board
+    in front of it in frame 3, gone from the view in frame 5."""
+    return jr.synth.tracking_sequence(11, object="box", frames=6, occluded=(3,), leaves_at=5)
+
+
+def test_the_sequence_moves_the_target_by_the_steps_asked(pushed):
+    steps = pushed.steps
+    assert steps.shape == (5, 2)
+    assert np.all((steps[:, 0] >= 0.01) & (steps[:, 0] <= 0.05))
+    assert np.all((steps[:, 1] >= 2.0) & (steps[:, 1] <= 10.0))
+    for k, (before, after) in enumerate(zip(pushed.scenes, pushed.scenes[1:], strict=False)):
+        moved = np.linalg.norm(np.asarray(after.truth.translation() - before.truth.translation()))
+        assert moved == pytest.approx(steps[k, 0], abs=1e-5)
+    assert pushed.occluded.tolist() == [False, False, False, True, False, False]
+    assert pushed.in_view.tolist() == [True] * 5 + [False]
+    seen = [int(scene.mask.sum()) for scene in pushed.scenes]
+    assert seen[3] < 0.8 * min(seen[2], seen[4]) and seen[5] == 0
+
+
+def test_follows_a_pushed_box_through_occlusion_and_loses_it_when_it_leaves(pushed):
+    scenes = pushed.scenes
+    model, symmetry = scenes[0].model_points, scenes[0].symmetry
+    estimate = jr.estimate_pose(scenes[0].frame, model, symmetry=symmetry)
+    assert estimate.success and _within_tenth(scenes[0], estimate.pose), estimate.reason
+    for scene in scenes[1:5]:  # the board in frame 3 hides 40% of the box's width
+        estimate = jr.track(scene.frame, model, estimate, symmetry=symmetry)
+        assert estimate.success, estimate.reason
+        assert _within_tenth(scene, estimate.pose)
+    lost = jr.track(scenes[5].frame, model, estimate, symmetry=symmetry)
+    assert not lost.success and lost.reason.startswith("lost: ")

@@ -409,6 +409,10 @@ def run_demo(args) -> int:
 
     if args.object not in OBJECTS:
         raise ValueError(f"unknown object {args.object!r}: choose one of {', '.join(OBJECTS)}")
+    if args.track is not None:
+        from jaxreg.cli._track import run_demo_track
+
+        return run_demo_track(args)
     progress = _progress(args.json)
     if not args.json:
         print(
@@ -533,6 +537,10 @@ def _add_demo(sub) -> None:
     demo = sub.add_parser("demo", help="estimate a pose in a synthetic scene whose truth is known")
     demo.add_argument("--seed", type=int, default=0, help="the scene (default 0)")
     demo.add_argument("--object", default="mug", help="box, mug, cylinder or container")
+    demo.add_argument(
+        "--track", type=int, metavar="N",
+        help="N frames of the object pushed across the table: found in the first, tracked after",
+    )  # fmt: skip
     _common(demo)
     demo.set_defaults(run=run_demo)
 

@@ -2,11 +2,13 @@
 
 :func:`track` needs no segmentation: the model at the ``previous`` pose, projected into the new
 frame, says which pixels to look at (its footprint grown by the motion allowed between frames,
-the depths near the model's, on one surface: :func:`jaxreg.pipeline._surface.mask_surface`).
-ICP from the previous pose, trimmed to its better pairs, follows the object there; the pixels
-whose depth agrees with the model's at the followed pose are the segment, and the register stage
-refines that pose on them: no candidates, no coarse search. The same evidence as
-:func:`jaxreg.estimate_pose` refuses an answer (the share of the segment the model explains,
+the depths near the model's, above the previous estimate's table if it found one, on one
+surface: :func:`jaxreg.pipeline._surface.mask_surface`). ICP from four starts (the previous
+pose, that pose moved by the shift of the looked-at pixels' centroid, and that one turned by
+half the largest turn either way), trimmed to its better pairs, follows the object there; the
+pixels whose depth agrees with the model's at the best followed pose are the segment, and the
+register stage refines that pose on them: no candidates, no coarse search. The same evidence
+as :func:`jaxreg.estimate_pose` refuses an answer (the share of the segment the model explains,
 the residual, the image seeing through the model, the segment reaching beyond it), and the
 same error budget gives its covariance. A refusal says the object is lost (it moved farther
 than ``max_motion``, left the view, or is hidden): re-detect it with ``estimate_pose``.
@@ -19,7 +21,7 @@ import time
 from typing import Any
 
 import numpy as np
-from jaxlie import SE3
+from jaxlie import SE3, SO3
 from jaxtyping import Float
 from scipy import ndimage
 
@@ -64,7 +66,9 @@ def track(
         frame: the new depth frame.
         model_points: ``(M, 3)`` the model's points (object frame, metres).
         previous: the previous ``base_T_object``: an ``SE3``, a ``(4, 4)`` matrix, or the
-            previous :class:`PoseEstimate` (which must hold a pose).
+            previous :class:`PoseEstimate` (which must hold a pose). An estimate's ``table``
+            is taken to stay where it was (base frame): pixels less than the lift's
+            ``min_height`` above it are not the object, and the answer may rest on it.
         max_motion: the farthest (metres) the object's points may move between the frames:
             the footprint grows by it, the depths looked at reach it beyond the model's, and
             an answer farther from ``previous`` is refused as lost.
@@ -84,6 +88,7 @@ def track(
     """
     model_points, model_normals = _checked_model(frame, model_points, model_normals)
     base_T_object = _previous_pose(previous)
+    table = previous.table if isinstance(previous, PoseEstimate) else None
     if not (max_motion > 0 and max_turn_deg > 0):
         raise ValueError(
             f"max_motion and max_turn_deg must be positive, got {max_motion}, {max_turn_deg}"
@@ -98,9 +103,9 @@ def track(
     records: dict[str, Any] = {}
     try:
         region, coarse, records["segment"] = _follow(
-            frame, model, base_T_object, max_motion, noise, settings
+            frame, model, base_T_object, max_motion, max_turn_deg, noise, settings, table
         )
-        lifted = lift_stage(frame, region, None, noise, settings.lift, settings.voxel_size)
+        lifted = lift_stage(frame, region, table, noise, settings.lift, settings.voxel_size)
         records["lift"] = lifted.record
         count = len(lifted.points)  # padded with NaN rows: one program for every count
         rows = pad_rows(lifted.points.astype(np.float32), power_of_two(count, 1024), np.nan)
@@ -108,15 +113,15 @@ def track(
         explained = np.asarray(near)
         coarse = dataclasses.replace(coarse, explained=float(explained[:count].mean()))
         found = refine_stage(
-            frame, model, coarse, lifted, None, settings, noise, symmetry, calibration,
+            frame, model, coarse, lifted, table, settings, noise, symmetry, calibration,
             np.random.default_rng(0),
         )  # fmt: skip
         records["register"] = found.record
         _check_motion(base_T_object, found, max_motion, max_turn_deg, lifted, symmetry)
-        return _found(found, lifted, records, None)
+        return _found(found, lifted, records, table)
     except _Failed as failure:
         failure.reason += "; re-detect with estimate_pose"
-        return _refused(frame, failure, records, None, prefix="lost: ")
+        return _refused(frame, failure, records, table, prefix="lost: ")
 
 
 def _previous_pose(previous) -> SE3:
@@ -144,16 +149,22 @@ def _previous_pose(previous) -> SE3:
     return SE3.from_matrix(matrix)
 
 
-def _projection(frame, model, base_T_object: SE3) -> np.ndarray:
-    """``(H, W)`` the model's nearest camera depth per pixel at ``base_T_object`` (metres;
-    ``inf`` where no model point projects)."""
-    h, w = np.asarray(frame.depth).shape
+def _camera_points(frame, model, base_T_object: SE3) -> np.ndarray:
+    """``(R, 3)`` the model's finite points at ``base_T_object`` in camera coordinates
+    (metres), those in front of the camera."""
     points = model.points[np.all(np.isfinite(model.points), axis=1)].astype(np.float64)
     camera_T_object = frame.base_T_camera.inverse() @ SE3(
         np.asarray(base_T_object.wxyz_xyz, np.float32)
     )
     cam = np.asarray(camera_T_object @ points)
-    cam = cam[cam[:, 2] > 1e-3]
+    return cam[cam[:, 2] > 1e-3]
+
+
+def _projection(frame, model, base_T_object: SE3) -> np.ndarray:
+    """``(H, W)`` the model's nearest camera depth per pixel at ``base_T_object`` (metres;
+    ``inf`` where no model point projects)."""
+    h, w = np.asarray(frame.depth).shape
+    cam = _camera_points(frame, model, base_T_object)
     nearest = np.full((h, w), np.inf)
     if len(cam):
         pixels = np.rint(np.asarray(frame.intrinsics.project(cam))).astype(int)
@@ -162,10 +173,11 @@ def _projection(frame, model, base_T_object: SE3) -> np.ndarray:
     return nearest
 
 
-def _around(frame, model, base_T_object: SE3, reach: float, noise) -> np.ndarray:
+def _around(frame, model, base_T_object: SE3, reach: float, noise, table, low) -> np.ndarray:
     """``(H, W)`` bool: the model's footprint at ``base_T_object`` grown by ``reach`` metres
-    (at its nearest depth), the pixels with depth within ``reach`` of the model's depths,
-    on one surface with the largest piece (:func:`~jaxreg.pipeline._surface.mask_surface`)."""
+    (at its nearest depth), the pixels with depth within ``reach`` of the model's depths and,
+    with a ``table``, ``low`` metres or more above it, on one surface with the largest piece
+    (:func:`~jaxreg.pipeline._surface.mask_surface`)."""
     depth = np.asarray(frame.depth)
     nearest = _projection(frame, model, base_T_object)
     footprint = np.isfinite(nearest)
@@ -176,6 +188,10 @@ def _around(frame, model, base_T_object: SE3, reach: float, noise) -> np.ndarray
     grow = int(np.clip(np.ceil(reach * fx / max(float(z.min()), 1e-3)), 1, 200))
     grown = ndimage.binary_dilation(footprint, iterations=grow)
     near = np.isfinite(depth) & (depth >= z.min() - reach) & (depth <= z.max() + reach)
+    if table is not None:
+        rows, cols = np.nonzero(near & grown)
+        height = lift_pixels(frame, rows, cols) @ np.asarray(table.normal, np.float64)
+        near[rows, cols] = height + float(table.offset) >= low
     return mask_surface(depth, grown & near, np.asarray(noise.coefficients), fx)
 
 
@@ -194,15 +210,19 @@ def _on_model(frame, model, base_T_object: SE3, noise) -> np.ndarray:
     return np.isfinite(nearest) & np.isfinite(depth) & (np.abs(depth - nearest) <= limit)
 
 
-def _follow(frame, model, base_T_object: SE3, max_motion, noise, settings):
-    """The object followed from the previous pose: ICP (trimmed to the better 60% of its
-    pairs) of the pixels around the previous footprint (:func:`_around`, within
-    ``max_motion``), then the pixels whose depth agrees with the model's at that pose
+def _follow(frame, model, base_T_object: SE3, max_motion, max_turn_deg, noise, settings, table):
+    """The object followed from the previous pose: ICP from :func:`_starts` (trimmed to the
+    better 60% of its pairs; the best by the share of pairs within the last distance, then
+    the residual) of the pixels around the previous footprint (:func:`_around`, within
+    ``max_motion``, above the ``table`` by the lift stage's ``min_height`` if one is
+    given), then the pixels whose depth agrees with the model's at that pose
     (:func:`_on_model`): the segment to judge. Returns that segment ``(H, W)``, the followed
     pose as a coarse search result, and the segment record; ``_Failed`` when too few pixels
     are found."""
     start = time.perf_counter()
-    looked = _around(frame, model, base_T_object, max_motion, noise)
+    looked = _around(
+        frame, model, base_T_object, max_motion, noise, table, settings.lift.min_height
+    )
     need = settings.lift.min_segment_points
     record = SegmentRecord(
         ms=0.0, valid_grid_points=int(np.isfinite(np.asarray(frame.depth)).sum()),
@@ -221,20 +241,60 @@ def _follow(frame, model, base_T_object: SE3, max_motion, noise, settings):
     rows, cols = np.nonzero(looked)
     points = lift_pixels(frame, rows, cols)
     source = _padded(points, settings.register.max_points, np.random.default_rng(0))
-    start_pose = np.asarray(base_T_object.inverse().wxyz_xyz, np.float32)[None]
+    starts = _starts(frame, model, base_T_object, points, table, max_turn_deg)
+    # pairs as far apart as the motion allowed at first (at most the coarse grid's exact
+    # reach), down to the refinement's last distance
+    first = min(max(max_motion, float(gates.distances[0])), float(model.grid.max_distance))
+    reach = np.geomspace(first, gates.distances[-1], 30)
     followed = _register_starts(
-        source, model.points, model.normals, model.fine_grid, SE3(start_pose),
-        gates.distances, np.float32(0.6), 30,
+        source, model.points, model.normals, model.grid, SE3(starts),
+        reach.astype(np.float32), np.float32(0.6), 30,
     )  # fmt: skip
-    object_T_base = np.asarray(followed.pose.wxyz_xyz, np.float32)
+    fractions = np.nan_to_num(np.asarray(followed.inlier_fraction), nan=-1.0)
+    rmses = np.nan_to_num(np.asarray(followed.inlier_rmse), nan=np.inf)
+    best = int(np.lexsort((rmses, -np.round(fractions, 2)))[0])
+    object_T_base = np.asarray(followed.pose.wxyz_xyz, np.float32)[best : best + 1]
     if not np.all(np.isfinite(object_T_base)):
-        object_T_base = start_pose
+        object_T_base = starts[:1]
     pose = SE3(object_T_base[0].astype(np.float64)).inverse()
     region = _on_model(frame, model, pose, noise)
     record = dataclasses.replace(record, surface_pixels=int(region.sum()))
     register = RegisterRecord(ms=0.0, starts=1, candidates=[], coarse_kept_starts=1)
     coarse = CoarseSearch(region, object_T_base, 1.0, gates, register)
     return region, coarse, record.with_ms(start)
+
+
+def _starts(frame, model, base_T_object: SE3, points, table, max_turn_deg) -> np.ndarray:
+    """``(4, 7)`` float32 object_T_base starts of the follow: the previous pose, the previous
+    pose moved by the offset between the centroid of the pixels looked at (``points``
+    ``(P, 3)``, base frame) and that of the model's points the camera saw at the previous pose,
+    and that one turned by half ``max_turn_deg`` either way (about the ``table``'s normal
+    through the moved centroid; without a table, about the camera's optical axis)."""
+    cam = _camera_points(frame, model, base_T_object)
+    nearest = _projection(frame, model, base_T_object)
+    h, w = nearest.shape
+    pixels = np.rint(np.asarray(frame.intrinsics.project(cam))).astype(int)
+    inside = np.all((pixels >= 0) & (pixels < (w, h)), axis=1)
+    seen = np.zeros(len(cam), bool)
+    seen[inside] = cam[inside, 2] <= nearest[pixels[inside, 1], pixels[inside, 0]] + 0.005
+    base_T_camera = frame.base_T_camera
+    was = np.asarray(base_T_camera @ cam[seen]).mean(0) if seen.any() else None
+    now = np.nanmean(points, axis=0)
+    shift = np.zeros(3) if was is None or not np.all(np.isfinite(now)) else now - was
+    if table is not None:
+        axis = np.asarray(table.normal, np.float64)
+    else:
+        axis = np.asarray(base_T_camera.rotation() @ np.array([0.0, 0.0, 1.0]), np.float64)
+    centre = now if np.all(np.isfinite(now)) else np.asarray(base_T_object.translation())
+    moved = SE3.from_translation(shift) @ base_T_object
+    poses = [base_T_object, moved]
+    for sign in (1.0, -1.0):
+        turn = SO3.exp(axis * sign * np.radians(max_turn_deg / 2))
+        about = (
+            SE3.from_translation(centre) @ SE3.from_rotation(turn) @ SE3.from_translation(-centre)
+        )
+        poses.append(about @ moved)
+    return np.stack([np.asarray(p.inverse().wxyz_xyz, np.float32) for p in poses])
 
 
 def _check_motion(previous: SE3, found, max_motion, max_turn_deg, lifted, symmetry) -> None:

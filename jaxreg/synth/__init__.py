@@ -1,6 +1,6 @@
 """Synthetic tabletop RGB-D scenes: meshes of the test objects, an exact ray-cast rendering, a
-stereo depth sensor model, scenes with their ground truth (pose, mask, symmetry), and those
-scenes written as a BOP dataset split.
+stereo depth sensor model, scenes with their ground truth (pose, mask, symmetry), sequences of a
+moving target for tracking, and those scenes written as a BOP dataset split.
 
 Needs the ray caster (trimesh + Embree), so ``import jaxreg`` loads it on first use. May import
 core, geometry, uncertainty and camera.
@@ -26,6 +26,10 @@ from jaxreg.synth.scenes import (
     look_at as look_at,
     render as render,
     tabletop_scene as tabletop_scene,
+)
+from jaxreg.synth.sequences import (
+    TrackingSequence as TrackingSequence,
+    tracking_sequence as tracking_sequence,
 )
 
 
