@@ -3,15 +3,18 @@
 :func:`track` needs no segmentation: the model at the ``previous`` pose, projected into the new
 frame, says which pixels to look at (its footprint grown by the motion allowed between frames,
 the depths near the model's, above the previous estimate's table if it found one, on one
-surface: :func:`jaxreg.pipeline._surface.mask_surface`). ICP from four starts (the previous
-pose, that pose moved by the shift of the looked-at pixels' centroid, and that one turned by
-half the largest turn either way), trimmed to its better pairs, follows the object there; the
-pixels whose depth agrees with the model's at the best followed pose are the segment, and the
+surface: :func:`jaxreg.pipeline._surface.mask_surface`). ICP from the previous pose, trimmed to
+its better pairs, follows the object there; where the image sees through the model at its
+answer (perhaps a larger motion), so does ICP from four starts with pairs out to the motion
+allowed (the previous pose, that pose moved by the shift of the looked-at pixels' centroid,
+and that one turned by half the largest turn either way), and the best answer is kept. The
+pixels whose depth agrees with the model's at the pose followed are the segment, and the
 register stage refines that pose on them: no candidates, no coarse search. The same evidence
-as :func:`jaxreg.estimate_pose` refuses an answer (the share of the segment the model explains,
-the residual, the image seeing through the model, the segment reaching beyond it), and the
-same error budget gives its covariance. A refusal says the object is lost (it moved farther
-than ``max_motion``, left the view, or is hidden): re-detect it with ``estimate_pose``.
+as :func:`jaxreg.estimate_pose` refuses an answer (the share of the segment the model
+explains, the residual, the image seeing through the model, the segment reaching beyond it),
+and the same error budget gives its covariance. A refusal says the object is lost (it moved
+farther than ``max_motion``, left the view, or is hidden): re-detect it with
+``estimate_pose``.
 """
 
 from __future__ import annotations
@@ -30,7 +33,13 @@ from jaxreg.core._sizes import pad_rows, power_of_two
 from jaxreg.geometry.metrics import Symmetry, pose_error
 from jaxreg.pipeline._coarse import _register_starts
 from jaxreg.pipeline._error_sources import Calibration
-from jaxreg.pipeline._judge import NOISE_SIGMAS, TOLERANCE, _near_model
+from jaxreg.pipeline._judge import (
+    NOISE_SIGMAS,
+    TOLERANCE,
+    _confirmed_share,
+    _judge,
+    _near_model,
+)
 from jaxreg.pipeline._lift_stage import lift_pixels, lift_stage
 from jaxreg.pipeline._model import _prepare_model
 from jaxreg.pipeline._register_stage import refine_stage, tolerances
@@ -211,14 +220,17 @@ def _on_model(frame, model, base_T_object: SE3, noise) -> np.ndarray:
 
 
 def _follow(frame, model, base_T_object: SE3, max_motion, max_turn_deg, noise, settings, table):
-    """The object followed from the previous pose: ICP from :func:`_starts` (trimmed to the
-    better 60% of its pairs; the best by the share of pairs within the last distance, then
-    the residual) of the pixels around the previous footprint (:func:`_around`, within
-    ``max_motion``, above the ``table`` by the lift stage's ``min_height`` if one is
-    given), then the pixels whose depth agrees with the model's at that pose
-    (:func:`_on_model`): the segment to judge. Returns that segment ``(H, W)``, the followed
-    pose as a coarse search result, and the segment record; ``_Failed`` when too few pixels
-    are found."""
+    """The object followed from the previous pose, in the pixels around the previous
+    footprint (:func:`_around`, within ``max_motion``, above the ``table`` by the lift
+    stage's ``min_height`` if one is given): ICP from the previous pose with pairs within the
+    refinement's distances, trimmed to the better 60% of its pairs; where the image sees
+    through more than half ``max_contradicted`` of the model at its answer (:func:`_ranked`),
+    also ICP from four starts (:func:`_starts`) with pairs out to ``max_motion``, and the
+    best of all.
+    The pixels whose depth agrees with the model's at the pose followed are the segment to
+    judge (:func:`_on_model`). Returns that segment ``(H, W)``, the followed pose as a
+    coarse search result, and the segment record; ``_Failed`` when too few pixels are
+    found."""
     start = time.perf_counter()
     looked = _around(
         frame, model, base_T_object, max_motion, noise, table, settings.lift.min_height
@@ -241,27 +253,53 @@ def _follow(frame, model, base_T_object: SE3, max_motion, max_turn_deg, noise, s
     rows, cols = np.nonzero(looked)
     points = lift_pixels(frame, rows, cols)
     source = _padded(points, settings.register.max_points, np.random.default_rng(0))
-    starts = _starts(frame, model, base_T_object, points, table, max_turn_deg)
-    # pairs as far apart as the motion allowed at first (at most the coarse grid's exact
-    # reach), down to the refinement's last distance
-    first = min(max(max_motion, float(gates.distances[0])), float(model.grid.max_distance))
-    reach = np.geomspace(first, gates.distances[-1], 30)
-    followed = _register_starts(
-        source, model.points, model.normals, model.grid, SE3(starts),
-        reach.astype(np.float32), np.float32(0.6), 30,
+    previous = np.asarray(base_T_object.inverse().wxyz_xyz, np.float32)[None]
+    # a small motion: the previous pose, pairs within the refinement's distances (clutter
+    # near the object stays out of reach)
+    near = _register_starts(
+        source, model.points, model.normals, model.fine_grid, SE3(previous), gates.distances,
+        np.float32(0.6), 30,
     )  # fmt: skip
-    fractions = np.nan_to_num(np.asarray(followed.inlier_fraction), nan=-1.0)
-    rmses = np.nan_to_num(np.asarray(followed.inlier_rmse), nan=np.inf)
-    best = int(np.lexsort((rmses, -np.round(fractions, 2)))[0])
-    object_T_base = np.asarray(followed.pose.wxyz_xyz, np.float32)[best : best + 1]
+    poses, scores, seen_through = _ranked(frame, model, table, near, noise, settings)
+    if seen_through[0] > 0.5 * settings.register.max_contradicted:
+        # perhaps a larger motion: four starts (:func:`_starts`), pairs as far apart as the
+        # motion allowed at first (at most the coarse grid's exact reach), down to the same
+        # last distance; the best of these and the first
+        first = min(max(max_motion, float(gates.distances[0])), float(model.grid.max_distance))
+        reach = np.geomspace(first, gates.distances[-1], 30).astype(np.float32)
+        starts = _starts(frame, model, base_T_object, points, table, max_turn_deg)
+        far = _register_starts(
+            source, model.points, model.normals, model.grid, SE3(starts), reach,
+            np.float32(0.6), 30,
+        )  # fmt: skip
+        wide, wide_scores, _ = _ranked(frame, model, table, far, noise, settings)
+        if wide_scores[0] > scores[0]:
+            poses = wide
+    object_T_base = poses[:1]
     if not np.all(np.isfinite(object_T_base)):
-        object_T_base = starts[:1]
+        object_T_base = previous
     pose = SE3(object_T_base[0].astype(np.float64)).inverse()
     region = _on_model(frame, model, pose, noise)
     record = dataclasses.replace(record, surface_pixels=int(region.sum()))
     register = RegisterRecord(ms=0.0, starts=1, candidates=[], coarse_kept_starts=1)
     coarse = CoarseSearch(region, object_T_base, 1.0, gates, register)
     return region, coarse, record.with_ms(start)
+
+
+def _ranked(frame, model, table, results, noise, settings):
+    """ICP ``results`` ``(S,)`` best first: object_T_base ``(S, 7)``, scores ``(S,)`` and the
+    share of the model's seen surface the image sees through ``(S,)``. Ranked as the register
+    stage ranks its refined starts (the share of pairs within the last distance times the
+    share of the model's seen surface the image confirms, then the residual); a pose seen
+    through on more than ``max_contradicted`` scores -1 (the register stage would refuse it)."""
+    poses = np.asarray(results.pose.wxyz_xyz, np.float32)
+    seen = np.asarray(_judge(frame, table, poses, model.points, TOLERANCE, noise.coefficients))
+    scores = np.nan_to_num(np.asarray(results.inlier_fraction) * _confirmed_share(seen), nan=-1)
+    seen_through = seen[:, 1] / np.maximum(seen[:, :3].sum(1), 1)
+    scores = np.where(seen_through > settings.register.max_contradicted, -1.0, scores)
+    rmses = np.nan_to_num(np.asarray(results.inlier_rmse), nan=np.inf)
+    order = np.lexsort((rmses, -np.round(scores, 2)))
+    return poses[order], scores[order], seen_through[order]
 
 
 def _starts(frame, model, base_T_object: SE3, points, table, max_turn_deg) -> np.ndarray:
