@@ -25,7 +25,8 @@ seeds nothing was tuned on) and every object: a target pushed 1-5 cm and turned 
 frame, a board in front of 40% of its width in frame 3, gone in frame 5. Frame 0 is found by
 ``estimate_pose``; each method follows frames 1-4 from its own previous answer (jaxreg: the
 previous ``PoseEstimate``, its table included; a refused step restarts from the truth, an
-``SE3`` without a table) and should say lost in frame 5. Wrong: a pose claimed with ADD-S of 10% of the diameter or more.
+``SE3`` without a table) and should say lost in frame 5. Wrong: a pose claimed with ADD-S of
+10% of the diameter or more.
 """
 
 from __future__ import annotations
