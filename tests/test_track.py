@@ -109,3 +109,18 @@ def test_follows_a_pushed_box_through_occlusion_and_loses_it_when_it_leaves(push
         assert _within_tenth(scene, estimate.pose)
     lost = jr.track(scenes[5].frame, model, estimate, symmetry=symmetry)
     assert not lost.success and lost.reason.startswith("lost: ")
+
+
+@pytest.mark.parametrize(
+    "request_, message",
+    [
+        ({"frames": 1}, "at least 2 frames"),
+        ({"step_translation": (0.05, 0.01)}, "step_translation"),
+        ({"step_rotation_deg": (5.0, 2.0)}, "step_rotation_deg"),
+        ({"occluded": (9,)}, "occluded frames"),
+        ({"occluder_fraction": 1.5}, "occluder_fraction"),
+    ],
+)
+def test_bad_sequence_requests_raise(request_, message):
+    with pytest.raises(ValueError, match=message):
+        jr.synth.tracking_sequence(0, **request_)

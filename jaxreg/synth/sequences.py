@@ -83,6 +83,10 @@ def tracking_sequence(
     low, high = step_translation
     if not 0 <= low <= high:
         raise ValueError(f"step_translation must be (min, max) with 0 <= min <= max: {low, high}")
+    if not 0 <= step_rotation_deg[0] <= step_rotation_deg[1]:
+        raise ValueError(
+            f"step_rotation_deg must be (min, max) with 0 <= min <= max: {step_rotation_deg}"
+        )
     if not 0 < occluder_fraction < 1:
         raise ValueError(f"occluder_fraction must lie in (0, 1), got {occluder_fraction}")
     if any(not 0 <= k < frames for k in occluded):
