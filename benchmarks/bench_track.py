@@ -45,6 +45,13 @@ REACH = 0.05  # metres beyond the model's radius that Open3D's crop keeps (track
 FOLLOWED = 0.1  # ADD-S below this fraction of the diameter
 
 
+def crop_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """The model points' centroid ``(3,)`` and their largest distance from it (metres): the
+    sphere about the previous pose that Open3D's crop grows by ``REACH``."""
+    centre = points.astype(np.float64).mean(0)
+    return centre, float(np.linalg.norm(points - centre, axis=1).max())
+
+
 def open3d_step(o3d, frame, target, radius, centre, previous: np.ndarray):
     """``(camera_T_object (4, 4), ms)``: Open3D's ICP from ``previous`` (see the docstring);
     ``centre`` the model's centroid (object frame), ``target`` its cloud with normals."""
@@ -84,8 +91,7 @@ def main():
         for first in frames[0].instances:
             points = first.model_points
             size = diameter(points)
-            centre = points.astype(np.float64).mean(0)
-            radius = float(np.linalg.norm(points - centre, axis=1).max())
+            centre, radius = crop_sphere(points)
             target = None if o3d is None else model_target(o3d, points)
             ours, theirs = first.truth, np.asarray(first.truth.as_matrix(), np.float64)
             for frame in frames[1:]:
@@ -153,6 +159,16 @@ def main():
     synthetic(o3d, range(args.first, args.first + args.seeds))
 
 
+def claimed(tally, pose, truth, points, size, gone, cells) -> None:
+    """Counts a claimed pose in ``tally`` (followed: within ``FOLLOWED`` of the diameter
+    ``size`` by ADD-S while the target is in view; else wrong, and always when it is
+    ``gone``) and adds its ADD-S (mm, ``!`` when wrong) to ``cells``."""
+    adds = float(jr.add_s(points, pose, truth))
+    good = not gone and adds < FOLLOWED * size
+    tally[0 if good else 2] += 1
+    cells.append(f"{adds * 1e3:.1f}" + ("" if good else "!"))
+
+
 def synthetic(o3d, seeds) -> None:
     """The synthetic sequences' table (module docstring)."""
     counts = {"jaxreg": [0, 0, 0, 0], "Open3D": [0, 0, 0, 0]}  # followed, refused, wrong, lost
@@ -171,30 +187,22 @@ def synthetic(o3d, seeds) -> None:
                 print(f"{name}/{seed}  | estimate_pose refused frame 0: {ours.reason}")
                 continue
             target = None if o3d is None else model_target(o3d, points)
-            centre = points.astype(np.float64).mean(0)
-            radius = float(np.linalg.norm(points - centre, axis=1).max())
+            centre, radius = crop_sphere(points)
             theirs = np.asarray(ours.pose.as_matrix(), np.float64)
             line, others = [], []
             for k, scene in enumerate(scenes[1:], start=1):
                 est = jr.track(scene.frame, points, ours, symmetry=symmetry)
-                tally = counts["jaxreg"]
                 if est.success:
-                    adds = float(jr.add_s(points, est.pose, scene.truth))
-                    good = k < 5 and adds < FOLLOWED * size
-                    tally[0 if good else 2] += 1
-                    line.append(f"{adds * 1e3:.1f}" + ("" if good else "!"))
+                    claimed(counts["jaxreg"], est.pose, scene.truth, points, size, k == 5, line)
                     ours = est
                 else:  # restart from the truth, as a re-detection would
                     line.append("lost")
-                    tally[1 if k < 5 else 3] += 1
+                    counts["jaxreg"][1 if k < 5 else 3] += 1
                     ours = scene.truth
                 if target is not None:
                     theirs, _ = open3d_step(o3d, scene.frame, target, radius, centre, theirs)
                     pose = jr.SE3.from_matrix(theirs.astype(np.float32))
-                    adds = float(jr.add_s(points, pose, scene.truth))
-                    good = k < 5 and adds < FOLLOWED * size
-                    counts["Open3D"][0 if good else 2] += 1
-                    others.append(f"{adds * 1e3:.1f}" + ("" if good else "!"))
+                    claimed(counts["Open3D"], pose, scene.truth, points, size, k == 5, others)
             print(f"{name}/{seed}  | {' '.join(line)} | {' '.join(others)}", flush=True)
     rows = [
         [method, f"{c[0]}", f"{c[1]}", f"{c[2]}", f"{c[3]}"] for method, c in counts.items()

@@ -158,37 +158,35 @@ def _previous_pose(previous) -> SE3:
     return SE3.from_matrix(matrix)
 
 
-def _camera_points(frame, model, base_T_object: SE3) -> np.ndarray:
-    """``(R, 3)`` the model's finite points at ``base_T_object`` in camera coordinates
-    (metres), those in front of the camera."""
+def _projected(frame, model, base_T_object: SE3):
+    """The model's finite points at ``base_T_object`` in front of the camera: their camera
+    coordinates ``(R, 3)`` (metres), their pixels ``(R, 2)`` (column, row; rounded), which of
+    those lie in the image ``(R,)``, and the nearest camera depth per pixel ``(H, W)``
+    (``inf`` where no point projects)."""
+    h, w = np.asarray(frame.depth).shape
     points = model.points[np.all(np.isfinite(model.points), axis=1)].astype(np.float64)
     camera_T_object = frame.base_T_camera.inverse() @ SE3(
         np.asarray(base_T_object.wxyz_xyz, np.float32)
     )
     cam = np.asarray(camera_T_object @ points)
-    return cam[cam[:, 2] > 1e-3]
-
-
-def _projection(frame, model, base_T_object: SE3) -> np.ndarray:
-    """``(H, W)`` the model's nearest camera depth per pixel at ``base_T_object`` (metres;
-    ``inf`` where no model point projects)."""
-    h, w = np.asarray(frame.depth).shape
-    cam = _camera_points(frame, model, base_T_object)
+    cam = cam[cam[:, 2] > 1e-3]
     nearest = np.full((h, w), np.inf)
+    pixels = np.zeros((0, 2), int)
+    inside = np.zeros(0, bool)
     if len(cam):
         pixels = np.rint(np.asarray(frame.intrinsics.project(cam))).astype(int)
         inside = np.all((pixels >= 0) & (pixels < (w, h)), axis=1)
         np.minimum.at(nearest, (pixels[inside, 1], pixels[inside, 0]), cam[inside, 2])
-    return nearest
+    return cam, pixels, inside, nearest
 
 
-def _around(frame, model, base_T_object: SE3, reach: float, noise, table, low) -> np.ndarray:
-    """``(H, W)`` bool: the model's footprint at ``base_T_object`` grown by ``reach`` metres
-    (at its nearest depth), the pixels with depth within ``reach`` of the model's depths and,
-    with a ``table``, ``low`` metres or more above it, on one surface with the largest piece
+def _around(frame, nearest, reach: float, noise, table, low) -> np.ndarray:
+    """``(H, W)`` bool: the model's footprint (``nearest``, its nearest depth per pixel at
+    the previous pose, :func:`_projected`) grown by ``reach`` metres (at its nearest depth),
+    the pixels with depth within ``reach`` of the model's depths and, with a ``table``,
+    ``low`` metres or more above it, on one surface with the largest piece
     (:func:`~jaxreg.pipeline._surface.mask_surface`)."""
     depth = np.asarray(frame.depth)
-    nearest = _projection(frame, model, base_T_object)
     footprint = np.isfinite(nearest)
     if not footprint.any():
         return footprint
@@ -210,8 +208,7 @@ def _on_model(frame, model, base_T_object: SE3, noise) -> np.ndarray:
     close the gaps between a sparse model's points; within 1 cm or 4 sigma_z, as the image's
     judgement allows): the object's surface, without the table or background beside it."""
     depth = np.asarray(frame.depth)
-    nearest = _projection(frame, model, base_T_object)
-    nearest = ndimage.grey_erosion(nearest, size=5)
+    nearest = ndimage.grey_erosion(_projected(frame, model, base_T_object)[3], size=5)
     sigma = np.polynomial.polynomial.polyval(
         np.where(np.isfinite(nearest), nearest, 0.0), np.asarray(noise.coefficients)
     )
@@ -232,9 +229,8 @@ def _follow(frame, model, base_T_object: SE3, max_motion, max_turn_deg, noise, s
     coarse search result, and the segment record; ``_Failed`` when too few pixels are
     found."""
     start = time.perf_counter()
-    looked = _around(
-        frame, model, base_T_object, max_motion, noise, table, settings.lift.min_height
-    )
+    projected = _projected(frame, model, base_T_object)
+    looked = _around(frame, projected[3], max_motion, noise, table, settings.lift.min_height)
     need = settings.lift.min_segment_points
     record = SegmentRecord(
         ms=0.0, valid_grid_points=int(np.isfinite(np.asarray(frame.depth)).sum()),
@@ -267,7 +263,7 @@ def _follow(frame, model, base_T_object: SE3, max_motion, max_turn_deg, noise, s
         # last distance; the best of these and the first
         first = min(max(max_motion, float(gates.distances[0])), float(model.grid.max_distance))
         reach = np.geomspace(first, gates.distances[-1], 30).astype(np.float32)
-        starts = _starts(frame, model, base_T_object, points, table, max_turn_deg)
+        starts = _starts(frame, projected, base_T_object, points, table, max_turn_deg)
         far = _register_starts(
             source, model.points, model.normals, model.grid, SE3(starts), reach,
             np.float32(0.6), 30,
@@ -302,17 +298,14 @@ def _ranked(frame, model, table, results, noise, settings):
     return poses[order], scores[order], seen_through[order]
 
 
-def _starts(frame, model, base_T_object: SE3, points, table, max_turn_deg) -> np.ndarray:
+def _starts(frame, projected, base_T_object: SE3, points, table, max_turn_deg) -> np.ndarray:
     """``(4, 7)`` float32 object_T_base starts of the follow: the previous pose, the previous
     pose moved by the offset between the centroid of the pixels looked at (``points``
-    ``(P, 3)``, base frame) and that of the model's points the camera saw at the previous pose,
-    and that one turned by half ``max_turn_deg`` either way (about the ``table``'s normal
-    through the moved centroid; without a table, about the camera's optical axis)."""
-    cam = _camera_points(frame, model, base_T_object)
-    nearest = _projection(frame, model, base_T_object)
-    h, w = nearest.shape
-    pixels = np.rint(np.asarray(frame.intrinsics.project(cam))).astype(int)
-    inside = np.all((pixels >= 0) & (pixels < (w, h)), axis=1)
+    ``(P, 3)``, base frame) and that of the model's points the camera saw at the previous pose
+    (``projected``: :func:`_projected` there), and that one turned by half ``max_turn_deg``
+    either way (about the ``table``'s normal through the moved centroid; without a table,
+    about the camera's optical axis)."""
+    cam, pixels, inside, nearest = projected
     seen = np.zeros(len(cam), bool)
     seen[inside] = cam[inside, 2] <= nearest[pixels[inside, 1], pixels[inside, 0]] + 0.005
     base_T_camera = frame.base_T_camera
