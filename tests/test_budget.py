@@ -200,7 +200,7 @@ def test_the_depth_term_is_icp_covariance_of_the_same_pairs():
     camera = SE3.exp(np.array([0.0, 0.0, -0.3, 0.0, 0.0, 0.0]))
     noise = DepthNoise((0.0, 0.0, 2.5e-3), camera)
     pairs, pair_normals, _, kept = _budget._pairs(
-        segment, np.asarray(object_T_base.wxyz_xyz), model, normals, 0.006, 1.0
+        segment, np.asarray(object_T_base.wxyz_xyz), model, normals, 0.006, 1.0, None, len(segment)
     )
     jac = _budget._jacobian(pairs, pair_normals, np.asarray(object_T_base.wxyz_xyz))
     inverse = np.linalg.inv(jac.T @ jac)

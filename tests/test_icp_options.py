@@ -65,7 +65,8 @@ def test_icp_options_is_a_top_level_name():
     names = [field.name for field in dataclasses.fields(ICPOptions)]
     assert names == [
         "method", "target_normals", "max_correspondence_distance", "max_iterations",
-        "tolerance", "kernel", "trim_fraction", "source_weights", "neighbors",
+        "tolerance", "kernel", "trim_fraction", "source_weights", "neighbors", "viewpoint",
+        "viewpoint_rows",
     ]  # fmt: skip
     with pytest.raises(dataclasses.FrozenInstanceError):
         ICPOptions().max_iterations = 3

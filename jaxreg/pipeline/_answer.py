@@ -28,7 +28,7 @@ from jaxreg.pipeline._judge import (
     _judge,
     evidence_gap,
 )
-from jaxreg.pipeline._model import _bucketed_symmetry, _Model
+from jaxreg.pipeline._model import _bucketed_symmetry, _Model, viewpoint
 from jaxreg.pipeline.records import EquivalentPose
 from jaxreg.pipeline.settings import PipelineSettings
 from jaxreg.registration.icp import icp
@@ -75,19 +75,22 @@ def resting_contact(points: np.ndarray, matrix: np.ndarray, normal, offset, tole
 
 
 @persistent_jit
-def _settle(source, contact, points, normals, grid, init, distances, trim, iterations):
+def _settle(source, contact, points, normals, grid, init, distances, trim, iterations, eye):
     """Point-to-plane ICP of ``source`` ``(N, 3)`` with the ``contact`` points ``(C, 3)``
     appended (weight ``CONTACT_WEIGHT``), from ``init`` (7,): the object settled on the
-    table."""
+    table. ``eye``: the ICP viewpoint of the ``source`` rows (the contacts match any face),
+    or ``None``."""
     joined = jnp.concatenate([source, contact])
     weights = jnp.concatenate(
         [jnp.ones(source.shape[0], source.dtype), jnp.full(contact.shape[0], CONTACT_WEIGHT)]
     ).astype(source.dtype)
     weights = jnp.where(jnp.all(jnp.isfinite(joined), axis=1), weights, 0.0)
+    seen = None if eye is None else jnp.arange(joined.shape[0]) < source.shape[0]
     return icp(
         joined, points, SE3(init), method="point_to_plane", target_normals=normals,
         max_correspondence_distance=distances, max_iterations=iterations, trim_fraction=trim,
-        source_weights=weights, neighbors=grid, tolerance=1e-5,
+        source_weights=weights, neighbors=grid, tolerance=1e-5, viewpoint=eye,
+        viewpoint_rows=seen,
     )  # fmt: skip
 
 
@@ -120,6 +123,7 @@ def _probe(frame, plane, model, source, answer, trim, noise, distances, settings
     starts = SE3(jax.device_put(probe_starts(model, answer)))
     probed = _register_starts(
         source[::2], model.points, model.normals, model.fine_grid, starts, distances, trim, 30,
+        viewpoint(model, frame),
     )  # fmt: skip
     poses, _ = _onto_table(model, probed.pose.wxyz_xyz, plane, settings)
     seen = np.asarray(_judge(frame, plane, poses, model.points, TOLERANCE, noise.coefficients))
@@ -198,9 +202,12 @@ def _onto_table(model, answers, plane, settings: PipelineSettings):
     return answers, restings
 
 
-def _rest(source, model, results, best: int, plane, trim, distances, settings: PipelineSettings):
+def _rest(
+    source, model, results, best: int, plane, trim, distances, settings: PipelineSettings, eye
+):  # fmt: skip
     """The refined answers ``(S, 7)`` (object_T_base) with each one that rests on the table
-    moved onto it, the best one settled there by ICP with the contact points; the contact
+    moved onto it, the best one settled there by ICP with the contact points (``eye``: the
+    ICP viewpoint of the segment's points, or ``None``); the contact
     points ``(C, 3)`` of the best (``None`` when it does not rest) and its lowest point's
     height above the table before (metres; ``None`` likewise)."""
     answers, restings = _onto_table(model, results.pose.wxyz_xyz, plane, settings)
@@ -209,7 +216,7 @@ def _rest(source, model, results, best: int, plane, trim, distances, settings: P
     if resting is not None:
         settled = _settle(
             source, resting[0], model.points, model.normals, model.fine_grid, answers[best],
-            distances[-15:], trim, 15,
+            distances[-15:], trim, 15, eye,
         )  # fmt: skip
         if bool(np.isfinite(np.asarray(settled.inlier_rmse))):
             answers[best] = np.asarray(settled.pose.wxyz_xyz, np.float32)

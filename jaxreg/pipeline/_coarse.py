@@ -232,12 +232,16 @@ def _score_candidates(
 
 
 @persistent_jit
-def _register_starts(source, points, normals, grid, inits, distances, trim, iterations):
+def _register_starts(
+    source, points, normals, grid, inits, distances, trim, iterations, viewpoint
+):  # fmt: skip
     """Point-to-plane multi-start ICP of ``source`` into the model (its points, normals and
     grid as arguments, not constants of the stored program: a model's arrays closed into it
-    made a ~30 MB executable to load in every process)."""
+    made a ~30 MB executable to load in every process); ``viewpoint`` the camera's centre
+    (base frame) for an oriented model (:func:`jaxreg.pipeline._model.viewpoint`), else
+    ``None``."""
     return multistart_icp(
         source, points, inits, method="point_to_plane", target_normals=normals,
         max_correspondence_distance=distances, max_iterations=iterations, trim_fraction=trim,
-        neighbors=grid, tolerance=1e-5,
+        neighbors=grid, tolerance=1e-5, viewpoint=viewpoint,
     )  # fmt: skip

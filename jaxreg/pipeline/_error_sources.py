@@ -34,6 +34,7 @@ from jaxreg.core._sizes import power_of_two
 from jaxreg.pipeline._answer import CONTACT_WEIGHT
 from jaxreg.pipeline._judge import PATCH
 from jaxreg.pipeline._lift_stage import lift_pixels
+from jaxreg.pipeline._model import viewpoint
 from jaxreg.pipeline._surface import depth_step
 from jaxreg.registration.icp import ICPStatus, icp
 from jaxreg.uncertainty.budget import combine
@@ -83,22 +84,36 @@ def _adjoint(wxyz_xyz: np.ndarray) -> np.ndarray:
     return np.asarray(SE3(np.asarray(wxyz_xyz, np.float64)).adjoint())
 
 
-def _pairs(points, object_T_base, model_points, model_normals, distance, trim):
+def _nearest_rows(moved, model_points, rows, distance):
+    """Distance ``(K,)`` from each of ``moved`` ``(K, 3)`` to the nearest of the model points
+    ``rows`` (``inf`` beyond ``distance`` or without rows) and that point's row."""
+    if len(rows) == 0:
+        return np.full(len(moved), np.inf), np.zeros(len(moved), np.int64)
+    gap, index = cKDTree(model_points[rows]).query(moved, distance_upper_bound=distance)
+    return gap, rows[np.minimum(index, len(rows) - 1)]
+
+
+def _pairs(points, object_T_base, model_points, model_normals, distance, trim, eye, sensed):
     """The registration's pairs at the answer: segment points ``(K, 3)`` (base), their model
     normals ``(K, 3)`` (object frame), residuals ``(K,)`` and the rows of ``points`` kept
-    ``(K,)``: those within ``distance`` of a model point with a usable normal, the ``trim``
-    fraction with the smallest distances."""
+    ``(K,)``: those within ``distance`` of a model point with a usable normal (for the
+    first ``sensed`` rows, with ``eye`` the camera's centre (base frame): one facing it, as
+    ICP's viewpoint pairs them), the ``trim`` fraction with the smallest distances."""
     matrix = np.asarray(SE3(np.asarray(object_T_base, np.float64)).as_matrix(), np.float64)
     moved = points @ matrix[:3, :3].T + matrix[:3, 3]  # host numpy: no program per count
     usable = np.linalg.norm(model_normals, axis=1) > 0.5
-    tree = cKDTree(model_points[usable])
-    gap, index = tree.query(moved, distance_upper_bound=distance)
-    near = np.isfinite(gap)
-    keep = np.flatnonzero(near)
+    gap, index = _nearest_rows(moved, model_points, np.flatnonzero(usable), distance)
+    if eye is not None:
+        camera = matrix[:3, :3] @ np.asarray(eye, np.float64) + matrix[:3, 3]
+        facing = usable & (np.einsum("ij,ij->i", model_normals, camera - model_points) > 0)
+        gap[:sensed], index[:sensed] = _nearest_rows(
+            moved[:sensed], model_points, np.flatnonzero(facing), distance
+        )
+    keep = np.flatnonzero(np.isfinite(gap))
     if trim < 1 and len(keep) > 3:
         keep = keep[np.argsort(gap[keep], kind="stable")[: max(3, int(trim * len(keep)))]]
-    normals = model_normals[usable][index[keep]]
-    residual = np.einsum("ij,ij->i", normals, moved[keep] - model_points[usable][index[keep]])
+    normals = model_normals[index[keep]]
+    residual = np.einsum("ij,ij->i", normals, moved[keep] - model_points[index[keep]])
     return points[keep], normals, residual, keep
 
 
@@ -278,9 +293,10 @@ def _continuing(frame, mask, rows, cols, noise) -> np.ndarray:
 
 
 @persistent_jit
-def _perturbed_fits(sources, weights, points, normals, grid, init, distances, trim):
+def _perturbed_fits(sources, weights, points, normals, grid, init, distances, trim, eye, seen):
     """Point-to-plane ICP of every perturbed segment ``(P, N, 3)`` (rows weighted by
-    ``weights`` ``(N,)``, NaN rows ignored) from ``init`` (7,): the poses ``(P, 7)``, their
+    ``weights`` ``(N,)``, NaN rows ignored) from ``init`` (7,), with ``eye`` the viewpoint
+    of the ``seen`` rows ``(N,)`` (``None``: no viewpoint): the poses ``(P, 7)``, their
     ICP statuses and whether their residuals are finite ``(P,)``."""
 
     def one(source):
@@ -289,7 +305,7 @@ def _perturbed_fits(sources, weights, points, normals, grid, init, distances, tr
             source, points, SE3(init), method="point_to_plane", target_normals=normals,
             max_correspondence_distance=distances, max_iterations=15, trim_fraction=trim,
             source_weights=jax.numpy.where(usable, weights, 0.0), neighbors=grid,
-            tolerance=1e-5,
+            tolerance=1e-5, viewpoint=eye, viewpoint_rows=None if eye is None else seen,
         )  # fmt: skip
         return result.pose.wxyz_xyz, result.status, jax.numpy.isfinite(result.inlier_rmse)
 
@@ -362,7 +378,7 @@ def pose_budget(
     pairs_points, normals, residual, kept = _pairs(
         np.concatenate([points, support]).astype(np.float64), object_T_base,
         model.points.astype(np.float64), model.normals.astype(np.float64),
-        float(distances[-1]), float(trim),
+        float(distances[-1]), float(trim), viewpoint(model, frame), len(points),
     )  # fmt: skip
     sensed = kept < measured  # the contact points carry no depth noise
     weight = np.where(sensed, 1.0, np.sqrt(CONTACT_WEIGHT))[:, None]
@@ -387,6 +403,7 @@ def pose_budget(
     poses, status, finite = _perturbed_fits(
         segments, weights, model.points, model.normals, model.fine_grid,
         np.asarray(object_T_base, np.float32), np.asarray(distances)[-15:], np.float32(trim),
+        viewpoint(model, frame), np.arange(len(weights)) < source_size,
     )  # fmt: skip
     lift = np.linalg.inv(to_object)
     free, reason = _free(symmetry, lift.T @ hessian @ lift)

@@ -33,6 +33,7 @@ class _Model:
     screen: np.ndarray  # (R1, 3) voxelled at 3 voxels: the coarse starts' first judgement
     sampling: tuple[float, float]  # (rms, gap) metres: see _sampling
     centre: np.ndarray  # (3,) the centre of the given points' bounding box (object frame)
+    oriented: bool  # normals given (a mesh's, pointing out): ICP matches only faces seen
     # _coarse_problem's, per schedule (not in the repr that keys stored programs)
     coarse: dict = dataclasses.field(default_factory=dict, repr=False)
 
@@ -156,11 +157,21 @@ def _prepare_model(
         screen=_padded_rows(voxel_downsample(points, 3 * voxel_size), _SCREEN_ROWS, np.nan),
         sampling=_sampling(points),
         centre=0.5 * (model_points.min(0) + model_points.max(0)).astype(np.float64),
+        oriented=model_normals is not None,
     )
     if len(_MODELS) > 8:
         _MODELS.clear()
     _MODELS[key] = model
     return model
+
+
+def viewpoint(model: _Model, frame) -> np.ndarray | None:
+    """The camera's centre ``(3,)`` in ``frame``'s base frame, the ICP ``viewpoint`` of
+    registrations into an ``oriented`` model (its back faces take no pairs); ``None`` for a
+    model whose normals were estimated (their sign on a concave part is a guess)."""
+    if not model.oriented:
+        return None
+    return np.asarray(frame.base_T_camera.translation(), np.float32)
 
 
 def _sampling(points: np.ndarray, k: int = 6) -> tuple[float, float]:

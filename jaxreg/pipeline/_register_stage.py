@@ -38,6 +38,7 @@ from jaxreg.pipeline._judge import (
     overhang,
     patch_count,
 )
+from jaxreg.pipeline._model import viewpoint
 from jaxreg.pipeline._stages import _Failed, _padded
 from jaxreg.pipeline.records import (
     Candidate,
@@ -259,8 +260,9 @@ def refine_stage(
     inits = SE3(jax.device_put(coarse_poses[picks]))
     trim = np.float32(np.clip(coarse_fraction, 0.6, 0.95))  # an argument: one program for all
     results = _register_starts(
-        source, model.points, model.normals, model.fine_grid, inits, fine_distances, trim, 30
-    )
+        source, model.points, model.normals, model.fine_grid, inits, fine_distances, trim, 30,
+        viewpoint(model, frame),
+    )  # fmt: skip
     fractions = np.asarray(results.inlier_fraction)
     rmses = np.nan_to_num(np.asarray(results.inlier_rmse), nan=np.inf)
     seen = np.asarray(
@@ -273,8 +275,9 @@ def refine_stage(
     confirmed, contradicted, judged = _support(seen[ranked[0]])
     reach = overhang(model, np.asarray(results.pose.wxyz_xyz[ranked[0]]), points)
     answers, contact, lowest = _rest(
-        source, model, results, ranked[0], plane, trim, fine_distances, settings
-    )
+        source, model, results, ranked[0], plane, trim, fine_distances, settings,
+        viewpoint(model, frame),
+    )  # fmt: skip
     found = _alternatives(
         frame, plane, model, source, answers, int(ranked[0]), scores, rmses, patch_count(points),
         trim, noise, fine_distances, symmetry, settings,

@@ -202,9 +202,12 @@ def estimate_pose(
             object's surface inside the mask is the segment (see
             :func:`~jaxreg.pipeline._segment_stage.segment_stage`); the lift's filters and the
             registration's evidence, which can still refuse, are kept.
-        model_normals: ``(M, 3)`` unit normals of the model points (a mesh's face normals),
-            used instead of normals estimated from the points; give them for thin-walled
-            objects, whose two faces a point neighbourhood mixes.
+        model_normals: ``(M, 3)`` unit normals of the model points pointing out of the
+            object (a mesh's face normals), used instead of normals estimated from the
+            points; give them for thin-walled objects, whose two faces a point neighbourhood
+            mixes. With them every registration pairs the segment's points only with model
+            points facing the camera (ICP's ``viewpoint``): a cup's inner face behind the
+            outer one the camera saw takes no pairs.
         symmetry: the model's :class:`~jaxreg.Symmetry`, if any.
         depth_noise: the camera's noise as a :class:`~jaxreg.uncertainty.DepthNoise` in the
             camera frame (its ``base_T_camera`` is replaced by the frame's); default a

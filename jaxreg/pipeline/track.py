@@ -41,7 +41,7 @@ from jaxreg.pipeline._judge import (
     _near_model,
 )
 from jaxreg.pipeline._lift_stage import lift_pixels, lift_stage
-from jaxreg.pipeline._model import _prepare_model
+from jaxreg.pipeline._model import _prepare_model, viewpoint
 from jaxreg.pipeline._register_stage import refine_stage, tolerances
 from jaxreg.pipeline._stages import _Failed, _padded
 from jaxreg.pipeline._surface import mask_surface
@@ -254,7 +254,7 @@ def _follow(frame, model, base_T_object: SE3, max_motion, max_turn_deg, noise, s
     # near the object stays out of reach)
     near = _register_starts(
         source, model.points, model.normals, model.fine_grid, SE3(previous), gates.distances,
-        np.float32(0.6), 30,
+        np.float32(0.6), 30, viewpoint(model, frame),
     )  # fmt: skip
     poses, scores, seen_through = _ranked(frame, model, table, near, noise, settings)
     if seen_through[0] > 0.5 * settings.register.max_contradicted:
@@ -266,7 +266,7 @@ def _follow(frame, model, base_T_object: SE3, max_motion, max_turn_deg, noise, s
         starts = _starts(frame, projected, base_T_object, points, table, max_turn_deg)
         far = _register_starts(
             source, model.points, model.normals, model.grid, SE3(starts), reach,
-            np.float32(0.6), 30,
+            np.float32(0.6), 30, viewpoint(model, frame),
         )  # fmt: skip
         wide, wide_scores, _ = _ranked(frame, model, table, far, noise, settings)
         if wide_scores[0] > scores[0]:

@@ -99,6 +99,10 @@ class Problem(eqx.Module):
     target_valid: Bool[Array, " M"]  # False for NaN input, unusable normals and padding
     target_normals: Float[Array, "M 3"] | None
     grid: NeighborGrid | None
+    # the sensor in source coordinates: the rows of viewpoint_rows match only target points
+    # whose normal faces it
+    viewpoint: Float[Array, " 3"] | None = None
+    viewpoint_rows: Bool[Array, " N"] | None = None
 
 
 class LoopSettings(eqx.Module):
@@ -161,22 +165,37 @@ def _residual_sq(problem: Problem, moved: Array, index: Array, method: str) -> A
     return _dot3(diff, diff)
 
 
-def _match(problem: Problem, moved: Float[Array, "N 3"], distance: Array) -> Int[Array, " N"]:
-    """Index of the nearest target point of each moved source point within ``distance``;
-    a row that is not a valid target point (padding, or one past the last row) when none.
+def _facing(problem: Problem, pose: SE3) -> Bool[Array, " M"] | None:
+    """The valid target points whose normal faces the viewpoint (``problem.viewpoint`` moved
+    by ``pose`` into the target frame: ``n . (eye - q) > 0``); ``None`` without a viewpoint."""
+    if problem.viewpoint is None:
+        return None
+    eye = apply_pose(pose, problem.viewpoint[None])
+    return problem.target_valid & (_dot3(problem.target_normals, eye - problem.target) > 0)
+
+
+def _match(problem: Problem, pose: SE3, distance: Array) -> Int[Array, " N"]:
+    """Index of the nearest target point of each source point moved by ``pose``, within
+    ``distance`` (from a viewpoint's rows: the nearest facing it); a row that is not a valid target
+    point (padding, or one past the last row) when none.
 
     Only the index is used: the squared distance and the found flag are recomputed from it
     (:func:`pairs_at`), so the query's candidate scan has a single consumer."""
+    moved = apply_pose(pose, problem.source)
+    facing, rows = _facing(problem, pose), problem.viewpoint_rows
     if problem.grid is not None:
-        return query_nearest(problem.grid, moved, distance)[0]
-    index, _, _ = knn(moved, problem.target, 1, max_distance=distance, mask=problem.target_valid)
-    return index[:, 0]
+        return query_nearest(problem.grid, moved, distance, mask=facing, mask_queries=rows)[0]
+    index = knn(moved, problem.target, 1, max_distance=distance, mask=problem.target_valid)[0]
+    if facing is None:
+        return index[:, 0]
+    seen = knn(moved, problem.target, 1, max_distance=distance, mask=facing)[0]
+    return jnp.where(rows, seen[:, 0], index[:, 0])
 
 
 def correspond(problem: Problem, opts: LoopSettings, pose: SE3, distance: Array) -> Pairs:
     """Nearest-neighbour pairs of the source moved by ``pose``, rejected and weighted."""
     moved = apply_pose(pose, problem.source)
-    return pairs_at(problem, opts, moved, _match(problem, moved, distance))
+    return pairs_at(problem, opts, moved, _match(problem, pose, distance))
 
 
 def pairs_at(problem: Problem, opts: LoopSettings, moved: Array, index: Array) -> Pairs:
@@ -316,7 +335,7 @@ def run(problem: Problem, opts: LoopSettings, init: SE3) -> RegistrationResult:
             pose=next_pose,
             iteration=next_it,
             primed=jnp.array(True),
-            match=_match(frozen, apply_pose(next_pose, frozen.source), distance),
+            match=_match(frozen, next_pose, distance),
             finished=primed & ~take,
             small_step=take & (step_t < tol) & (step_r < tol),
             converged=converged,

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxlie import SE3
-from jaxtyping import ArrayLike, Float
+from jaxtyping import ArrayLike, Bool, Float
 
 from jaxreg.core._leaves import as_array
 from jaxreg.core._program_cache import persistent_jit
@@ -81,6 +81,19 @@ class ICPOptions(eqx.Module):
             without a usable normal) whose ``max_distance`` covers the largest correspondence
             distance, to reuse across calls. ``None`` (default) builds one per call on a
             concrete target and searches by blocked brute force on a traced one.
+        viewpoint: ``(3,)`` the sensor's position in source coordinates (point-to-plane
+            only; the target normals must point out of the object, as a mesh's face normals
+            do). Each iteration matches a source point only to target points whose normal
+            faces the sensor at the current pose (``n . (pose @ viewpoint - q) > 0``): the
+            back faces of a thin wall (a cup's inner face behind the outer one the sensor
+            saw, 4 mm away) take no pairs; matched, they pull the answer toward the sensor
+            by up to the wall's thickness, as the noise carries points nearer the back face.
+            With a grid, a source point whose leaf lists only back faces (it lies nearer
+            them than any front face) finds no match. ``None`` (default): every target
+            point may be matched.
+        viewpoint_rows: ``(N,)`` bool, the source rows the sensor at ``viewpoint`` saw
+            (default every row); the others (points known another way, such as where an
+            object touches a table) may match any face.
     """
 
     method: Method = "point_to_point"
@@ -92,6 +105,8 @@ class ICPOptions(eqx.Module):
     trim_fraction: float | None = None
     source_weights: Float[ArrayLike, " N"] | None = None
     neighbors: NeighborGrid | None = None
+    viewpoint: Float[ArrayLike, " 3"] | None = None
+    viewpoint_rows: Bool[ArrayLike, " N"] | None = None
 
 
 _DEFAULTS = ICPOptions()
@@ -194,6 +209,22 @@ def prepare(
             raise ValueError(
                 f"target_normals must match target {target.shape}, got {target_normals.shape}"
             )
+    viewpoint = None
+    if s.viewpoint is not None:
+        if s.method != "point_to_plane":
+            raise ValueError(
+                "viewpoint needs method='point_to_plane' and target_normals (outward): it "
+                "tells the faces of the target by their normals"
+            )
+        viewpoint = as_array(s.viewpoint, dtype)
+        if viewpoint.shape != (3,):
+            raise ValueError(f"viewpoint must have shape (3,), got {viewpoint.shape}")
+        rows = np.ones(n, bool) if s.viewpoint_rows is None else s.viewpoint_rows
+        rows = as_array(rows, bool)
+        if rows.shape != (n,):
+            raise ValueError(f"viewpoint_rows must have shape ({n},), got {rows.shape}")
+    elif s.viewpoint_rows is not None:
+        raise ValueError("viewpoint_rows needs a viewpoint")
     weights = np.ones(n, dtype) if s.source_weights is None else s.source_weights
     weights = as_array(weights, dtype)
     if weights.shape != (n,):
@@ -211,6 +242,9 @@ def prepare(
     source, weights, target, target_ok, target_normals = _clean(
         source, weights, target, target_normals, bucket(n) - n, bucket(m) - m
     )
+    if viewpoint is not None:  # padding rows weigh nothing: any face
+        pad = np.pad if isinstance(rows, np.ndarray) else jnp.pad
+        rows = pad(rows, (0, bucket(n) - n))
     grid = s.neighbors
     if grid is not None:
         _check_given_grid(grid, user_target, distances, target_ok, m, s)
@@ -221,7 +255,10 @@ def prepare(
             grid = build_grid(points, radius, mask=ok, capacity=grid_capacity)
             if grid_capacity is not None and bool(grid.overflow):
                 grid = build_grid(points, radius, mask=ok)
-    problem = Problem(source, weights, target, target_ok, target_normals, grid)
+    problem = Problem(
+        source, weights, target, target_ok, target_normals, grid, viewpoint,
+        rows if viewpoint is not None else None,
+    )  # fmt: skip
     opts = LoopSettings(
         method=s.method,
         max_iterations=int(s.max_iterations),

@@ -163,7 +163,11 @@ def _nearest_slot(d2: Float[Array, "N c"]) -> tuple[Float[Array, " N"], Int[Arra
 
 
 def query_nearest(
-    grid: NeighborGrid, queries: ArrayLike, max_distance: ArrayLike | None = None
+    grid: NeighborGrid,
+    queries: ArrayLike,
+    max_distance: ArrayLike | None = None,
+    mask: Bool[ArrayLike, " M"] | None = None,
+    mask_queries: Bool[ArrayLike, " N"] | None = None,
 ) -> tuple[Int[Array, " N"], Float[Array, " N"], Bool[Array, " N"]]:
     """Nearest target point of each query within ``max_distance`` (jittable).
 
@@ -174,6 +178,15 @@ def query_nearest(
         max_distance: ``()`` acceptance radius, default ``grid.max_distance``; clipped to it
             (exactness is guaranteed only up to ``grid.max_distance``). May be traced, e.g.
             a shrinking ICP schedule.
+        mask: ``(M,)`` target rows that may be an answer (``None``: every row the grid
+            indexes); may be traced, e.g. the target points facing a sensor at the current
+            pose. The answer is the nearest allowed point among the query's leaf's
+            candidates: the exact nearest allowed point when it is on that list (always when
+            the nearest point overall is allowed); where the list holds only points the mask
+            excludes, none (the leaf lists the points that can be nearest overall, not the
+            nearest of every subset).
+        mask_queries: ``(N,)`` the queries ``mask`` applies to (default all); the others may
+            take any row.
 
     Returns:
         ``indices (N,)`` into the target rows (sentinel ``grid.num_points`` when invalid),
@@ -184,6 +197,13 @@ def query_nearest(
     queries = check_queries(queries)
     leaf, inside = _leaf(grid, queries)
     d2 = _candidate_sq_dists(grid, queries, leaf)
+    if mask is not None:
+        allowed = (
+            jnp.asarray(mask).at[grid.candidate_index[leaf]].get(mode="fill", fill_value=False)
+        )
+        if mask_queries is not None:
+            allowed |= ~jnp.asarray(mask_queries)[:, None]
+        d2 = jnp.where(allowed, d2, jnp.inf)
     best, slot = _nearest_slot(d2)
     valid = inside & (best <= _radius2(grid, max_distance, best.dtype))
     index = jnp.where(valid, grid.candidate_index[leaf, slot], grid.num_points)
