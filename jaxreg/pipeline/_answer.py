@@ -23,10 +23,8 @@ from jaxreg.geometry.metrics import Symmetry, canonicalise
 from jaxreg.pipeline._coarse import DISTINCT_ANGLE, DISTINCT_DISTANCE, _register_starts
 from jaxreg.pipeline._judge import (
     EQUAL_WITHIN,
-    TOLERANCE,
-    _confirmed_share,
-    _judge,
     evidence_gap,
+    judged_fits,
 )
 from jaxreg.pipeline._model import _bucketed_symmetry, _Model, viewpoint
 from jaxreg.pipeline.records import EquivalentPose
@@ -126,9 +124,7 @@ def _probe(frame, plane, model, source, answer, trim, noise, distances, settings
         viewpoint(model, frame),
     )  # fmt: skip
     poses, _ = _onto_table(model, probed.pose.wxyz_xyz, plane, settings)
-    seen = np.asarray(_judge(frame, plane, poses, model.points, TOLERANCE, noise.coefficients))
-    scores = np.asarray(probed.inlier_fraction) * _confirmed_share(seen)
-    rmses = np.nan_to_num(np.asarray(probed.inlier_rmse), nan=np.inf)
+    scores, rmses, _ = judged_fits(frame, plane, poses, model.points, probed, noise)
     return poses, scores, rmses
 
 

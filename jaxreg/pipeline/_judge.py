@@ -143,6 +143,24 @@ def _confirmed_share(counts: Array) -> Array:
     return counts[..., 0] / counts[..., :3].sum(-1).clip(min=1)
 
 
+def judged_fits(frame, plane, poses, model_points, results, noise):
+    """ICP ``results`` ``(S,)`` at ``poses`` ``(S, 7)`` (object_T_base: theirs, or moved
+    since) as the register stage weighs fits: scores ``(S,)``, the share of source points
+    within the last correspondence distance times the confirmed share of the judged model
+    (:func:`_confirmed_share`); residuals ``(S,)`` (metres, ``inf`` without pairs); the
+    image's counts ``(S, 5)`` (:func:`visibility`). ``noise``: the camera's ``DepthNoise``."""
+    seen = np.asarray(_judge(frame, plane, poses, model_points, TOLERANCE, noise.coefficients))
+    scores = np.asarray(results.inlier_fraction) * _confirmed_share(seen)
+    rmses = np.nan_to_num(np.asarray(results.inlier_rmse), nan=np.inf)
+    return scores, rmses, seen
+
+
+def fit_order(scores: np.ndarray, rmses: np.ndarray) -> np.ndarray:
+    """Indices of fits best first: the higher score to two decimals (fits closer than that
+    are as good), then the smaller residual."""
+    return np.lexsort((rmses, -np.round(scores, 2)))
+
+
 def _support(counts: np.ndarray) -> tuple[float, float, int]:
     """(confirmed share, contradicted share, judged count) of the model points facing the
     camera that the image can judge (confirmed, contradicted or occluded). With nothing judged

@@ -30,11 +30,11 @@ from jaxreg.pipeline._error_sources import MISMATCH_SIGMA, _pixels, pose_budget
 from jaxreg.pipeline._judge import (
     EQUAL_WITHIN,
     TOLERANCE,
-    _confirmed_share,
-    _judge,
     _near_model,
     _support,
     evidence_gap,
+    fit_order,
+    judged_fits,
     overhang,
     patch_count,
 )
@@ -264,12 +264,9 @@ def refine_stage(
         viewpoint(model, frame),
     )  # fmt: skip
     fractions = np.asarray(results.inlier_fraction)
-    rmses = np.nan_to_num(np.asarray(results.inlier_rmse), nan=np.inf)
-    seen = np.asarray(
-        _judge(frame, plane, results.pose.wxyz_xyz, model.points, TOLERANCE, noise.coefficients)
-    )
-    scores = fractions * _confirmed_share(seen)
-    ranked = np.lexsort((rmses, -np.round(scores, 2)))
+    poses = np.asarray(results.pose.wxyz_xyz)
+    scores, rmses, seen = judged_fits(frame, plane, poses, model.points, results, noise)
+    ranked = fit_order(scores, rmses)
     best = results[int(ranked[0])]
     fraction, rmse = float(fractions[ranked[0]]), float(rmses[ranked[0]])
     confirmed, contradicted, judged = _support(seen[ranked[0]])

@@ -36,9 +36,9 @@ from jaxreg.pipeline._error_sources import Calibration
 from jaxreg.pipeline._judge import (
     NOISE_SIGMAS,
     TOLERANCE,
-    _confirmed_share,
-    _judge,
     _near_model,
+    fit_order,
+    judged_fits,
 )
 from jaxreg.pipeline._lift_stage import lift_pixels, lift_stage
 from jaxreg.pipeline._model import _prepare_model, viewpoint
@@ -289,12 +289,11 @@ def _ranked(frame, model, table, results, noise, settings):
     share of the model's seen surface the image confirms, then the residual); a pose seen
     through on more than ``max_contradicted`` scores -1 (the register stage would refuse it)."""
     poses = np.asarray(results.pose.wxyz_xyz, np.float32)
-    seen = np.asarray(_judge(frame, table, poses, model.points, TOLERANCE, noise.coefficients))
-    scores = np.nan_to_num(np.asarray(results.inlier_fraction) * _confirmed_share(seen), nan=-1)
+    scores, rmses, seen = judged_fits(frame, table, poses, model.points, results, noise)
     seen_through = seen[:, 1] / np.maximum(seen[:, :3].sum(1), 1)
     scores = np.where(seen_through > settings.register.max_contradicted, -1.0, scores)
-    rmses = np.nan_to_num(np.asarray(results.inlier_rmse), nan=np.inf)
-    order = np.lexsort((rmses, -np.round(scores, 2)))
+    scores = np.nan_to_num(scores, nan=-1)
+    order = fit_order(scores, rmses)
     return poses[order], scores[order], seen_through[order]
 
 
