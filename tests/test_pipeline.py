@@ -156,7 +156,7 @@ def test_a_failed_final_registration_fails_the_register_stage(scene, monkeypatch
     the ICP status's message."""
     import equinox as eqx
 
-    from jaxreg.pipeline import _register_stage as stage
+    from jaxreg.pipeline import _judge as judging
     from jaxreg.registration.icp import ICPStatus
 
     scene, model, symmetry = scene
@@ -183,7 +183,7 @@ def test_a_failed_final_registration_fails_the_register_stage(scene, monkeypatch
 
 def test_an_overhang_that_cannot_be_measured_refuses(scene, monkeypatch):
     """A NaN overhang (a NaN comparison is False) must not pass the overhang test."""
-    from jaxreg.pipeline import _register_stage as stage
+    from jaxreg.pipeline import _judge as judging
 
     scene, model, symmetry = scene
     monkeypatch.setattr(stage, "overhang", lambda *args: np.full(3, np.nan))
@@ -196,7 +196,7 @@ def test_no_judged_surface_and_too_little_confirmed_surface_refuse(scene, monkey
     """Evidence is counted, never assumed: a pose where the image judges none of the model's
     surface (every point unknown) is refused as such, not passed as "0% contradicted"; and a
     pose whose confirmed share is below ``min_confirmed`` is refused with both numbers."""
-    from jaxreg.pipeline import _register_stage as stage
+    from jaxreg.pipeline import _judge as judging
 
     scene, model, symmetry = scene
     strict = estimate_pose(scene.frame, model, symmetry=symmetry, min_confirmed=0.99)
@@ -204,7 +204,7 @@ def test_no_judged_surface_and_too_little_confirmed_surface_refuse(scene, monkey
     assert "the image confirms only" in strict.reason and "(need 99%)" in strict.reason
     assert 0.2 < strict.stages["register"].model_confirmed < 0.99
 
-    judge = stage._judge
+    judge = judging._judge
 
     def unknown(*args):
         counts = np.array(judge(*args))
@@ -212,7 +212,7 @@ def test_no_judged_surface_and_too_little_confirmed_surface_refuse(scene, monkey
         counts[..., :3] = 0
         return counts
 
-    monkeypatch.setattr(stage, "_judge", unknown)
+    monkeypatch.setattr(judging, "_judge", unknown)  # every fit's judgement (judged_fits)
     est = estimate_pose(scene.frame, model, symmetry=symmetry)
     assert est.failed_stage == "register" and est.pose is None
     assert "the image judges none of the model's surface" in est.reason
