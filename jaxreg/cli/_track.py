@@ -19,7 +19,7 @@ def run_demo_track(args) -> int:
     """Runs the sequence; exit 0 when every frame was answered, else 1."""
     from jaxreg.pipeline.estimate import estimate_pose
     from jaxreg.pipeline.track import track
-    from jaxreg.synth import StereoSensor, surface_points, tracking_sequence
+    from jaxreg.synth import StereoSensor, surface_samples, tracking_sequence
 
     if args.track < 2:
         raise ValueError(f"--track needs at least 2 frames, got {args.track}")
@@ -32,8 +32,9 @@ def run_demo_track(args) -> int:
         )
     sequence = tracking_sequence(args.seed, object=args.object, frames=args.track)
     first = sequence.scenes[0]
-    model = surface_points(first.model)
+    model, normals = surface_samples(first.model)
     options = {
+        "model_normals": normals,
         "symmetry": first.symmetry,
         "depth_noise": StereoSensor.d435().depth_noise(first.frame.intrinsics),
     }

@@ -405,7 +405,7 @@ def add_truth_errors(report: dict, estimate, truth, model_points, symmetry) -> N
 
 def run_demo(args) -> int:
     from jaxreg.pipeline.estimate import estimate_pose
-    from jaxreg.synth import OBJECTS, StereoSensor, surface_points, tabletop_scene
+    from jaxreg.synth import OBJECTS, StereoSensor, surface_samples, tabletop_scene
 
     if args.object not in OBJECTS:
         raise ValueError(f"unknown object {args.object!r}: choose one of {', '.join(OBJECTS)}")
@@ -423,12 +423,13 @@ def run_demo(args) -> int:
         )
     progress("render")
     scene = tabletop_scene(args.seed, object=args.object)
-    model = surface_points(scene.model)
+    model, normals = surface_samples(scene.model)
     symmetry = scene.symmetry
     noise = StereoSensor.d435().depth_noise(scene.frame.intrinsics)
     estimate = estimate_pose(
-        scene.frame, model, symmetry=symmetry, depth_noise=noise, progress=progress
-    )
+        scene.frame, model, model_normals=normals, symmetry=symmetry, depth_noise=noise,
+        progress=progress,
+    )  # fmt: skip
     progress(None)
     report = build_report(
         estimate, model, args.gripper_opening, truth_offset(estimate, scene.truth)

@@ -14,6 +14,7 @@ from jaxreg.synth._meshes import (
     distractor_mesh as distractor_mesh,
     object_mesh as object_mesh,
     surface_points as surface_points,
+    surface_samples as surface_samples,
 )
 from jaxreg.synth.bop import (
     image_scene as image_scene,

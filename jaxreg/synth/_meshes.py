@@ -13,7 +13,14 @@ import trimesh
 
 from jaxreg.geometry.metrics import Symmetry
 
-__all__ = ["MODEL_SAMPLES", "OBJECTS", "distractor_mesh", "object_mesh", "surface_points"]
+__all__ = [
+    "MODEL_SAMPLES",
+    "OBJECTS",
+    "distractor_mesh",
+    "object_mesh",
+    "surface_points",
+    "surface_samples",
+]
 
 OBJECTS = ("box", "mug", "cylinder", "container")
 _SECTIONS = 64  # facets around a round object: 0.1 mm sagitta at 4 cm radius
@@ -125,5 +132,14 @@ MODEL_SAMPLES = 20_000  # points a mesh model is sampled to (the pose and bop co
 def surface_points(mesh: trimesh.Trimesh, count: int = MODEL_SAMPLES) -> np.ndarray:
     """``(count, 3)`` float32 points sampled uniformly on ``mesh``'s surface (by area), in
     the mesh's frame and units; the same points for the same mesh on every run (seed 0)."""
-    samples, _ = trimesh.sample.sample_surface(mesh, count, seed=0)
-    return samples.astype(np.float32)
+    return surface_samples(mesh, count)[0]
+
+
+def surface_samples(
+    mesh: trimesh.Trimesh, count: int = MODEL_SAMPLES
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`surface_points` and the unit normal of the face each lies on ``(count, 3)``
+    (float32; outward where the mesh's faces wind consistently, as ``object_mesh``'s do): a
+    model's ``model_normals``."""
+    samples, faces = trimesh.sample.sample_surface(mesh, count, seed=0)
+    return samples.astype(np.float32), mesh.face_normals[faces].astype(np.float32)
