@@ -156,7 +156,7 @@ def test_a_failed_final_registration_fails_the_register_stage(scene, monkeypatch
     the ICP status's message."""
     import equinox as eqx
 
-    from jaxreg.pipeline import _judge as judging
+    from jaxreg.pipeline import _register_stage as stage
     from jaxreg.registration.icp import ICPStatus
 
     scene, model, symmetry = scene
@@ -183,7 +183,7 @@ def test_a_failed_final_registration_fails_the_register_stage(scene, monkeypatch
 
 def test_an_overhang_that_cannot_be_measured_refuses(scene, monkeypatch):
     """A NaN overhang (a NaN comparison is False) must not pass the overhang test."""
-    from jaxreg.pipeline import _judge as judging
+    from jaxreg.pipeline import _register_stage as stage
 
     scene, model, symmetry = scene
     monkeypatch.setattr(stage, "overhang", lambda *args: np.full(3, np.nan))
