@@ -6,12 +6,11 @@ the pipeline registers a thin-walled model's outer face without the pull toward 
 import jax
 import numpy as np
 import pytest
-import trimesh
 from scipy.stats import chi2
 
 import jaxreg as jr
 from jaxreg.search.neighbors import build_grid, knn, query_nearest
-from jaxreg.synth import StereoSensor, tabletop_scene
+from jaxreg.synth import StereoSensor, surface_samples, tabletop_scene
 
 WALL = 0.003  # metres between a plate's two faces
 
@@ -130,11 +129,9 @@ def test_the_pipeline_registers_a_mugs_outer_face_not_its_wall():
     toward the camera (without the viewpoint this frame's answer came back 4 mm nearer the
     camera, outside its bars), and its 95% region holds the truth."""
     scene = tabletop_scene(9602, object="mug")
-    samples, faces = trimesh.sample.sample_surface(scene.model, 20000, seed=0)
+    points, normals = surface_samples(scene.model, 20000)
     estimate = jr.estimate_pose(
-        scene.frame, samples.astype(np.float32),
-        model_normals=scene.model.face_normals[faces].astype(np.float32),
-        symmetry=scene.symmetry,
+        scene.frame, points, model_normals=normals, symmetry=scene.symmetry,
         depth_noise=StereoSensor.d435().depth_noise(scene.frame.intrinsics),
     )  # fmt: skip
     assert estimate.success, estimate.reason

@@ -87,7 +87,7 @@ def _adjoint(wxyz_xyz: np.ndarray) -> np.ndarray:
 def _nearest_rows(moved, model_points, rows, distance):
     """Distance ``(K,)`` from each of ``moved`` ``(K, 3)`` to the nearest of the model points
     ``rows`` (``inf`` beyond ``distance`` or without rows) and that point's row."""
-    if len(rows) == 0:
+    if len(rows) == 0 or len(moved) == 0:
         return np.full(len(moved), np.inf), np.zeros(len(moved), np.int64)
     gap, index = cKDTree(model_points[rows]).query(moved, distance_upper_bound=distance)
     return gap, rows[np.minimum(index, len(rows) - 1)]
@@ -102,13 +102,14 @@ def _pairs(points, object_T_base, model_points, model_normals, distance, trim, e
     matrix = np.asarray(SE3(np.asarray(object_T_base, np.float64)).as_matrix(), np.float64)
     moved = points @ matrix[:3, :3].T + matrix[:3, 3]  # host numpy: no program per count
     usable = np.linalg.norm(model_normals, axis=1) > 0.5
-    gap, index = _nearest_rows(moved, model_points, np.flatnonzero(usable), distance)
-    if eye is not None:
+    if eye is None:
+        gap, index = _nearest_rows(moved, model_points, np.flatnonzero(usable), distance)
+    else:
         camera = matrix[:3, :3] @ np.asarray(eye, np.float64) + matrix[:3, 3]
         facing = usable & (np.einsum("ij,ij->i", model_normals, camera - model_points) > 0)
-        gap[:sensed], index[:sensed] = _nearest_rows(
-            moved[:sensed], model_points, np.flatnonzero(facing), distance
-        )
+        seen = _nearest_rows(moved[:sensed], model_points, np.flatnonzero(facing), distance)
+        rest = _nearest_rows(moved[sensed:], model_points, np.flatnonzero(usable), distance)
+        gap, index = (np.concatenate(pair) for pair in zip(seen, rest, strict=True))
     keep = np.flatnonzero(np.isfinite(gap))
     if trim < 1 and len(keep) > 3:
         keep = keep[np.argsort(gap[keep], kind="stable")[: max(3, int(trim * len(keep)))]]
@@ -375,10 +376,11 @@ def pose_budget(
     to_object = -_adjoint(np.asarray(branch.inverse().wxyz_xyz)) @ _adjoint(object_T_base)
     support = np.zeros((0, 3)) if contact is None else contact[np.all(np.isfinite(contact), 1)]
     measured = len(points)
+    eye = viewpoint(model, frame)
     pairs_points, normals, residual, kept = _pairs(
         np.concatenate([points, support]).astype(np.float64), object_T_base,
         model.points.astype(np.float64), model.normals.astype(np.float64),
-        float(distances[-1]), float(trim), viewpoint(model, frame), len(points),
+        float(distances[-1]), float(trim), eye, len(points),
     )  # fmt: skip
     sensed = kept < measured  # the contact points carry no depth noise
     weight = np.where(sensed, 1.0, np.sqrt(CONTACT_WEIGHT))[:, None]
@@ -403,7 +405,7 @@ def pose_budget(
     poses, status, finite = _perturbed_fits(
         segments, weights, model.points, model.normals, model.fine_grid,
         np.asarray(object_T_base, np.float32), np.asarray(distances)[-15:], np.float32(trim),
-        viewpoint(model, frame), np.arange(len(weights)) < source_size,
+        eye, np.arange(len(weights)) < source_size,
     )  # fmt: skip
     lift = np.linalg.inv(to_object)
     free, reason = _free(symmetry, lift.T @ hessian @ lift)

@@ -259,9 +259,10 @@ def refine_stage(
     picks = _distinct(coarse_poses, s.refined_starts)
     inits = SE3(jax.device_put(coarse_poses[picks]))
     trim = np.float32(np.clip(coarse_fraction, 0.6, 0.95))  # an argument: one program for all
+    eye = viewpoint(model, frame)
     results = _register_starts(
         source, model.points, model.normals, model.fine_grid, inits, fine_distances, trim, 30,
-        viewpoint(model, frame),
+        eye,
     )  # fmt: skip
     fractions = np.asarray(results.inlier_fraction)
     poses = np.asarray(results.pose.wxyz_xyz)
@@ -272,8 +273,7 @@ def refine_stage(
     confirmed, contradicted, judged = _support(seen[ranked[0]])
     reach = overhang(model, np.asarray(results.pose.wxyz_xyz[ranked[0]]), points)
     answers, contact, lowest = _rest(
-        source, model, results, ranked[0], plane, trim, fine_distances, settings,
-        viewpoint(model, frame),
+        source, model, results, ranked[0], plane, trim, fine_distances, settings, eye,
     )  # fmt: skip
     found = _alternatives(
         frame, plane, model, source, answers, int(ranked[0]), scores, rmses, patch_count(points),

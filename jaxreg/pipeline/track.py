@@ -252,9 +252,10 @@ def _follow(frame, model, base_T_object: SE3, max_motion, max_turn_deg, noise, s
     previous = np.asarray(base_T_object.inverse().wxyz_xyz, np.float32)[None]
     # a small motion: the previous pose, pairs within the refinement's distances (clutter
     # near the object stays out of reach)
+    eye = viewpoint(model, frame)
     near = _register_starts(
         source, model.points, model.normals, model.fine_grid, SE3(previous), gates.distances,
-        np.float32(0.6), 30, viewpoint(model, frame),
+        np.float32(0.6), 30, eye,
     )  # fmt: skip
     poses, scores, seen_through = _ranked(frame, model, table, near, noise, settings)
     if seen_through[0] > 0.5 * settings.register.max_contradicted:
@@ -266,7 +267,7 @@ def _follow(frame, model, base_T_object: SE3, max_motion, max_turn_deg, noise, s
         starts = _starts(frame, projected, base_T_object, points, table, max_turn_deg)
         far = _register_starts(
             source, model.points, model.normals, model.grid, SE3(starts), reach,
-            np.float32(0.6), 30, viewpoint(model, frame),
+            np.float32(0.6), 30, eye,
         )  # fmt: skip
         wide, wide_scores, _ = _ranked(frame, model, table, far, noise, settings)
         if wide_scores[0] > scores[0]:

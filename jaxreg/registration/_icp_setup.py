@@ -209,7 +209,7 @@ def prepare(
             raise ValueError(
                 f"target_normals must match target {target.shape}, got {target_normals.shape}"
             )
-    viewpoint = None
+    viewpoint = rows = None
     if s.viewpoint is not None:
         if s.method != "point_to_plane":
             raise ValueError(
@@ -223,6 +223,8 @@ def prepare(
         rows = as_array(rows, bool)
         if rows.shape != (n,):
             raise ValueError(f"viewpoint_rows must have shape ({n},), got {rows.shape}")
+        pad = np.pad if isinstance(rows, np.ndarray) else jnp.pad
+        rows = pad(rows, (0, bucket(n) - n))  # padding rows weigh nothing: any face
     elif s.viewpoint_rows is not None:
         raise ValueError("viewpoint_rows needs a viewpoint")
     weights = np.ones(n, dtype) if s.source_weights is None else s.source_weights
@@ -242,9 +244,6 @@ def prepare(
     source, weights, target, target_ok, target_normals = _clean(
         source, weights, target, target_normals, bucket(n) - n, bucket(m) - m
     )
-    if viewpoint is not None:  # padding rows weigh nothing: any face
-        pad = np.pad if isinstance(rows, np.ndarray) else jnp.pad
-        rows = pad(rows, (0, bucket(n) - n))
     grid = s.neighbors
     if grid is not None:
         _check_given_grid(grid, user_target, distances, target_ok, m, s)
@@ -255,10 +254,7 @@ def prepare(
             grid = build_grid(points, radius, mask=ok, capacity=grid_capacity)
             if grid_capacity is not None and bool(grid.overflow):
                 grid = build_grid(points, radius, mask=ok)
-    problem = Problem(
-        source, weights, target, target_ok, target_normals, grid, viewpoint,
-        rows if viewpoint is not None else None,
-    )  # fmt: skip
+    problem = Problem(source, weights, target, target_ok, target_normals, grid, viewpoint, rows)
     opts = LoopSettings(
         method=s.method,
         max_iterations=int(s.max_iterations),

@@ -20,12 +20,11 @@ import dataclasses
 from collections.abc import Callable, Sequence
 
 import numpy as np
-import trimesh
 from scipy.stats import chi2
 
 from jaxreg.geometry.metrics import canonicalise
 from jaxreg.pipeline import estimate_pose
-from jaxreg.synth import OBJECTS, StereoSensor, tabletop_scene
+from jaxreg.synth import OBJECTS, StereoSensor, surface_samples, tabletop_scene
 from jaxreg.uncertainty.budget import mahalanobis
 from jaxreg.uncertainty.grasp import grasp_axis, grasp_success_probability
 
@@ -214,11 +213,7 @@ def calibration_study(
                 options.update(mesh=mesh, symmetry=symmetry)
             scene = tabletop_scene(int(seed), object=name, sensor=sensor, **options)
             if model_points is None:
-                samples, faces = trimesh.sample.sample_surface(
-                    scene.model, model_samples, seed=0
-                )
-                model_points = samples.astype(np.float32)
-                model_normals = scene.model.face_normals[faces].astype(np.float32)
+                model_points, model_normals = surface_samples(scene.model, model_samples)
             noise = sensor.depth_noise(scene.frame.intrinsics)
             estimate = estimate_pose(
                 scene.frame, model_points, model_normals=model_normals,
