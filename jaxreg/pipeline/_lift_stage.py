@@ -23,7 +23,7 @@ from jaxreg.pipeline.settings import LiftSettings
 from jaxreg.search.neighbors import voxel_downsample
 from jaxreg.uncertainty import DepthNoise
 
-__all__ = ["lift_pixels", "lift_region", "lift_stage"]
+__all__ = ["below_band", "lift_pixels", "lift_region", "lift_stage"]
 
 
 def _flying(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray, tolerance: np.ndarray, need):
@@ -85,6 +85,28 @@ def lift_pixels(frame: RGBDFrame, rows: np.ndarray, cols: np.ndarray) -> np.ndar
     return np.asarray(_lift_pixels(frame, r_pad, c_pad))[: len(rows)]
 
 
+def _band_floor(sigma: np.ndarray, min_height: float, band_sigmas: float) -> np.ndarray:
+    """The lowest height above the table (metres) a point with depth noise ``sigma`` (metres,
+    any shape) keeps: ``max(min_height, band_sigmas sigma)``."""
+    return np.maximum(min_height, band_sigmas * sigma)
+
+
+def below_band(frame: RGBDFrame, region: np.ndarray, plane: TablePlane, noise, settings):
+    """``(H, W)`` bool: the pixels of ``region`` ``(H, W)`` with depth that the lift's band
+    leaves out as the table's (lower than :func:`_band_floor` above the ``plane``, or below
+    it). ``noise``: the camera's ``DepthNoise``; ``settings``: ``LiftSettings``."""
+    depth = np.asarray(frame.depth)
+    rows, cols = np.nonzero(np.asarray(region, bool) & np.isfinite(depth))
+    height = lift_pixels(frame, rows, cols) @ np.asarray(plane.normal) + float(plane.offset)
+    sigma = np.polynomial.polynomial.polyval(
+        depth[rows, cols], np.asarray(noise.coefficients, np.float64)
+    )
+    low = height <= _band_floor(sigma, settings.min_height, settings.band_sigmas)
+    out = np.zeros(depth.shape, bool)
+    out[rows[low], cols[low]] = True
+    return out
+
+
 def lift_region(
     frame: RGBDFrame,
     rows: np.ndarray,
@@ -95,15 +117,16 @@ def lift_region(
     *,
     min_height: float,
     max_height: float,
+    band_sigmas: float,
     voxel_size: float,
     min_consistent_neighbors: int,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """Lift the pixels ``(rows, cols)`` (each with depth; ``sigma`` its depth noise, metres)
     into the base frame and filter them: flying pixels (fewer than
     ``min_consistent_neighbors`` of 8 neighbours within ``max(4 mm, 4 sigma)``), points not
-    between ``min_height`` and ``max_height`` above the plane ``n . x + d = 0`` (no such filter when
-    ``plane_normal`` is ``None``: a frame without a table), a ``voxel_size`` downsample, and
-    isolated voxels.
+    between ``max(min_height, band_sigmas sigma)`` and ``max_height`` above the plane
+    ``n . x + d = 0`` (no such filter when ``plane_normal`` is ``None``: a frame without a
+    table), a ``voxel_size`` downsample, and isolated voxels.
 
     Returns ``(mask, points, counts)``: ``(H, W)`` bool of the pixels kept, ``(K, 3)``
     float32 base-frame points, and the counts of pixels kept and removed by each filter.
@@ -111,13 +134,13 @@ def lift_region(
     depth = np.asarray(frame.depth)
     shape = depth.shape
     flying = _flying(depth, rows, cols, np.maximum(0.004, 4 * sigma), min_consistent_neighbors)
-    rows, cols = rows[~flying], cols[~flying]
+    rows, cols, sigma = rows[~flying], cols[~flying], sigma[~flying]
     lifted = lift_pixels(frame, rows, cols)
     if plane_normal is None:
         band = np.ones(len(lifted), bool)
     else:
         height = lifted @ plane_normal + plane_offset
-        band = (height > min_height) & (height < max_height)
+        band = (height > _band_floor(sigma, min_height, band_sigmas)) & (height < max_height)
     rows, cols, lifted = rows[band], cols[band], lifted[band]
     mask = np.zeros(shape, bool)
     mask[rows, cols] = True
@@ -167,7 +190,8 @@ def lift_stage(
     normal, offset = (None, None) if plane is None else (np.asarray(plane.normal), plane.offset)
     mask, points, counts = lift_region(
         frame, rows, cols, sigma, normal, None if offset is None else float(offset),
-        min_height=s.min_height, max_height=max_height, voxel_size=voxel_size,
+        min_height=s.min_height, max_height=max_height, band_sigmas=s.band_sigmas,
+        voxel_size=voxel_size,
         min_consistent_neighbors=s.min_consistent_neighbors,
     )  # fmt: skip
     record = record.with_ms(start, **counts)

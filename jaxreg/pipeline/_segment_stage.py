@@ -13,28 +13,30 @@ import jax
 import numpy as np
 
 from jaxreg.camera.model import RGBDFrame
-from jaxreg.pipeline._lift_stage import lift_pixels
+from jaxreg.pipeline._lift_stage import below_band, lift_pixels
 from jaxreg.pipeline._model import _diameter
 from jaxreg.pipeline._stages import _Failed
 from jaxreg.pipeline._surface import mask_surface
 from jaxreg.pipeline.records import Segmented, SegmentRecord
 from jaxreg.pipeline.segment import SegmentStatus, choose_cluster, segment_frame
-from jaxreg.pipeline.settings import SegmentSettings
+from jaxreg.pipeline.settings import LiftSettings, SegmentSettings
 
 __all__ = ["segment_stage"]
 
 
 def segment_stage(
     frame: RGBDFrame, model, settings: SegmentSettings, key, noise, *, mask=None, pixel=None,
-    box=None,
+    box=None, lift: LiftSettings | None = None,
 ) -> Segmented:  # fmt: skip
     """The candidates of ``frame`` for the prepared ``model``: the object's surface in the
     caller's ``mask`` ``(H, W)`` (:func:`_mask_route`), or the table route's clusters
     (:func:`_table_route`; a ``pixel`` ``(u, v)`` or ``box`` ``(u0, v0, u1, v1)`` prompt names
     the seed cluster). ``key``: the plane hypotheses' PRNG key; ``noise``: the camera's
-    ``DepthNoise``. Raises ``_Failed`` when no candidate can be the model."""
+    ``DepthNoise``; ``lift``: the lift's settings, whose band above the table the mask route's
+    surface leaves out (default their defaults). Raises ``_Failed`` when no candidate can be
+    the model."""
     if mask is not None:
-        return _mask_route(frame, model, settings, mask, key, noise)
+        return _mask_route(frame, model, settings, mask, key, noise, lift or LiftSettings())
     return _table_route(frame, model, settings, key, pixel, box)
 
 
@@ -123,7 +125,9 @@ def _table_route(frame, model, settings: SegmentSettings, key, pixel, box) -> Se
     return Segmented(seg.plane, candidates, seg, None, record.with_ms(start))
 
 
-def _mask_route(frame, model, settings: SegmentSettings, mask, key, noise) -> Segmented:
+def _mask_route(
+    frame, model, settings: SegmentSettings, mask, key, noise, lift: LiftSettings
+) -> Segmented:
     """The object's surface in the caller's mask as the one candidate: the mask's pixels
     that the depth image connects to the object (:func:`~jaxreg.pipeline._surface.
     mask_surface`: not the background behind it or an occluder in front, which a mask's
@@ -135,9 +139,13 @@ def _mask_route(frame, model, settings: SegmentSettings, mask, key, noise) -> Se
     and no more than 2% below it by more than ``plane_distance``: a plane fitted to another
     object's face may cut through this one): the band above it filters the segment, the
     resting starts stand the model on it, and the image's judgement counts a model below it
-    as contradicted. Without a table (no plane, or the object not on it) there is no band,
-    and the resting starts' share of the coarse search goes to the rotation grid. The
-    candidate is the surface's grid points (every ``stride``-th pixel)."""
+    as contradicted. The table's own pixels in the mask (below the lift's band:
+    :func:`~jaxreg.pipeline._lift_stage.below_band`) are then left out and the surface found
+    again: a mask that bleeds onto the table would otherwise join the object to a neighbour
+    standing on the same table, whose depth the table's meets smoothly. Without a table (no
+    plane, or the object not on it) there is no band, and the resting starts' share of the
+    coarse search goes to the rotation grid. The candidate is the surface's grid points (every
+    ``stride``-th pixel)."""
     s = settings
     start = time.perf_counter()
     depth = np.asarray(frame.depth)
@@ -156,6 +164,11 @@ def _mask_route(frame, model, settings: SegmentSettings, mask, key, noise) -> Se
         low, lowest = np.percentile(height, [5, 2])
         if low < 0.02 and lowest > -s.plane_distance:
             plane = seg.plane
+            table = below_band(frame, mask, plane, noise, lift)
+            surface = mask_surface(depth, mask & ~table, sigma_z, float(frame.intrinsics.fx))
+            rows, cols = np.nonzero(surface & grid)
+            cloud = lift_pixels(frame, rows, cols)
+            height = cloud @ np.asarray(plane.normal) + float(plane.offset)
             cloud = cloud[height > s.min_height]
     record = SegmentRecord(
         ms=0.0,

@@ -256,7 +256,8 @@ def estimate_pose(
     try:
         progress("segment")
         segmented = segment_stage(
-            frame, model, settings.segment, key, noise, mask=mask, pixel=pixel, box=box
+            frame, model, settings.segment, key, noise, mask=mask, pixel=pixel, box=box,
+            lift=settings.lift,
         )
         records["segment"], plane = segmented.record, segmented.plane
         coarse = coarse_search(frame, model, segmented, settings, noise, rng)

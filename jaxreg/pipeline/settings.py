@@ -51,6 +51,10 @@ class LiftSettings:
     Attributes:
         min_height: the lifted segment keeps points this high above the table (metres; lower
             than the segment's: a low part such as a tray's floor pins the object's height).
+        band_sigmas: and at least this many standard deviations of the depth noise at each
+            point's depth: the table's own pixels at a footprint's edge (a mask that bleeds
+            onto it, the depth holes between clusters) scatter above a fixed band where the
+            noise is larger than it (a far object), and would widen the segment.
         min_valid_fraction: fewest pixels with depth in the segment's footprint, as a fraction.
         min_consistent_neighbors: a pixel needs this many of its 8 neighbours within the
             depth tolerance (a mixed-depth pixel floating between two surfaces has none).
@@ -58,6 +62,7 @@ class LiftSettings:
     """
 
     min_height: float = 0.003
+    band_sigmas: float = 3.0
     min_valid_fraction: float = 0.5
     min_consistent_neighbors: int = 3
     min_segment_points: int = 30
