@@ -91,7 +91,6 @@ def test_on_real_frames_the_surface_drops_what_lies_off_the_object(ycbv_dir):
     assert dropped_off > 20 * max(kept_off, 1)
 
 
-
 @pytest.mark.parametrize("distance", [(0.5, 0.7), (1.0, 1.1)])
 def test_a_mask_bled_onto_the_table_keeps_neither_the_table_nor_its_neighbour(distance):
     """A box, its mask grown by 8 pixels over the table towards a distractor. Through the

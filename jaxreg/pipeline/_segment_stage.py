@@ -26,17 +26,16 @@ __all__ = ["segment_stage"]
 
 def segment_stage(
     frame: RGBDFrame, model, settings: SegmentSettings, key, noise, *, mask=None, pixel=None,
-    box=None, lift: LiftSettings | None = None,
+    box=None, lift: LiftSettings,
 ) -> Segmented:  # fmt: skip
     """The candidates of ``frame`` for the prepared ``model``: the object's surface in the
     caller's ``mask`` ``(H, W)`` (:func:`_mask_route`), or the table route's clusters
     (:func:`_table_route`; a ``pixel`` ``(u, v)`` or ``box`` ``(u0, v0, u1, v1)`` prompt names
     the seed cluster). ``key``: the plane hypotheses' PRNG key; ``noise``: the camera's
     ``DepthNoise``; ``lift``: the lift's settings, whose band above the table the mask route's
-    surface leaves out (default their defaults). Raises ``_Failed`` when no candidate can be
-    the model."""
+    surface leaves out. Raises ``_Failed`` when no candidate can be the model."""
     if mask is not None:
-        return _mask_route(frame, model, settings, mask, key, noise, lift or LiftSettings())
+        return _mask_route(frame, model, settings, mask, key, noise, lift)
     return _table_route(frame, model, settings, key, pixel, box)
 
 
