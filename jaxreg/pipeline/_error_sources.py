@@ -41,12 +41,14 @@ from jaxreg.uncertainty.budget import combine
 
 __all__ = ["Calibration", "pose_budget"]
 
-# Standard deviation (metres) of the offset along the surface normal that the model and the
-# sensor disagree on, shared by the points of a 12 mm patch: what neither the depth noise nor
-# the residuals show (flying and laterally shifted pixels at the silhouette, the voxel model's
-# edges and curvature). Fitted on tuning frames (jaxreg.studies.calibration_study, seeds
-# 301-308 of the four synthetic objects); the study checks it on frames nothing tunes on.
-MISMATCH_SIGMA = 0.002
+def mismatch_sigma(model) -> float:
+    """The standard deviation (metres) of the offset along the surface normal that the model
+    and the sensed surface disagree on, shared by the points of a patch: what neither the depth
+    noise nor the residuals show (the model's planes between its points, its edges and
+    curvature; an object that is not quite its scan). It is the model's sampling RMS (how far
+    a surface point lies from the nearest model point, :func:`~jaxreg.pipeline._model.
+    _sampling`): a model sampled at half the spacing is trusted to half the offset."""
+    return float(model.sampling[0])
 
 
 class Calibration:
@@ -391,7 +393,7 @@ def pose_budget(
     depth_base = _depth_base(jac, pairs_points, noise, inverse, sensed)
     blocks = _blocks(pairs_points, PATCH)
     fit_base = _fit_term(jac, residual, blocks, inverse, depth_base)
-    mismatch_base = _mismatch_term(jac, blocks, sensed, inverse, MISMATCH_SIGMA)
+    mismatch_base = _mismatch_term(jac, blocks, sensed, inverse, mismatch_sigma(model))
 
     segments = perturbed_segments(
         frame, mask, points, plane, min_height, source_size, rng, noise=noise

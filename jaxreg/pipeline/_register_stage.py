@@ -26,7 +26,7 @@ from jaxlie import SE3
 
 from jaxreg.pipeline._answer import _alternatives, _distinct, _rest
 from jaxreg.pipeline._coarse import _coarse_problem, _register_starts, _score_candidates
-from jaxreg.pipeline._error_sources import MISMATCH_SIGMA, _pixels, pose_budget
+from jaxreg.pipeline._error_sources import _pixels, mismatch_sigma, pose_budget
 from jaxreg.pipeline._judge import (
     EQUAL_WITHIN,
     TOLERANCE,
@@ -91,9 +91,10 @@ def tolerances(model, noise, depth: float, settings: PipelineSettings) -> Tolera
     _sampling`): the final correspondence distance reaches a point ``3 sigma_z`` off the
     surface in the model's widest gap (``hypot(gap, 3 sigma_z)``, at least 1.5 voxels, the
     measured points' own spacing, at most 15 mm); a fit's residual may be ``RESIDUAL_FACTOR``
-    times ``sqrt(rms^2 + sigma_z^2 + MISMATCH_SIGMA^2)`` (``max_inlier_rmse`` when set); the
-    segment may span ``max_overhang`` beyond the model (its 2% and 98% quantiles hold the
-    noise's tails: a partial view of a 10% larger box reaches only a few millimetres beyond)."""
+    times ``sqrt(rms^2 + sigma_z^2 + mismatch^2)`` (:func:`~jaxreg.pipeline._error_sources.
+    mismatch_sigma`; ``max_inlier_rmse`` when set); the segment may span ``max_overhang``
+    beyond the model (its 2% and 98% quantiles hold the noise's tails: a partial view of a 10%
+    larger box reaches only a few millimetres beyond)."""
     r = settings.register
     sigma = float(np.polynomial.polynomial.polyval(depth, np.asarray(noise.coefficients)))
     rms, gap = model.sampling
@@ -102,7 +103,7 @@ def tolerances(model, noise, depth: float, settings: PipelineSettings) -> Tolera
         distances = settings.fine_distances
     else:
         distances = np.geomspace(0.015, final, 30).astype(np.float32)
-    expected = float(np.sqrt(rms**2 + sigma**2 + MISMATCH_SIGMA**2))
+    expected = float(np.sqrt(rms**2 + sigma**2 + mismatch_sigma(model) ** 2))
     max_rmse = RESIDUAL_FACTOR * expected if r.max_inlier_rmse is None else r.max_inlier_rmse
     return Tolerances(distances, max_rmse, r.max_overhang, sigma)
 
