@@ -64,6 +64,7 @@ _EXPORTS = {
         "init_spread", "multistart_icp", "pca_inits", "perturbed_inits", "rotation_inits",
         "select_best",
     ),
+    "jaxreg.registration.projective": ("ProjectiveAssociation", "organized_normals"),
     "jaxreg.registration.ransac": (
         "RansacResult", "RansacStatus", "ransac_iterations", "ransac_registration",
     ),
@@ -251,6 +252,10 @@ if TYPE_CHECKING:  # what type checkers and editors see; the same names as _EXPO
         perturbed_inits as perturbed_inits,
         rotation_inits as rotation_inits,
         select_best as select_best,
+    )
+    from jaxreg.registration.projective import (
+        ProjectiveAssociation as ProjectiveAssociation,
+        organized_normals as organized_normals,
     )
     from jaxreg.registration.ransac import (
         RansacResult as RansacResult,

@@ -66,7 +66,7 @@ def test_icp_options_is_a_top_level_name():
     assert names == [
         "method", "target_normals", "max_correspondence_distance", "max_iterations",
         "tolerance", "kernel", "trim_fraction", "source_weights", "neighbors", "viewpoint",
-        "viewpoint_rows",
+        "viewpoint_rows", "association",
     ]  # fmt: skip
     with pytest.raises(dataclasses.FrozenInstanceError):
         ICPOptions().max_iterations = 3

@@ -25,6 +25,7 @@ from jaxreg.geometry.alignment import _fit
 from jaxreg.geometry.eigen import jacobi_eigh
 from jaxreg.geometry.kernels import AbstractRobustKernel, trim_mask
 from jaxreg.geometry.lie import se3_exp
+from jaxreg.registration.projective import ProjectiveAssociation, projective_match
 from jaxreg.search.neighbors import NeighborGrid, knn, query_nearest
 
 
@@ -91,7 +92,7 @@ class RegistrationResult(AbstractResult):
 class Problem(eqx.Module):
     """The data of one registration as :func:`jaxreg.registration.solver.prepare` leaves it:
     unbatched arrays, unusable rows masked, both clouds padded to bucketed sizes, and the
-    target's neighbour grid (``None``: brute force)."""
+    target's neighbour grid (``None``: brute force, or the projective ``association``)."""
 
     source: Float[Array, "N 3"]
     source_weights: Float[Array, " N"]  # 0 for NaN input and padding rows
@@ -103,6 +104,8 @@ class Problem(eqx.Module):
     # whose normal faces it
     viewpoint: Float[Array, " 3"] | None = None
     viewpoint_rows: Bool[Array, " N"] | None = None
+    # an organized target's camera: matches by projection, not by the grid
+    association: ProjectiveAssociation | None = None
 
 
 class LoopSettings(eqx.Module):
@@ -176,13 +179,19 @@ def _facing(problem: Problem, pose: SE3) -> Bool[Array, " M"] | None:
 
 def _match(problem: Problem, pose: SE3, distance: Array) -> Int[Array, " N"]:
     """Index of the nearest target point of each source point moved by ``pose``, within
-    ``distance`` (from a viewpoint's rows: the nearest facing it); a row that is not a valid target
-    point (padding, or one past the last row) when none.
+    ``distance`` (from a viewpoint's rows: the nearest facing it; with a projective
+    association: the nearest in the window around its pixel); a row that is not a valid
+    target point (padding, or one past the last row) when none.
 
     Only the index is used: the squared distance and the found flag are recomputed from it
     (:func:`pairs_at`), so the query's candidate scan has a single consumer."""
     moved = apply_pose(pose, problem.source)
     facing, rows = _facing(problem, pose), problem.viewpoint_rows
+    if problem.association is not None:
+        return projective_match(
+            problem.association, moved, problem.target, problem.target_valid, distance,
+            None if facing is None else (rows, facing),
+        )  # fmt: skip
     if problem.grid is not None:
         return query_nearest(problem.grid, moved, distance, mask=facing, mask_queries=rows)[0]
     index = knn(moved, problem.target, 1, max_distance=distance, mask=problem.target_valid)[0]

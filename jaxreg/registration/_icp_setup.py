@@ -30,6 +30,7 @@ from jaxreg.core._threads import lane_pieces, split_lanes
 from jaxreg.geometry.kernels import L2, AbstractRobustKernel
 from jaxreg.geometry.lie import se3_from_matrix
 from jaxreg.registration._icp_core import LoopSettings, Problem, RegistrationResult, run_many
+from jaxreg.registration.projective import ProjectiveAssociation
 from jaxreg.search.neighbors import NeighborGrid, build_grid, validate_grid
 
 Method = Literal["point_to_point", "point_to_plane"]
@@ -94,6 +95,12 @@ class ICPOptions(eqx.Module):
         viewpoint_rows: ``(N,)`` bool, the source rows the sensor at ``viewpoint`` saw
             (default every row); the others (points known another way, such as where an
             object touches a table) may match any face.
+        association: a :class:`~jaxreg.registration.projective.ProjectiveAssociation` when
+            the target is an organized cloud (``(H, W, 3)``, or its ``(H * W, 3)`` rows, and
+            normals of the same shape): each source point's match is the nearest target
+            point in a small window around its projection into the camera's image, at
+            constant cost per point. ``None`` (default): the nearest target point
+            (``neighbors``' grid or brute force).
     """
 
     method: Method = "point_to_point"
@@ -107,6 +114,7 @@ class ICPOptions(eqx.Module):
     neighbors: NeighborGrid | None = None
     viewpoint: Float[ArrayLike, " 3"] | None = None
     viewpoint_rows: Bool[ArrayLike, " N"] | None = None
+    association: ProjectiveAssociation | None = None
 
 
 _DEFAULTS = ICPOptions()
@@ -190,6 +198,9 @@ def prepare(
     dtype = jnp.result_type(source.dtype, float)
     source = as_array(source, dtype)
     target = as_array(target, dtype)
+    target_normals = None if s.target_normals is None else as_array(s.target_normals, dtype)
+    if s.association is not None:
+        target, target_normals = _organized(s, target, target_normals)
     for name, cloud in (("source", source), ("target", target)):
         if cloud.ndim != 2 or cloud.shape[-1] != 3:
             raise ValueError(f"{name} must have shape (N, 3), got {cloud.shape}")
@@ -198,13 +209,13 @@ def prepare(
     n = source.shape[0]
     if n < 3:
         raise ValueError(f"ICP needs at least 3 source points, got {n}")
-    target_normals = None
-    if s.method == "point_to_plane":
-        if s.target_normals is None:
+    if s.method != "point_to_plane":
+        target_normals = None
+    else:
+        if target_normals is None:
             raise ValueError(
                 "point_to_plane needs target_normals (M, 3): see jaxreg.estimate_normals"
             )
-        target_normals = as_array(s.target_normals, dtype)
         if target_normals.shape != target.shape:
             raise ValueError(
                 f"target_normals must match target {target.shape}, got {target_normals.shape}"
@@ -247,14 +258,16 @@ def prepare(
     grid = s.neighbors
     if grid is not None:
         _check_given_grid(grid, user_target, distances, target_ok, m, s)
-    elif _is_concrete(target) and _is_concrete(distances):
+    elif s.association is None and _is_concrete(target) and _is_concrete(distances):
         points, ok = np.asarray(target), np.asarray(target_ok)
         if ok.any():  # else nothing to index: every query is invalid
             radius = float(np.max(np.asarray(distances)))
             grid = build_grid(points, radius, mask=ok, capacity=grid_capacity)
             if grid_capacity is not None and bool(grid.overflow):
                 grid = build_grid(points, radius, mask=ok)
-    problem = Problem(source, weights, target, target_ok, target_normals, grid, viewpoint, rows)
+    problem = Problem(
+        source, weights, target, target_ok, target_normals, grid, viewpoint, rows, s.association
+    )
     opts = LoopSettings(
         method=s.method,
         max_iterations=int(s.max_iterations),
@@ -264,6 +277,35 @@ def prepare(
         trim_fraction=None if s.trim_fraction is None else as_array(s.trim_fraction, dtype),
     )
     return problem, opts, (n, m)
+
+
+def _organized(options: ICPOptions, target, normals):
+    """The organized ``target`` (and ``normals``) as ``(H * W, 3)`` rows for ``options``'
+    projective association, checked against its image size."""
+    association = options.association
+    if not isinstance(association, ProjectiveAssociation):
+        raise TypeError(
+            "association must be a jaxreg.ProjectiveAssociation, got "
+            f"{type(association).__name__}"
+        )
+    if options.neighbors is not None:
+        raise ValueError(
+            "neighbors= and association= are two ways to find matches: give one (a "
+            "projective association needs no grid)"
+        )
+    width, height = association.intrinsics.width, association.intrinsics.height
+    shaped = []
+    for name, cloud in (("target", target), ("target_normals", normals)):
+        if cloud is not None and cloud.ndim == 3:
+            cloud = cloud.reshape(-1, cloud.shape[-1])
+        if cloud is not None and cloud.shape != (width * height, 3):
+            raise ValueError(
+                f"with a projective association the {name} is organized: one row per pixel "
+                f"of the {width} x {height} image, ({height}, {width}, 3) or "
+                f"({width * height}, 3), got {cloud.shape}"
+            )
+        shaped.append(cloud)
+    return shaped
 
 
 def _check_given_grid(grid, user_target, distances, target_ok, m, s) -> None:
