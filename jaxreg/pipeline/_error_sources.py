@@ -16,8 +16,11 @@ function theorem turn any perturbation of the points into one of the pose. The t
   eroded or grown by a few pixels, a contiguous piece of the visible part dropped), all
   perturbations in one vmapped ICP call; the second moment of the poses about the estimate.
 * **calibration**: the user's hand-eye covariance, moved to the object in closed form (every
-  lifted point moves rigidly with the camera, so the fitted pose does too), and the intrinsics
-  and depth-scale uncertainty through the lifting's derivative and the normal equations.
+  lifted point moves rigidly with the camera, so the fitted pose does too), the intrinsics'
+  uncertainty through the lifting's derivative and the normal equations, and the depth
+  scale's by re-registering the segment lifted at one sigma either way (a scaled segment is
+  also a larger or smaller object, whose fit slides sideways as its pairs change: more than
+  the pairs held fixed predict).
 * **ambiguity**: the second moment of the equally good starts about the answer.
 """
 
@@ -45,10 +48,10 @@ def mismatch_sigma(model) -> float:
     """The standard deviation (metres) of the offset along the surface normal that the model
     and the sensed surface disagree on, shared by the points of a patch: what neither the depth
     noise nor the residuals show (the model's planes between its points, its edges and
-    curvature; an object that is not quite its scan). It is the model's sampling RMS (how far
-    a surface point lies from the nearest model point, :func:`~jaxreg.pipeline._model.
-    _sampling`): a model sampled at half the spacing is trusted to half the offset."""
-    return float(model.sampling[0])
+    curvature). It is how far the model's tangent planes miss its own neighbouring points
+    (:func:`~jaxreg.pipeline._model._plane_offset`): the offset a point-to-plane fit to this
+    model leaves where the surface sensed is the model's own."""
+    return float(model.plane_offset)
 
 
 class Calibration:
@@ -174,10 +177,10 @@ def _depth_base(jac, points, noise, inverse, sensed) -> np.ndarray:
     return inverse @ (jac.T * variance) @ jac @ inverse
 
 
-def _calibration_term(calibration, jac, points, frame, inverse):
-    """Intrinsics and depth-scale uncertainty (base axes), through the lifting's derivative:
-    a camera point ``z ((u - cx) / fx, (v - cy) / fy, 1)`` moves by ``-x / fx`` per unit of
-    ``fx``, ``-z / fx`` per unit of ``cx`` (likewise in y), and by itself per unit of scale."""
+def _intrinsics_term(calibration, jac, points, frame, inverse):
+    """The intrinsics' uncertainty (base axes), through the lifting's derivative: a camera
+    point ``z ((u - cx) / fx, (v - cy) / fy, 1)`` moves by ``-x / fx`` per unit of ``fx`` and
+    ``-z / fx`` per unit of ``cx`` (likewise in y)."""
     camera = frame.base_T_camera
     to_base = np.asarray(camera.rotation().as_matrix(), np.float64)
     cam = (points - np.asarray(camera.translation(), np.float64)) @ to_base
@@ -189,7 +192,6 @@ def _calibration_term(calibration, jac, points, frame, inverse):
         (np.stack([zero, -y / fy, zero], 1), calibration.intrinsics_sigma[1]),
         (np.stack([-z / fx, zero, zero], 1), calibration.intrinsics_sigma[2]),
         (np.stack([zero, -z / fy, zero], 1), calibration.intrinsics_sigma[3]),
-        (cam, calibration.depth_scale_sigma),
     ]
     n_base = jac[:, :3]  # R^T n_i, weighted like the rows of jac
     total = np.zeros((6, 6))
@@ -315,6 +317,13 @@ def _perturbed_fits(sources, weights, points, normals, grid, init, distances, tr
     return jax.vmap(one)(sources)
 
 
+def _scaled(segment: np.ndarray, frame, sigma: float) -> np.ndarray:
+    """``(2, N, 3)`` the ``segment`` ``(N, 3)`` (base frame) lifted with the depth scale off
+    by ``-sigma`` and ``+sigma`` (relative): every point moved along its ray from the camera."""
+    centre = np.asarray(frame.base_T_camera.translation(), np.float32)
+    return np.stack([centre + (1 + s) * (segment - centre) for s in (-sigma, sigma)])
+
+
 def _tangents(base: np.ndarray, others: np.ndarray) -> np.ndarray:
     """``(P, 6)`` right-perturbation tangents (base axes) taking ``base`` (7,) to each of
     ``others`` ``(P, 7)`` (object_T_base)."""
@@ -423,7 +432,33 @@ def pose_budget(
             "perturbed segment failed"
         )
 
-    calibration_base = _calibration_term(calibration, jac, pairs_points, frame, inverse)
+    calibration_base = _intrinsics_term(calibration, jac, pairs_points, frame, inverse)
+    scale = np.zeros((6, 6))
+    if calibration.depth_scale_sigma > 0:
+        # the segment re-registered with the depth scale off by one sigma either way: its
+        # response (along each ray, and sideways where the pairs change) as the fit makes it
+        registered = segments[-1].copy()
+        registered[:source_size] = np.nan
+        kept = points[: source_size] if len(points) <= source_size else points[
+            np.sort(rng.choice(len(points), source_size, replace=False))
+        ]
+        registered[: len(kept)] = kept
+        scaled_poses, scaled_status, scaled_finite = _perturbed_fits(
+            _scaled(registered, frame, calibration.depth_scale_sigma), weights, model.points,
+            model.normals, model.fine_grid, np.asarray(object_T_base, np.float32),
+            np.asarray(distances)[-15:], np.float32(trim), eye,
+            np.arange(len(weights)) < source_size,
+        )  # fmt: skip
+        scaled_ok = np.asarray(scaled_finite) & np.any(
+            [np.asarray(scaled_status == code) for code in usable], axis=0
+        )
+        if scaled_ok.all():
+            steps = _tangents(object_T_base, np.asarray(scaled_poses)) @ to_object.T
+            scale = steps.T @ steps / len(steps)
+        else:
+            unknown["calibration"] = (
+                "the segment re-registered at the depth scale's +-1 sigma failed"
+            )
     hand_eye = np.zeros((6, 6))
     if calibration.hand_eye is not None:
         # every lifted point moves with the camera: base_T_object' = base_T_camera exp(e)
@@ -444,7 +479,7 @@ def pose_budget(
         "fit": to_object @ fit_base @ to_object.T,
         "mismatch": to_object @ mismatch_base @ to_object.T,
         "segmentation": moved.T @ moved / max(len(moved), 1),
-        "calibration": hand_eye + to_object @ calibration_base @ to_object.T,
+        "calibration": hand_eye + to_object @ calibration_base @ to_object.T + scale,
         "ambiguity": (others.T * likelihood) @ others / (1.0 + likelihood.sum()),
     }
     return combine(terms, free, reason, unknown=unknown)

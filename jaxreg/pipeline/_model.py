@@ -32,6 +32,7 @@ class _Model:
     bounds: np.ndarray  # (2, 3) least and greatest coordinate along each axis (given points)
     screen: np.ndarray  # (R1, 3) voxelled at 3 voxels: the coarse starts' first judgement
     sampling: tuple[float, float]  # (rms, gap) metres: see _sampling
+    plane_offset: float  # metres: see _plane_offset
     centre: np.ndarray  # (3,) the centre of the given points' bounding box (object frame)
     oriented: bool  # normals given (a mesh's, pointing out): ICP matches only faces seen
     # _coarse_problem's, per schedule (not in the repr that keys stored programs)
@@ -156,6 +157,7 @@ def _prepare_model(
         bounds=np.stack([given.min(0), given.max(0)]),
         screen=_padded_rows(voxel_downsample(points, 3 * voxel_size), _SCREEN_ROWS, np.nan),
         sampling=_sampling(points),
+        plane_offset=_plane_offset(points, normals),
         centre=0.5 * (model_points.min(0) + model_points.max(0)).astype(np.float64),
         oriented=model_normals is not None,
     )
@@ -186,6 +188,20 @@ def _sampling(points: np.ndarray, k: int = 6) -> tuple[float, float]:
     area = np.pi * distances[:, k].astype(np.float64) ** 2 / k
     rms = float(np.sqrt(np.sum(area**2) / (2 * np.pi * np.sum(area))))
     return rms, float(np.sqrt(np.quantile(area, 0.95) / np.pi))
+
+
+def _plane_offset(points: np.ndarray, normals: np.ndarray) -> float:
+    """How far the model's tangent planes miss its own surface (metres): the RMS distance of
+    each of ``points`` ``(R, 3)`` from the plane (``normals`` ``(R, 3)``) of its nearest other
+    point. Zero on a flat face; the curvature between neighbouring points, edges and corners,
+    and noise in a scanned model make it grow: what a point-to-plane residual against this
+    model shows even where the sensed surface is the model's own."""
+    usable = np.linalg.norm(normals, axis=1) > 0.5
+    points, normals = points[usable].astype(np.float64), normals[usable].astype(np.float64)
+    _, index = cKDTree(points).query(points, k=2)
+    nearest = index[:, 1]
+    offset = np.einsum("ij,ij->i", normals[nearest], points - points[nearest])
+    return float(np.sqrt(np.mean(offset**2)))
 
 
 def _bucketed_symmetry(symmetry: Symmetry | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
