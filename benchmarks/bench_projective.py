@@ -44,11 +44,9 @@ REACH = 0.05
 
 
 def outward_normals(points: np.ndarray) -> np.ndarray:
-    """Unit normals ``(M, 3)`` of model points, turned away from their centroid."""
-    centroid = points.mean(0)
-    normals = np.asarray(jr.estimate_normals(points, k=20, viewpoint=centroid))
-    flip = np.einsum("ij,ij->i", normals, points - centroid) < 0
-    return np.where(flip[:, None], -normals, normals)
+    """Unit normals ``(M, 3)`` of model points, turned away from their centroid (those
+    ``estimate_normals`` turns toward it, negated)."""
+    return -np.asarray(jr.estimate_normals(points, k=20, viewpoint=points.mean(0)))
 
 
 def start_pose(truth: jr.SE3, rng) -> jr.SE3:

@@ -273,10 +273,17 @@ def perturbed_segments(frame, mask, points, plane, min_height, size, rng, count=
             centre = points[rng.integers(len(points))]
             _, drop = tree.query(centre, k=max(1, int(0.15 * len(points))))
             cloud = np.delete(points, np.atleast_1d(drop), axis=0)
-        if len(cloud) > size:
-            cloud = cloud[np.sort(rng.choice(len(cloud), size, replace=False))]
+        cloud = _subsample(cloud, size, rng)
         out[k, : len(cloud)] = cloud
     return out
+
+
+def _subsample(cloud: np.ndarray, size: int, rng) -> np.ndarray:
+    """``cloud`` ``(K, 3)`` cut to at most ``size`` rows drawn at random, in their order: how
+    the registered cloud and every perturbed one are thinned."""
+    if len(cloud) > size:
+        cloud = cloud[np.sort(rng.choice(len(cloud), size, replace=False))]
+    return cloud
 
 
 def _continuing(frame, mask, rows, cols, noise) -> np.ndarray:
@@ -322,6 +329,22 @@ def _scaled(segment: np.ndarray, frame, sigma: float) -> np.ndarray:
     by ``-sigma`` and ``+sigma`` (relative): every point moved along its ray from the camera."""
     centre = np.asarray(frame.base_T_camera.translation(), np.float32)
     return np.stack([centre + (1 + s) * (segment - centre) for s in (-sigma, sigma)])
+
+
+def _with_contact(segments: np.ndarray, contact: np.ndarray | None) -> np.ndarray:
+    """``segments`` ``(P, N, 3)`` each followed by the table's ``contact`` rows ``(C, 3)``
+    (``None``: none), as every fit of the budget registers them."""
+    if contact is None:
+        return segments
+    return np.concatenate(
+        [segments, np.broadcast_to(contact, (len(segments),) + contact.shape)], 1
+    )
+
+
+def _usable_fits(status, finite, usable) -> np.ndarray:
+    """``(P,)`` bool: the fits whose residuals are ``finite`` and whose ICP ``status`` is one of
+    the ``usable`` codes."""
+    return np.asarray(finite) & np.any([np.asarray(status == code) for code in usable], axis=0)
 
 
 def _tangents(base: np.ndarray, others: np.ndarray) -> np.ndarray:
@@ -407,11 +430,9 @@ def pose_budget(
     segments = perturbed_segments(
         frame, mask, points, plane, min_height, source_size, rng, noise=noise
     )
+    segments = _with_contact(segments, contact)
     weights = np.ones(source_size, np.float32)
     if contact is not None:
-        segments = np.concatenate(
-            [segments, np.broadcast_to(contact, (len(segments),) + contact.shape)], 1
-        )
         weights = np.concatenate([weights, np.full(len(contact), CONTACT_WEIGHT, np.float32)])
     poses, status, finite = _perturbed_fits(
         segments, weights, model.points, model.normals, model.fine_grid,
@@ -423,7 +444,7 @@ def pose_budget(
     usable = (ICPStatus.success, ICPStatus.max_iterations)
     if free.any():  # a fit degenerate along the free axes still pins the others
         usable += (ICPStatus.degenerate,)
-    ok = np.asarray(finite) & np.any([np.asarray(status == code) for code in usable], axis=0)
+    ok = _usable_fits(status, finite, usable)
     moved = (_tangents(object_T_base, np.asarray(poses)) @ to_object.T)[ok]
     unknown = {}
     if len(moved) < len(segments) // 2:
@@ -437,22 +458,17 @@ def pose_budget(
     if calibration.depth_scale_sigma > 0:
         # the segment re-registered with the depth scale off by one sigma either way: its
         # response (along each ray, and sideways where the pairs change) as the fit makes it
-        registered = segments[-1].copy()
-        registered[:source_size] = np.nan
-        kept = points[: source_size] if len(points) <= source_size else points[
-            np.sort(rng.choice(len(points), source_size, replace=False))
-        ]
-        registered[: len(kept)] = kept
+        registered = np.full((1, source_size, 3), np.nan, np.float32)
+        kept = _subsample(points, source_size, rng)
+        registered[0, : len(kept)] = kept
+        registered = _with_contact(registered, contact)[0]
         scaled_poses, scaled_status, scaled_finite = _perturbed_fits(
             _scaled(registered, frame, calibration.depth_scale_sigma), weights, model.points,
             model.normals, model.fine_grid, np.asarray(object_T_base, np.float32),
             np.asarray(distances)[-15:], np.float32(trim), eye,
             np.arange(len(weights)) < source_size,
         )  # fmt: skip
-        scaled_ok = np.asarray(scaled_finite) & np.any(
-            [np.asarray(scaled_status == code) for code in usable], axis=0
-        )
-        if scaled_ok.all():
+        if _usable_fits(scaled_status, scaled_finite, usable).all():
             steps = _tangents(object_T_base, np.asarray(scaled_poses)) @ to_object.T
             scale = steps.T @ steps / len(steps)
         else:

@@ -298,11 +298,11 @@ def _organized(options: ICPOptions, target, normals):
     for name, cloud in (("target", target), ("target_normals", normals)):
         if cloud is not None and cloud.ndim == 3:
             cloud = cloud.reshape(-1, cloud.shape[-1])
-        if cloud is not None and cloud.shape != (width * height, 3):
+        if cloud is not None and cloud.shape != (association.pixels, 3):
             raise ValueError(
                 f"with a projective association the {name} is organized: one row per pixel "
                 f"of the {width} x {height} image, ({height}, {width}, 3) or "
-                f"({width * height}, 3), got {cloud.shape}"
+                f"({association.pixels}, 3), got {cloud.shape}"
             )
         shaped.append(cloud)
     return shaped
