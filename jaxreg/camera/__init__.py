@@ -17,8 +17,6 @@ from jaxreg.camera.model import (
     reprojection_error as reprojection_error,
     undistort_points as undistort_points,
 )
-from jaxreg.core._lazy import submodule as _submodule
+from jaxreg.core._lazy import submodules
 
-
-def __getattr__(name: str):  # jaxreg.camera.<module> without importing it first
-    return _submodule(__name__, name)
+__getattr__ = submodules(__name__)  # jaxreg.camera.<module> without importing it first

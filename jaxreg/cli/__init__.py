@@ -3,8 +3,6 @@ import every other package.
 """
 
 from jaxreg.cli.commands import main as main
-from jaxreg.core._lazy import submodule as _submodule
+from jaxreg.core._lazy import submodules
 
-
-def __getattr__(name: str):  # jaxreg.cli.<module> without importing it first
-    return _submodule(__name__, name)
+__getattr__ = submodules(__name__)  # jaxreg.cli.<module> without importing it first

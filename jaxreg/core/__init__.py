@@ -7,8 +7,6 @@ compiled programs between processes.
 Imports nothing from the rest of jaxreg.
 """
 
-from jaxreg.core._lazy import submodule as _submodule
+from jaxreg.core._lazy import submodules
 
-
-def __getattr__(name: str):  # jaxreg.core.<module> without importing it first
-    return _submodule(__name__, name)
+__getattr__ = submodules(__name__)  # jaxreg.core.<module> without importing it first

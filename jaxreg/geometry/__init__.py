@@ -8,8 +8,6 @@ Conventions: a pose maps source/model coordinates into target/scene coordinates;
 jaxlie's ``(vx, vy, vz, wx, wy, wz)``. May import :mod:`jaxreg.core` only.
 """
 
-from jaxreg.core._lazy import submodule as _submodule
+from jaxreg.core._lazy import submodules
 
-
-def __getattr__(name: str):  # jaxreg.geometry.<module> without importing it first
-    return _submodule(__name__, name)
+__getattr__ = submodules(__name__)  # jaxreg.geometry.<module> without importing it first

@@ -7,7 +7,7 @@ Readers return metres and raise ``ValueError`` naming the file and what is wrong
 import :mod:`jaxreg.core`, :mod:`jaxreg.geometry` and :mod:`jaxreg.camera`.
 """
 
-from jaxreg.core._lazy import submodule as _submodule
+from jaxreg.core._lazy import submodules
 from jaxreg.io._ycbv_bop import ycbv_to_bop as ycbv_to_bop
 from jaxreg.io.bop import (
     BopModel as BopModel,
@@ -39,6 +39,4 @@ from jaxreg.io.ycbv import (
     read_ycbv_models as read_ycbv_models,
 )
 
-
-def __getattr__(name: str):  # jaxreg.io.<module> without importing it first
-    return _submodule(__name__, name)
+__getattr__ = submodules(__name__)  # jaxreg.io.<module> without importing it first

@@ -8,8 +8,6 @@ Every solver returns a result with a per-lane ``status``. May import :mod:`jaxre
 :mod:`jaxreg.geometry`, :mod:`jaxreg.uncertainty` and :mod:`jaxreg.search`.
 """
 
-from jaxreg.core._lazy import submodule as _submodule
+from jaxreg.core._lazy import submodules
 
-
-def __getattr__(name: str):  # jaxreg.registration.<module> without importing it first
-    return _submodule(__name__, name)
+__getattr__ = submodules(__name__)  # jaxreg.registration.<module> without importing it first

@@ -6,8 +6,6 @@ Capacities are chosen on the host and overflow is reported, never silently dropp
 :mod:`jaxreg.core` and :mod:`jaxreg.geometry`.
 """
 
-from jaxreg.core._lazy import submodule as _submodule
+from jaxreg.core._lazy import submodules
 
-
-def __getattr__(name: str):  # jaxreg.search.<module> without importing it first
-    return _submodule(__name__, name)
+__getattr__ = submodules(__name__)  # jaxreg.search.<module> without importing it first

@@ -7,7 +7,7 @@ by BOP's metrics.
 May import every package but :mod:`jaxreg.cli`.
 """
 
-from jaxreg.core._lazy import submodule as _submodule
+from jaxreg.core._lazy import submodules
 from jaxreg.studies._hand_eye import (
     HandEyeCorrection as HandEyeCorrection,
     estimate_hand_eye_correction as estimate_hand_eye_correction,
@@ -38,6 +38,4 @@ from jaxreg.studies.calibration import (
     calibration_study as calibration_study,
 )
 
-
-def __getattr__(name: str):  # jaxreg.studies.<module> without importing it first
-    return _submodule(__name__, name)
+__getattr__ = submodules(__name__)  # jaxreg.studies.<module> without importing it first

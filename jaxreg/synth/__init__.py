@@ -6,7 +6,7 @@ Needs the ray caster (trimesh + Embree), so ``import jaxreg`` loads it on first 
 core, geometry, uncertainty and camera.
 """
 
-from jaxreg.core._lazy import submodule as _submodule
+from jaxreg.core._lazy import submodules
 from jaxreg.synth._depth_noise import StereoSensor as StereoSensor
 from jaxreg.synth._meshes import (
     MODEL_SAMPLES as MODEL_SAMPLES,
@@ -33,6 +33,4 @@ from jaxreg.synth.sequences import (
     tracking_sequence as tracking_sequence,
 )
 
-
-def __getattr__(name: str):  # jaxreg.synth.<module> without importing it first
-    return _submodule(__name__, name)
+__getattr__ = submodules(__name__)  # jaxreg.synth.<module> without importing it first

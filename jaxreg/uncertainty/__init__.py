@@ -6,7 +6,7 @@ Covariances are of the right perturbation ``T_true = T_est @ exp(delta)``, tange
 ``(v, w)``. May import :mod:`jaxreg.core` and :mod:`jaxreg.geometry`.
 """
 
-from jaxreg.core._lazy import submodule as _submodule
+from jaxreg.core._lazy import submodules
 from jaxreg.uncertainty._pose_statistics import (
     GroupStatistics as GroupStatistics,
     PoseStatistics as PoseStatistics,
@@ -28,6 +28,4 @@ from jaxreg.uncertainty.noise import (
     error_budget as error_budget,
 )
 
-
-def __getattr__(name: str):  # jaxreg.uncertainty.<module> without importing it first
-    return _submodule(__name__, name)
+__getattr__ = submodules(__name__)  # jaxreg.uncertainty.<module> without importing it first
