@@ -26,7 +26,7 @@ from jaxreg.pipeline._judge import (
     evidence_gap,
     judged_fits,
 )
-from jaxreg.pipeline._model import _bucketed_symmetry, _Model, viewpoint
+from jaxreg.pipeline._model import _bucketed_symmetry, _Model
 from jaxreg.pipeline.records import EquivalentPose
 from jaxreg.pipeline.settings import PipelineSettings
 from jaxreg.registration.icp import icp
@@ -113,15 +113,15 @@ def probe_starts(model: _Model, object_T_base: np.ndarray) -> np.ndarray:
     return np.asarray((centre @ turns @ centre.inverse() @ answer).wxyz_xyz, np.float32)
 
 
-def _probe(frame, plane, model, source, answer, trim, noise, distances, settings):
-    """The answer turned about the model's axes (:func:`probe_starts`), refined and judged
-    like the refined starts: their poses ``(P, 7)`` (object_T_base), scores and residuals
-    ``(P,)`` (metres). The probes are refined on every second point of ``source`` (half the
-    cost)."""
+def _probe(frame, plane, model, source, answer, trim, noise, distances, eye, settings):
+    """The answer turned about the model's axes (:func:`probe_starts`), refined (``eye`` the
+    ICP viewpoint) and judged like the refined starts: their poses ``(P, 7)``
+    (object_T_base), scores and residuals ``(P,)`` (metres). The probes are refined on every
+    second point of ``source`` (half the cost)."""
     starts = SE3(jax.device_put(probe_starts(model, answer)))
     probed = _register_starts(
         source[::2], model.points, model.normals, model.fine_grid, starts, distances, trim, 30,
-        viewpoint(model, frame),
+        eye,
     )  # fmt: skip
     poses, _ = _onto_table(model, probed.pose.wxyz_xyz, plane, settings)
     scores, rmses, _ = judged_fits(frame, plane, poses, model.points, probed, noise)
@@ -334,7 +334,7 @@ def _axis_angle(rotation: np.ndarray) -> tuple[np.ndarray, float]:
 
 def _alternatives(
     frame, plane, model, source, answers, best, scores, rmses, patches, trim, noise, distances,
-    symmetry, settings,
+    eye, symmetry, settings,
 ) -> _Alternatives:  # fmt: skip
     """The refined starts (``answers`` ``(S, 7)`` object_T_base, their ``scores`` and
     ``rmses``, ``best`` the answer's row) and the answer's probes (:func:`_probe`) judged
@@ -351,7 +351,7 @@ def _alternatives(
     equal = gaps <= EQUAL_WITHIN
     pose, spread, tangents = _finish(answers, np.int32(best), equal, padded)
     probes, probe_scores, probe_rmses = _probe(
-        frame, plane, model, source, answers[best], trim, noise, distances, settings
+        frame, plane, model, source, answers[best], trim, noise, distances, eye, settings
     )
     probe_gaps = evidence_gap(probe_scores, probe_rmses, scores[best], rmses[best], patches)
     equal_probes = probe_gaps <= EQUAL_WITHIN

@@ -37,7 +37,6 @@ from jaxreg.core._sizes import power_of_two
 from jaxreg.pipeline._answer import CONTACT_WEIGHT
 from jaxreg.pipeline._judge import PATCH
 from jaxreg.pipeline._lift_stage import lift_pixels
-from jaxreg.pipeline._model import viewpoint
 from jaxreg.pipeline._surface import depth_step
 from jaxreg.registration.icp import ICPStatus, icp
 from jaxreg.uncertainty.budget import combine
@@ -376,7 +375,7 @@ def _free(symmetry, hessian_object: np.ndarray) -> tuple[np.ndarray, str | None]
 
 def pose_budget(
     *, points, source_size, model, object_T_base, pose, contact, frame, mask, plane,
-    min_height, distances, trim, noise, calibration, ambiguous, symmetry, view_free, rng,
+    min_height, distances, trim, eye, noise, calibration, ambiguous, symmetry, view_free, rng,
 ):  # fmt: skip
     """The error budget (:class:`~jaxreg.uncertainty.budget.PoseBudget`) of a refined pose.
 
@@ -392,6 +391,7 @@ def pose_budget(
             the lift's height floor (for the grown border).
         distances: the refinement's correspondence distances (metres), last the finest.
         trim: the refinement's trim fraction.
+        eye: the refinement's ICP viewpoint (:func:`~jaxreg.pipeline._model.viewpoint`).
         noise: the camera's :class:`~jaxreg.uncertainty.DepthNoise` in the base frame.
         calibration: :class:`Calibration`.
         ambiguous: ``((A, 6), (A,))`` the answers about as good as this one (other refined
@@ -410,7 +410,6 @@ def pose_budget(
     to_object = -_adjoint(np.asarray(branch.inverse().wxyz_xyz)) @ _adjoint(object_T_base)
     support = np.zeros((0, 3)) if contact is None else contact[np.all(np.isfinite(contact), 1)]
     measured = len(points)
-    eye = viewpoint(model, frame)
     pairs_points, normals, residual, kept = _pairs(
         np.concatenate([points, support]).astype(np.float64), object_T_base,
         model.points.astype(np.float64), model.normals.astype(np.float64),

@@ -278,7 +278,7 @@ def refine_stage(
     )  # fmt: skip
     found = _alternatives(
         frame, plane, model, source, answers, int(ranked[0]), scores, rmses, patch_count(points),
-        trim, noise, fine_distances, symmetry, settings,
+        trim, noise, fine_distances, eye, symmetry, settings,
     )  # fmt: skip
     spread_mm, spread_deg = (float(x) for x in found.spread)
     matched = fraction > 0 and rmse < 1.0  # no match leaves ICP's empty-sum residual
@@ -359,7 +359,7 @@ def refine_stage(
         points=points, source_size=s.max_points, model=model,
         object_T_base=answers[ranked[0]], pose=found.pose, contact=contact,
         frame=frame, mask=mask, plane=plane, min_height=settings.lift.min_height,
-        distances=fine_distances, trim=trim, noise=noise, calibration=calibration,
+        distances=fine_distances, trim=trim, eye=eye, noise=noise, calibration=calibration,
         ambiguous=(found.tangents, found.weights), symmetry=symmetry,
         view_free=(found.view_free, found.view_reason),
         rng=np.random.default_rng(1),
