@@ -16,12 +16,13 @@ diagnostics. The stages:
    cluster.
 2. **Register, coarse search**: every candidate is registered in one compiled call (the
    starts below, on its grid points) and scored: the fraction of its points the model
-   explains (within 1.5 voxels, 6 mm at the default voxel) times the share of the model's
-   camera-facing surface that the depth image confirms (:func:`visibility`, within 1 cm or 4
-   sigma_z of the depth noise; seeing through the model, or the model below the table,
-   counts against it). The best candidate wins, unless its points span beyond the model at
-   its coarse pose (``max_overhang``: a larger object of a similar shape), and every cluster
-   that its coarse pose explains (60% of its points within 1 cm) joins it.
+   explains (within the final correspondence distance of the segment's tolerances: 1.5
+   voxels, or more where the depth noise or the model's sampling ask for it) times the share
+   of the model's camera-facing surface that the depth image confirms (:func:`visibility`,
+   within 1 cm or 4 sigma_z of the depth noise; seeing through the model, or the model below
+   the table, counts against it). The best candidate wins, unless its points span beyond
+   the model at its coarse pose (``max_overhang``: a larger object of a similar shape), and
+   every cluster that its coarse pose explains (60% of its points within 1 cm) joins it.
 3. **Lift**: the winning clusters' footprint at full resolution (their pixels and the depth
    holes between them), its valid-depth fraction, the pixels above the table band, flying
    pixels removed (a pixel needs ``min_consistent_neighbors`` of its 8 neighbours within the

@@ -51,7 +51,8 @@ class Candidate(_Record):
     Attributes:
         clusters: the cluster indices it joins (``[]``: the caller's mask).
         score: ``explained * confirmed share`` of its best coarse pose.
-        explained: fraction of its points within 6 mm of the model at that pose.
+        explained: fraction of its points within the finest correspondence distance (which
+            follows the depth noise and the model's sampling) of the model at that pose.
         contradicted: share of the model's judged surface the image sees through.
         overhang_mm: its largest span beyond the model along a principal axis.
     """
