@@ -26,7 +26,7 @@ from jaxreg.pipeline._judge import (
     evidence_gap,
     judged_fits,
 )
-from jaxreg.pipeline._model import _bucketed_symmetry, _Model
+from jaxreg.pipeline._model import PROBE_ANGLES_DEG, _bucketed_symmetry, _Model
 from jaxreg.pipeline.records import EquivalentPose
 from jaxreg.pipeline.settings import PipelineSettings
 from jaxreg.registration.icp import icp
@@ -95,12 +95,6 @@ def _settle(source, contact, points, normals, grid, init, distances, trim, itera
 # --------------------------------------------------------------------------------------------
 # Ambiguity: is the answer the only pose the image supports?
 
-PROBE_ANGLES_DEG = (
-    -150.0, -120.0, -90.0, -60.0, -40.0, -25.0, -12.0, 12.0, 25.0, 40.0, 60.0, 90.0, 120.0,
-    150.0, 180.0,
-)
-
-
 def probe_starts(model: _Model, object_T_base: np.ndarray) -> np.ndarray:
     """``(3 * len(PROBE_ANGLES_DEG), 7)`` object_T_base starts: the answer turned about each
     of the model's principal axes through its centroid by each probe angle (a mug whose handle
@@ -113,19 +107,31 @@ def probe_starts(model: _Model, object_T_base: np.ndarray) -> np.ndarray:
     return np.asarray((centre @ turns @ centre.inverse() @ answer).wxyz_xyz, np.float32)
 
 
-def _probe(frame, plane, model, source, answer, trim, noise, distances, eye, settings):
+def _probe(frame, plane, model, source, answer, trim, noise, distances, max_rmse, eye, settings):
     """The answer turned about the model's axes (:func:`probe_starts`), refined (``eye`` the
-    ICP viewpoint) and judged like the refined starts: their poses ``(P, 7)``
-    (object_T_base), scores and residuals ``(P,)`` (metres). The probes are refined on every
-    second point of ``source`` (half the cost)."""
+    ICP viewpoint) and judged like the refined starts (as ICP left them): their poses
+    ``(P, 7)`` (object_T_base, moved onto the table where they rest on it, as the starts'
+    answers are), scores and residuals ``(P,)`` (metres), and whether each passes the
+    gates an answer must pass (``(P,)`` bool: residual within ``max_rmse``, the explained,
+    confirmed and contradicted shares within the register settings'). The probes are refined
+    on every second point of ``source`` (half the cost)."""
     starts = SE3(jax.device_put(probe_starts(model, answer)))
     probed = _register_starts(
         source[::2], model.points, model.normals, model.fine_grid, starts, distances, trim, 30,
         eye,
     )  # fmt: skip
-    poses, _ = _onto_table(model, probed.pose.wxyz_xyz, plane, settings)
-    scores, rmses, _ = judged_fits(frame, plane, poses, model.points, probed, noise)
-    return poses, scores, rmses
+    refined = np.asarray(probed.pose.wxyz_xyz)
+    poses, _ = _onto_table(model, refined, plane, settings)
+    scores, rmses, seen = judged_fits(frame, plane, refined, model.points, probed, noise)
+    s = settings.register
+    judged = seen[:, :3].sum(1).clip(min=1)
+    passes = (
+        (rmses <= max_rmse)
+        & (np.asarray(probed.inlier_fraction) >= s.min_inlier_fraction)
+        & (seen[:, 0] / judged >= s.min_confirmed)
+        & (seen[:, 1] / judged <= s.max_contradicted)
+    )
+    return poses, scores, rmses, passes
 
 
 def _unfixed_turns(model, equal: np.ndarray):
@@ -150,6 +156,14 @@ def _unfixed_turns(model, equal: np.ndarray):
                 f"{'xyz'[frame_axis]} axis (equally good answers span {span:.0f} deg)"
             )
     return free, "; ".join(reasons) or None, turned
+
+
+def _alike_turns(model, max_rmse: float) -> np.ndarray:
+    """``(3 * len(PROBE_ANGLES_DEG),)`` bool, axis-major like the probes: the turns under which
+    the model lies within ``max_rmse`` (the fit's residual gate, metres) of itself
+    (``model.self_misfits``): a box's or a can's half turns, a can's spin, a near-symmetric
+    shape's turns, which the view's depth cannot tell from the answer."""
+    return (np.asarray(model.self_misfits) <= max_rmse).reshape(-1)
 
 
 def _good_arc(angles: np.ndarray, good: np.ndarray) -> float:
@@ -290,7 +304,8 @@ class _Alternatives:
             :func:`~jaxreg.pipeline._judge.evidence_gap`): the budget's ambiguity term.
         view_free, view_reason: the rotation axes the view leaves free (``(6,)`` bool) and
             why (:func:`_unfixed_turns`).
-        equivalent: the distinct turned answers as good as the answer.
+        equivalent: the distinct turned answers as good as the answer (or turns the model
+            makes onto itself, :func:`_alike_turns`).
     """
 
     pose: np.ndarray
@@ -334,7 +349,7 @@ def _axis_angle(rotation: np.ndarray) -> tuple[np.ndarray, float]:
 
 def _alternatives(
     frame, plane, model, source, answers, best, scores, rmses, patches, trim, noise, distances,
-    eye, symmetry, settings,
+    max_rmse, eye, symmetry, settings,
 ) -> _Alternatives:  # fmt: skip
     """The refined starts (``answers`` ``(S, 7)`` object_T_base, their ``scores`` and
     ``rmses``, ``best`` the answer's row) and the answer's probes (:func:`_probe`) judged
@@ -345,14 +360,19 @@ def _alternatives(
     fit as well turned ``DISTINCT_ANGLE`` or more from the answer, and the probes that fit as
     well and stay turned after refinement (half their turn or more), both on the answer's
     ``symmetry`` branch (a declared symmetry's copies are the answer itself), one per
-    distinct pose (1 cm or 0.2 rad apart), best first."""
+    distinct pose (1 cm or 0.2 rad apart), best first. A probe's turn under which the model
+    matches itself within the fit's residual gate ``max_rmse`` (:func:`_alike_turns`) is as
+    good as the answer whatever the fits' differences (they come from where the model's
+    surface differs from the object's, not from the pose) when its refined fit passes the
+    answer's gates: weight 1, and part of a free arc."""
     padded = _bucketed_symmetry(symmetry)
     gaps = evidence_gap(scores, rmses, scores[best], rmses[best], patches)
     equal = gaps <= EQUAL_WITHIN
     pose, spread, tangents = _finish(answers, np.int32(best), equal, padded)
-    probes, probe_scores, probe_rmses = _probe(
-        frame, plane, model, source, answers[best], trim, noise, distances, eye, settings
-    )
+    probes, probe_scores, probe_rmses, probe_passes = _probe(
+        frame, plane, model, source, answers[best], trim, noise, distances, max_rmse, eye,
+        settings,
+    )  # fmt: skip
     probe_gaps = evidence_gap(probe_scores, probe_rmses, scores[best], rmses[best], patches)
     equal_probes = probe_gaps <= EQUAL_WITHIN
     _, _, probe_tangents = _finish(
@@ -362,8 +382,10 @@ def _alternatives(
     probe_tangents = np.asarray(probe_tangents)[1:]
     turns = np.radians(np.abs(np.tile(PROBE_ANGLES_DEG, 3)))
     stayed = np.linalg.norm(probe_tangents[:, 3:], axis=1) >= 0.5 * turns
-    view_free, view_reason, turned = _unfixed_turns(model, equal_probes & stayed)
-    kept = equal_probes & ~turned
+    alike = _alike_turns(model, max_rmse) & probe_passes
+    view_free, view_reason, turned = _unfixed_turns(model, (equal_probes | alike) & stayed)
+    probe_gaps = np.where(alike, 0.0, probe_gaps)
+    kept = (equal_probes | alike) & ~turned
     others = equal & (np.arange(len(equal)) != best)
     start_tangents = np.asarray(tangents)
     tangents = _pivoted(

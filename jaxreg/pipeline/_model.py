@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError, cKDTree
+from scipy.spatial.transform import Rotation
 
 from jaxreg.geometry.metrics import Symmetry
 from jaxreg.search.neighbors import NeighborGrid, build_grid, pad_grid, voxel_downsample
@@ -33,6 +34,7 @@ class _Model:
     screen: np.ndarray  # (R1, 3) voxelled at 3 voxels: the coarse starts' first judgement
     sampling: tuple[float, float]  # (rms, gap) metres: see _sampling
     plane_offset: float  # metres: see _plane_offset
+    self_misfits: np.ndarray  # (3, len(PROBE_ANGLES_DEG)) metres: see _self_misfits
     centre: np.ndarray  # (3,) the centre of the given points' bounding box (object frame)
     oriented: bool  # normals given (a mesh's, pointing out): ICP matches only faces seen
     # _coarse_problem's, per schedule (not in the repr that keys stored programs)
@@ -52,6 +54,13 @@ _MODELS: dict[tuple, _Model] = {}
 _ROWS = 6144  # model points
 _SCREEN_ROWS = 512  # the coarse judgement's sparse points
 _SYMMETRY_ROWS = 8  # rotations of a Symmetry (a box's 4, a square tray's 8)
+# The turns of the model about each of its principal axes (degrees) that the register stage
+# examines: the answer turned by each and refined (probes), and the model against itself
+# turned by each (_self_misfits).
+PROBE_ANGLES_DEG = (
+    -150.0, -120.0, -90.0, -60.0, -40.0, -25.0, -12.0, 12.0, 25.0, 40.0, 60.0, 90.0, 120.0,
+    150.0, 180.0,
+)
 # Grid tables (pad_grid's sizes). The coarse grid's leaf map is capped at its size: refining
 # a concave model (a mug's handle) deeper costs megabytes for a few candidates less per leaf.
 _COARSE_TABLES = {"cells": 1 << 9, "entries": 1 << 20, "leaves": 1 << 14, "capacity": 128}
@@ -145,6 +154,7 @@ def _prepare_model(
     _, vectors = np.linalg.eigh(np.cov((points - centroid).T))
     axes = vectors[:, ::-1]
     given = (model_points - centroid) @ axes  # voxel centroids lie up to half a voxel inside
+    given_centre = 0.5 * (given.min(0) + given.max(0))  # the principal box's centre
     model = _Model(
         points=rows,
         normals=row_normals,
@@ -158,6 +168,7 @@ def _prepare_model(
         screen=_padded_rows(voxel_downsample(points, 3 * voxel_size), _SCREEN_ROWS, np.nan),
         sampling=_sampling(points),
         plane_offset=_plane_offset(points, normals),
+        self_misfits=_self_misfits(points, centroid + axes @ given_centre, axes),
         centre=0.5 * (model_points.min(0) + model_points.max(0)).astype(np.float64),
         oriented=model_normals is not None,
     )
@@ -202,6 +213,25 @@ def _plane_offset(points: np.ndarray, normals: np.ndarray) -> float:
     nearest = index[:, 1]
     offset = np.einsum("ij,ij->i", normals[nearest], points - points[nearest])
     return float(np.sqrt(np.mean(offset**2)))
+
+
+def _self_misfits(points: np.ndarray, centre: np.ndarray, axes: np.ndarray) -> np.ndarray:
+    """How far the model lies from itself turned about each of its principal ``axes``
+    ``(3, 3)`` (columns) through ``centre`` ``(3,)`` (its principal box's centre) by each of
+    ``PROBE_ANGLES_DEG``: the RMS distance of each of ``points`` ``(R, 3)``, turned, to the
+    nearest model point (metres, ``(3, A)``, axis-major). About the sampling's RMS for a box's
+    or a can's half turns and a can's spin (the turned points fall between the model's own),
+    several millimetres where a part moves (a handle, a nozzle): a turn that the view's depth
+    cannot tell from the model where it is within the fit's residual gate."""
+    points = np.asarray(points, np.float64)
+    tree = cKDTree(points)
+    angles = np.radians(PROBE_ANGLES_DEG)
+    vectors = np.asarray(axes, np.float64).T[:, None, :] * angles[None, :, None]
+    turns = Rotation.from_rotvec(vectors.reshape(-1, 3)).as_matrix()  # (3 A, 3, 3)
+    turned = np.einsum("tij,nj->tni", turns, points - centre) + centre
+    distances, _ = tree.query(turned.reshape(-1, 3))
+    rms = np.sqrt(np.mean(distances.reshape(len(turns), -1) ** 2, axis=1))
+    return rms.reshape(3, len(angles))
 
 
 def _bucketed_symmetry(symmetry: Symmetry | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -278,7 +278,7 @@ def refine_stage(
     )  # fmt: skip
     found = _alternatives(
         frame, plane, model, source, answers, int(ranked[0]), scores, rmses, patch_count(points),
-        trim, noise, fine_distances, eye, symmetry, settings,
+        trim, noise, fine_distances, gates.max_rmse, eye, symmetry, settings,
     )  # fmt: skip
     spread_mm, spread_deg = (float(x) for x in found.spread)
     matched = fraction > 0 and rmse < 1.0  # no match leaves ICP's empty-sum residual
