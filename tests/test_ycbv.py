@@ -215,17 +215,25 @@ def _symmetry_axis(points: np.ndarray) -> np.ndarray:
     return np.eye(3)[int(np.argmin(moved))]
 
 
+def _estimate_with_the_xtions_noise(frames, name: str, model_name: str):
+    """The instance ``model_name`` of frame ``name`` and its successful ``estimate_pose`` with
+    the label mask and the structured-light noise model at the frame's focal length."""
+    frame = next(f for f in frames if f.name == name)
+    instance = next(i for i in frame.instances if i.model_name == model_name)
+    K = frame.frame.intrinsics
+    noise = jr.DepthNoise.structured_light((float(K.fx), float(K.fy)))
+    points, mask = instance.model_points, instance.mask
+    est = jr.estimate_pose(frame.frame, points, mask=mask, depth_noise=noise)
+    assert est.success, est.reason
+    return instance, est
+
+
 def test_a_cans_turn_that_fits_as_well_is_reported(frames):
     """The master chef can seen from its side: upright and upside down fit the depth alike (its
     lid and bottom differ by a few millimetres). Whichever comes back, the truth is the answer
     or one of ``equivalent_poses``: its axis within 15 degrees (the spin about the axis aside)."""
-    frame = next(f for f in frames if f.name == "0001/000001")
-    instance = next(i for i in frame.instances if i.model_name == "002_master_chef_can")
-    K = frame.frame.intrinsics
-    noise = jr.DepthNoise.structured_light((float(K.fx), float(K.fy)))
+    instance, est = _estimate_with_the_xtions_noise(frames, "0001/000001", "002_master_chef_can")
     points = instance.model_points
-    est = jr.estimate_pose(frame.frame, points, mask=instance.mask, depth_noise=noise)
-    assert est.success, est.reason
     axis = _symmetry_axis(points)
     spin = jr.Symmetry(np.eye(3)[None], axis=axis)
     answers = [est.pose, *(turn.pose for turn in est.equivalent_poses)]
@@ -242,13 +250,8 @@ def test_a_boxs_half_turn_is_reported_where_the_models_faces_differ(frames):
     model matches itself so turned within the fit's residual gate, so depth cannot decide: the
     truth is the answer or one of ``equivalent_poses`` (ADD within 10% of the diameter), that
     turn has weight 1, and the rotation's sigma spans it."""
-    frame = next(f for f in frames if f.name == "0000/000001")
-    instance = next(i for i in frame.instances if i.model_name == "009_gelatin_box")
-    K = frame.frame.intrinsics
-    noise = jr.DepthNoise.structured_light((float(K.fx), float(K.fy)))
+    instance, est = _estimate_with_the_xtions_noise(frames, "0000/000001", "009_gelatin_box")
     points = instance.model_points
-    est = jr.estimate_pose(frame.frame, points, mask=instance.mask, depth_noise=noise)
-    assert est.success, est.reason
     answers = [est.pose, *(turn.pose for turn in est.equivalent_poses)]
     adds = [float(jr.add(points, p, instance.truth)) for p in answers]
     best = int(np.argmin(adds))
