@@ -23,6 +23,7 @@ from jaxreg.geometry.metrics import Symmetry, canonicalise
 from jaxreg.pipeline._coarse import DISTINCT_ANGLE, DISTINCT_DISTANCE, _register_starts
 from jaxreg.pipeline._judge import (
     EQUAL_WITHIN,
+    _confirmed_share,
     evidence_gap,
     judged_fits,
 )
@@ -124,12 +125,11 @@ def _probe(frame, plane, model, source, answer, trim, noise, distances, max_rmse
     poses, _ = _onto_table(model, refined, plane, settings)
     scores, rmses, seen = judged_fits(frame, plane, refined, model.points, probed, noise)
     s = settings.register
-    judged = seen[:, :3].sum(1).clip(min=1)
     passes = (
         (rmses <= max_rmse)
         & (np.asarray(probed.inlier_fraction) >= s.min_inlier_fraction)
-        & (seen[:, 0] / judged >= s.min_confirmed)
-        & (seen[:, 1] / judged <= s.max_contradicted)
+        & (_confirmed_share(seen) >= s.min_confirmed)
+        & (seen[:, 1] / seen[:, :3].sum(1).clip(min=1) <= s.max_contradicted)
     )
     return poses, scores, rmses, passes
 

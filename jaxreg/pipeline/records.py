@@ -183,10 +183,10 @@ class EquivalentPose:
         score: its explained share times the image's confirmed share (the answer's evidence).
         inlier_rmse: its residual (metres).
         weight: how likely it is against the answer (1: the evidence cannot prefer either;
-            ``exp(-gap^2 / 2)`` with ``gap`` its shortfall in standard errors; 1 for a half turn
-            under which the model matches itself within the fit's residual gate, whose fit
-            passes the answer's gates: their fits differ where the model's surface differs
-            from the object's, not by the pose).
+            ``exp(-gap^2 / 2)`` with ``gap`` its shortfall in standard errors; 1 for a turn
+            under which the model matches itself within the fit's residual gate (a box's half
+            turn, a can's spin) whose fit passes the answer's gates: their fits differ where
+            the model's surface differs from the object's, not by the pose).
     """
 
     pose: SE3
