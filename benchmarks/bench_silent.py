@@ -39,13 +39,18 @@ def main():
     parser.add_argument("--seeds", type=int, default=50, help="scenes per object")
     parser.add_argument("--first", type=int, default=9900, help="the first seed")
     parser.add_argument("--distractors", type=int, default=3)
+    parser.add_argument(
+        "--model-points", type=int, default=2048, help="surface samples of the model"
+    )
     args = parser.parse_args()
     seeds = range(args.first, args.first + args.seeds)
     counts = {name: Counter() for name in OBJECTS}
     wrong, refused, times = [], [], []
     for seed in seeds:
         for name in OBJECTS:
-            scene = tabletop_scene(seed, object=name, distractors=args.distractors)
+            scene = tabletop_scene(
+                seed, object=name, distractors=args.distractors, model_points=args.model_points
+            )
             noise = StereoSensor.d435().depth_noise(scene.frame.intrinsics)
             start = time.perf_counter()
             est = estimate_pose(

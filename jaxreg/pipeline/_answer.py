@@ -112,10 +112,11 @@ def _probe(frame, plane, model, source, answer, trim, noise, distances, max_rmse
     """The answer turned about the model's axes (:func:`probe_starts`), refined (``eye`` the
     ICP viewpoint) and judged like the refined starts (as ICP left them): their poses
     ``(P, 7)`` (object_T_base, moved onto the table where they rest on it, as the starts'
-    answers are), scores and residuals ``(P,)`` (metres), and whether each passes the
-    gates an answer must pass (``(P,)`` bool: residual within ``max_rmse``, the explained,
-    confirmed and contradicted shares within the register settings'). The probes are refined
-    on every second point of ``source`` (half the cost)."""
+    answers are), scores and residuals ``(P,)`` (metres), whether each passes the gates an
+    answer must pass (``(P,)`` bool: residual within ``max_rmse``, the explained, confirmed
+    and contradicted shares within the register settings') and the image's counts ``(P, 5)``
+    (:func:`~jaxreg.pipeline._judge.visibility`). The probes are refined on every second
+    point of ``source`` (half the cost)."""
     starts = SE3(jax.device_put(probe_starts(model, answer)))
     probed = _register_starts(
         source[::2], model.points, model.normals, model.fine_grid, starts, distances, trim, 30,
@@ -131,7 +132,7 @@ def _probe(frame, plane, model, source, answer, trim, noise, distances, max_rmse
         & (_confirmed_share(seen) >= s.min_confirmed)
         & (seen[:, 1] / seen[:, :3].sum(1).clip(min=1) <= s.max_contradicted)
     )
-    return poses, scores, rmses, passes
+    return poses, scores, rmses, passes, seen
 
 
 def _unfixed_turns(model, equal: np.ndarray):
@@ -369,7 +370,7 @@ def _alternatives(
     gaps = evidence_gap(scores, rmses, scores[best], rmses[best], patches)
     equal = gaps <= EQUAL_WITHIN
     pose, spread, tangents = _finish(answers, np.int32(best), equal, padded)
-    probes, probe_scores, probe_rmses, probe_passes = _probe(
+    probes, probe_scores, probe_rmses, probe_passes, _ = _probe(
         frame, plane, model, source, answers[best], trim, noise, distances, max_rmse, eye,
         settings,
     )  # fmt: skip

@@ -4,10 +4,12 @@
 from many starts in one compiled call (:func:`jaxreg.pipeline._coarse._score_candidates`) and
 scored by the fraction of its points the model explains times the share of the model's
 camera-facing surface the depth image confirms; the best candidate wins unless its points
-reach beyond the model (a larger object of a similar shape), or a candidate sharing no cluster
-with it fits the model as well (identical twins: refused, naming both, since depth cannot tell
-which one is meant). On the table route the clusters its coarse pose explains (60% of their
-points within 1 cm) join it first: pieces of one object are no twins.
+reach beyond the model (a larger object of a similar shape). On the table route the clusters
+its coarse pose explains (60% of their points within 1 cm) join it first: pieces of one
+object are no rivals. A candidate sharing no cluster with it whose coarse score comes close
+is a rival: both are refined and judged as the refinement judges its starts, and the one
+whose fit is better by more than the frame's noise wins; if neither is, they are identical
+twins (refused, naming both, since depth cannot tell which one is meant).
 
 :func:`refine_stage` (after it): the winner's best distinct coarse poses refined on the lifted
 points, ranked by inlier fraction times the confirmed share, the answer settled on the table
@@ -24,10 +26,11 @@ import jax
 import numpy as np
 from jaxlie import SE3
 
-from jaxreg.pipeline._answer import _alternatives, _distinct, _rest
+from jaxreg.pipeline._answer import _alternatives, _distinct, _probe, _rest
 from jaxreg.pipeline._coarse import _coarse_problem, _register_starts, _score_candidates
 from jaxreg.pipeline._error_sources import _pixels, mismatch_sigma, pose_budget
 from jaxreg.pipeline._judge import (
+    CONTESTED_WITHIN,
     EQUAL_WITHIN,
     TOLERANCE,
     _near_model,
@@ -131,7 +134,27 @@ def coarse_search(
     r = settings.register
     starts = r.num_starts + 4 + 6 * r.resting_yaws
     joined = _joined(model, segmented, chosen, poses[0])
-    twin = _twin(segmented.candidates, scored, gates.max_overhang, joined)
+    rival = _rival(segmented.candidates, scored, joined)
+    if rival is not None:
+        draws = np.random.default_rng(2)  # the stage's own draws stay as without a rival
+        fits = [
+            _rival_fit(frame, model, segmented.plane, segmented.candidates[slot][1],
+                       np.asarray(coarse.poses[slot]), float(coarse.explained[slot, 0]), gates,
+                       settings, noise, draws, viewpoint(model, frame))
+            for slot in (chosen, rival)
+        ]  # fmt: skip
+        patches = [patch_count(segmented.candidates[slot][1]) for slot in (chosen, rival)]
+        reach = next(item[3] for item in scored if item[-1] == rival)
+        larger = min(reach, fits[1][2]) > gates.max_overhang  # coarse and refined: no rival
+        better = 0 if larger else _better(fits, patches)
+        twin = None if better is not None else rival
+        if better == 1:
+            chosen = rival
+            explained = float(coarse.explained[chosen, 0])
+            poses = np.asarray(coarse.poses[chosen])
+            joined = _joined(model, segmented, chosen, poses[0])
+    else:
+        twin = None
     if twin is not None:
         groups = (segmented.candidates[chosen], segmented.candidates[twin])
         centres = np.stack([np.mean(cloud, axis=0) for _, cloud in groups])
@@ -178,26 +201,113 @@ def _joined(model, segmented: Segmented, chosen: int, pose: np.ndarray) -> list[
     return sorted({*group, *(k for k in live if near[member_labels == k].mean() >= 0.6)})
 
 
-def _twin(candidates, scored, max_overhang: float, joined: list[int] | None) -> int | None:
-    """The slot of the best candidate that shares no cluster with the winner (``scored[0]``)
-    nor with the pieces its pose explains (``joined``, :func:`_joined`: parts of one object
-    are no twins), and fits the model as well (score within ``EQUAL_WITHIN`` standard errors
-    over the winner's ``PATCH`` cubes, its span within ``max_overhang``), or None.
-    ``candidates``: ``(clusters, cloud)`` per slot; ``scored``: :func:`_score`'s tuples, best
-    first."""
+def _rival(candidates, scored, joined: list[int] | None) -> int | None:
+    """The slot of the best-scoring candidate that shares no cluster with the winner
+    (``scored[0]``) nor with the pieces its pose explains (``joined``, :func:`_joined`: parts
+    of one object are no rivals) and whose coarse score is within ``CONTESTED_WITHIN``
+    standard errors of the winner's (over the winner's ``PATCH`` cubes), or None.
+    ``candidates``: ``(clusters, cloud)`` per slot; ``scored``: :func:`_score`'s tuples,
+    best first (a candidate whose coarse pose reaches beyond the model is a rival too: its
+    refined pose may not)."""
     score, *_, chosen = scored[0]
     group = set(candidates[chosen][0]) | set(joined or ())
-    others = [
-        (other, slot)
-        for other, _, _, reach, slot in scored[1:]
-        if reach <= max_overhang and not group & set(candidates[slot][0])
-    ]
+    others = sorted(
+        ((other, slot) for other, *_, slot in scored[1:]
+         if not group & set(candidates[slot][0])),
+        key=lambda item: -item[0],
+    )  # fmt: skip
     if not others:
         return None
     other, slot = others[0]
     same = np.ones(1)  # the coarse fits are compared on their scores alone
     gap = evidence_gap([other], same, score, 1.0, patch_count(candidates[chosen][1]))
-    return slot if gap[0] <= EQUAL_WITHIN else None
+    return slot if gap[0] <= CONTESTED_WITHIN else None
+
+
+def _better(fits, patches) -> int | None:
+    """Which of two disjoint candidates' best fits ``(score, shown, reach)``
+    (:func:`_rival_fit`, the winner's first) is the model: the one better by more than
+    ``EQUAL_WITHIN`` standard errors (:func:`evidence_gap` over the better one's ``PATCH``
+    cubes, ``patches`` per fit) both in score and in how well the model fits what the
+    segment shows, or None when they are equally good (twins). Both, since a segment partly
+    hidden by a neighbour or seen edge-on scores lower for the view alone; only the image
+    seeing through the model, or points the model does not explain, tell a different object.
+    Residuals are not compared: two segments at different depths differ in noise. The gates
+    are left to the refinement: a fit that fails them (a pose ICP turned wrong) must not
+    hand the win to the other."""
+    same = np.ones(1)
+    for a, b in ((0, 1), (1, 0)):
+        (score, shown, _), (other, other_shown, _) = fits[a], fits[b]
+        gaps = [evidence_gap([o], same, v, 1.0, patches[a])[0]
+                for o, v in ((other, score), (other_shown, shown))]  # fmt: skip
+        if min(gaps) > EQUAL_WITHIN:
+            return a
+    return None
+
+
+def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, noise, rng, eye):
+    """A candidate's best fit ``(score, shown, reach)``: its coarse poses refined
+    (:func:`_refit`), and the best of them probed as an answer is
+    (:func:`~jaxreg.pipeline._answer._probe`: a mug whose coarse poses all put the handle
+    where the image sees through it finds it); the best one's score, the share of the
+    segment it explains times the share of the judged model surface not seen through
+    (``shown``: occlusion aside) and the largest span of ``points`` beyond the model
+    (``reach``, metres, :func:`overhang`)."""
+    fit = _refit(frame, model, plane, points, poses, explained, gates, settings, noise, rng,
+                 eye)  # fmt: skip
+    first = fit.ranked[:1]
+    best = np.asarray(fit.results.pose.wxyz_xyz[first[0]])
+    probes, scores, rmses, _, seen = _probe(
+        frame, plane, model, fit.source, best, fit.trim, noise, gates.distances, gates.max_rmse,
+        eye, settings,
+    )  # fmt: skip
+    poses = np.concatenate([best[None], probes])
+    seen = np.concatenate([fit.seen[first], seen]).astype(np.float64)
+    scores = np.concatenate([fit.scores[first], scores])
+    rmses = np.concatenate([fit.rmses[first], rmses])
+    top = fit_order(scores, rmses)[0]
+    # score = explained * confirmed / judged, so explained * confirmed / (confirmed +
+    # contradicted) = score * judged / (confirmed + contradicted)
+    shown = scores[top] * seen[top, :3].sum() / max(seen[top, :2].sum(), 1.0)
+    reach = float(np.max(overhang(model, poses[top], points)))
+    return float(scores[top]), float(shown), reach
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Refit:
+    """A segment's coarse poses refined and judged (:func:`_refit`): the padded ``source``
+    ``(max_points, 3)``, the ``trim`` fraction, the number of ``starts``, ICP's ``results``
+    ``(S,)``, their ``scores``, ``rmses`` and image counts ``seen`` (:func:`judged_fits`),
+    and the indices ``ranked`` best first (:func:`fit_order`)."""
+
+    source: np.ndarray
+    trim: np.float32
+    starts: int
+    results: object
+    scores: np.ndarray
+    rmses: np.ndarray
+    seen: np.ndarray
+    ranked: np.ndarray
+
+
+def _refit(frame, model, plane, points, poses, explained, gates, settings, noise, rng, eye):
+    """The best distinct of a segment's coarse ``poses`` ``(K, 7)`` (object_T_base, best
+    first) refined on its ``points`` ``(N, 3)`` (base frame; subsampled to the register
+    settings' ``max_points``), trimmed to the share its best coarse pose ``explained``
+    (0.6-0.95), and judged as the refinement judges its starts (``eye`` the ICP viewpoint)."""
+    s = settings.register
+    source = _padded(points, s.max_points, rng)
+    picks = _distinct(poses, s.refined_starts)
+    inits = SE3(jax.device_put(poses[picks]))
+    trim = np.float32(np.clip(explained, 0.6, 0.95))  # an argument: one program for all
+    results = _register_starts(
+        source, model.points, model.normals, model.fine_grid, inits, gates.distances, trim, 30,
+        eye,
+    )  # fmt: skip
+    fitted = np.asarray(results.pose.wxyz_xyz)
+    scores, rmses, seen = judged_fits(frame, plane, fitted, model.points, results, noise)
+    ranked = fit_order(scores, rmses)
+    return _Refit(source, trim, len(picks), results, scores, rmses, seen, ranked)
 
 
 def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, gates):
@@ -256,19 +366,13 @@ def refine_stage(
     gates = coarse.tolerances
     fine_distances = gates.distances
     start = time.perf_counter()
-    source = _padded(points, s.max_points, rng)
-    picks = _distinct(coarse_poses, s.refined_starts)
-    inits = SE3(jax.device_put(coarse_poses[picks]))
-    trim = np.float32(np.clip(coarse_fraction, 0.6, 0.95))  # an argument: one program for all
     eye = viewpoint(model, frame)
-    results = _register_starts(
-        source, model.points, model.normals, model.fine_grid, inits, fine_distances, trim, 30,
-        eye,
-    )  # fmt: skip
+    fit = _refit(frame, model, plane, points, coarse_poses, coarse_fraction, gates, settings,
+                 noise, rng, eye)  # fmt: skip
+    source, trim, results, scores, rmses, seen, ranked = (
+        fit.source, fit.trim, fit.results, fit.scores, fit.rmses, fit.seen, fit.ranked
+    )
     fractions = np.asarray(results.inlier_fraction)
-    poses = np.asarray(results.pose.wxyz_xyz)
-    scores, rmses, seen = judged_fits(frame, plane, poses, model.points, results, noise)
-    ranked = fit_order(scores, rmses)
     best = results[int(ranked[0])]
     fraction, rmse = float(fractions[ranked[0]]), float(rmses[ranked[0]])
     confirmed, contradicted, judged = _support(seen[ranked[0]])
@@ -284,7 +388,7 @@ def refine_stage(
     matched = fraction > 0 and rmse < 1.0  # no match leaves ICP's empty-sum residual
     record = dataclasses.replace(
         coarse.record,
-        refined_starts=len(picks),
+        refined_starts=fit.starts,
         trim_fraction=round(float(trim), 3),
         iterations=int(best.iterations),
         icp_status=str(best.status_message()),
