@@ -205,9 +205,9 @@ def patch_count(points: np.ndarray) -> int:
 # Two fits whose evidence differs by at most this many standard errors of the difference
 # (:func:`evidence_gap`) are equally good: the frame cannot tell them apart.
 EQUAL_WITHIN = 2.0
-# Two disjoint candidates whose coarse scores are within this many standard errors are both
-# refined before one is chosen: a coarse pose a few degrees off sees through the model's
-# edges and costs its score up to about EQUAL_WITHIN standard errors.
+# A disjoint candidate whose coarse score is within this many standard errors of the winner's
+# is refined beside it before the winner is claimed: a coarse pose a few degrees off sees
+# through the model's edges and costs its score up to about EQUAL_WITHIN standard errors.
 CONTESTED_WITHIN = 2 * EQUAL_WITHIN
 
 
