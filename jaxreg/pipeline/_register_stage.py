@@ -201,14 +201,14 @@ def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, set
     group = set(candidates[chosen][0]) | set(joined or ())
     patches = patch_count(candidates[chosen][1])
     draws = np.random.default_rng(2)  # the stage's own draws stay as without a rival
+    eye = viewpoint(model, frame)
     fits = {}
 
     def fit(slot):
         if slot not in fits:
             fits[slot] = _rival_fit(
                 frame, model, segmented.plane, candidates[slot][1], np.asarray(coarse.poses[slot]),
-                float(coarse.explained[slot, 0]), gates, settings, noise, draws,
-                viewpoint(model, frame),
+                float(coarse.explained[slot, 0]), gates, settings, noise, draws, eye,
             )  # fmt: skip
         return fits[slot]
 
