@@ -1,7 +1,8 @@
 """The depth image's evidence about a model pose, for the stages of :func:`jaxreg.estimate_pose`:
 which model points the image confirms, contradicts or cannot judge (:func:`visibility`), how
-much of a segment the model explains, and how far a segment reaches beyond the model
-(:func:`overhang`). The model comes prepared by :mod:`jaxreg.pipeline._model`.
+much of a segment the model explains, how far a segment reaches beyond the model
+(:func:`overhang`) and how far a pose sinks the model into the table (:func:`sunk`). The
+model comes prepared by :mod:`jaxreg.pipeline._model`.
 
 Conventions of :mod:`jaxreg.pipeline.estimate`: the segment (source, base frame) is registered
 into the model (target, object frame), so ICP's poses are ``object_T_base``.
@@ -135,6 +136,20 @@ def overhang(model: _Model, object_T_base: np.ndarray, points: np.ndarray) -> np
     along = (moved - model.centroid) @ model.axes
     low, high = np.quantile(along, [0.02, 0.98], axis=0)
     return (high - low) - (model.bounds[1] - model.bounds[0])
+
+
+def sunk(model: _Model, plane: TablePlane | None, object_T_base: np.ndarray) -> float:
+    """How far (metres) the pose ``object_T_base`` ``(7,)`` (wxyz_xyz) puts the model's lowest
+    point below the table ``plane`` (0 when it stays above, or without a plane). No object
+    reaches into the table: a pose sunk by more than the depth noise fits a shorter object
+    (a can with a mug's top on it), or fits the object wrongly."""
+    if plane is None:
+        return 0.0
+    rotation = Rotation.from_quat(np.asarray(object_T_base[:4], np.float64), scalar_first=True)
+    points = model.points[np.all(np.isfinite(model.points), axis=1)]
+    placed = rotation.inv().apply(points - np.asarray(object_T_base[4:], np.float64))
+    heights = placed @ np.asarray(plane.normal, np.float64) + float(plane.offset)
+    return max(-float(heights.min()), 0.0)
 
 
 def _confirmed_share(counts: Array) -> Array:

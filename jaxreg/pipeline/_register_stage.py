@@ -12,7 +12,8 @@ is meant); one whose coarse score comes close is refined and probed beside the w
 is a twin too unless the winner's refined fit is clearly better (:func:`_twin`).
 
 :func:`refine_stage` (after it): the winner's best distinct coarse poses refined on the lifted
-points, ranked by inlier fraction times the confirmed share, the answer settled on the table
+points, ranked by inlier fraction times the confirmed share (those that keep the segment
+within the model's span and the model out of the table first), the answer settled on the table
 and probed (:mod:`jaxreg.pipeline._answer`), the checks that refuse a model that is not there,
 and the pose's error budget (:mod:`jaxreg.pipeline._error_sources`).
 """
@@ -27,7 +28,12 @@ import numpy as np
 from jaxlie import SE3
 
 from jaxreg.pipeline._answer import _alternatives, _distinct, _probe, _rest
-from jaxreg.pipeline._coarse import _coarse_problem, _register_starts, _score_candidates
+from jaxreg.pipeline._coarse import (
+    _Coarse,
+    _coarse_problem,
+    _register_starts,
+    _score_candidates,
+)
 from jaxreg.pipeline._error_sources import _pixels, mismatch_sigma, pose_budget
 from jaxreg.pipeline._judge import (
     CONTESTED_WITHIN,
@@ -40,6 +46,7 @@ from jaxreg.pipeline._judge import (
     judged_fits,
     overhang,
     patch_count,
+    sunk,
 )
 from jaxreg.pipeline._model import viewpoint
 from jaxreg.pipeline._stages import _Failed, _padded
@@ -128,7 +135,7 @@ def coarse_search(
     clouds = [cloud for _, cloud in segmented.candidates]
     gates = tolerances(model, noise, _camera_depth(frame, np.concatenate(clouds)), settings)
     coarse, scored = _score(frame, segmented.plane, model, settings, clouds, rng, noise, gates)
-    _, explained, _, _, chosen = scored[0]
+    _, explained, *_, chosen = scored[0]
     poses = np.asarray(coarse.poses[chosen])  # object_T_base per start, best first
     candidates = [_candidate(list(segmented.candidates[i][0]), *rest) for *rest, i in scored]
     r = settings.register
@@ -184,18 +191,21 @@ def _joined(model, segmented: Segmented, chosen: int, pose: np.ndarray) -> list[
 def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, settings, noise):
     """The slot of a candidate the winner (``scored[0]``) cannot be told from, or None.
 
-    Rivals are the candidates that share no cluster with the winner nor with the pieces its
-    pose explains (``joined``, :func:`_joined`: parts of one object are no rivals), whose
-    span stays within ``max_overhang`` of the model, and whose coarse score is within
-    ``CONTESTED_WITHIN`` standard errors of the winner's (:func:`evidence_gap` over the
-    winner's ``PATCH`` cubes), best first. One within ``EQUAL_WITHIN`` is a twin. For one
-    farther, both are refined and probed (:func:`_rival_fit`) and it is a twin unless the
-    winner's fit is better by more than ``EQUAL_WITHIN`` both in score and in how well the
-    model fits what the segment shows (:func:`_clearly_better`): a coarse pose a few degrees
-    off (a mug's handle where the image sees through it) can put the object behind a
-    neighbour that only resembles it. Refined fits never make a rival the winner: a failed
-    search on the object itself (a handle ICP cannot find) would hand the win to the
-    neighbour."""
+    Rivals are the candidates that share no cluster with the winner nor with the pieces its pose
+    explains (``joined``, :func:`_joined`: parts of one object are no rivals) and whose coarse
+    score is within ``CONTESTED_WITHIN`` standard errors of the winner's (or above it;
+    :func:`evidence_gap` over the winner's ``PATCH`` cubes), in the order of ``scored``; one
+    whose coarse pose spans beyond the model, or sinks it into the table, by more than
+    ``max_overhang`` only within ``EQUAL_WITHIN``. One whose span stays within and whose score
+    is within ``EQUAL_WITHIN`` is a twin. For the others, both are refined and probed
+    (:func:`_rival_fit`), and the rival is a twin when its refined fit stays within
+    ``max_overhang`` both ways and the winner's fit is not better by more than ``EQUAL_WITHIN``
+    both in score and in how well the model fits what the segment shows
+    (:func:`_clearly_better`): a coarse pose a few degrees off (a mug's handle where the image
+    sees through it) can put the object behind a neighbour that only resembles it, or make its
+    own segment seem to span beyond the model or to sink it. Refined fits never make a rival the
+    winner: a failed search on the object itself (a handle ICP cannot find) would hand the win
+    to the neighbour."""
     candidates = segmented.candidates
     score, *_, chosen = scored[0]
     group = set(candidates[chosen][0]) | set(joined or ())
@@ -212,14 +222,17 @@ def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, set
             )  # fmt: skip
         return fits[slot]
 
-    for other, _, _, reach, slot in scored[1:]:
-        if group & set(candidates[slot][0]) or not reach <= gates.max_overhang:
-            continue
+    for other, _, _, reach, low, slot in scored[1:]:
         gap = evidence_gap([other], np.ones(1), score, 1.0, patches)[0]
-        if gap <= EQUAL_WITHIN:
+        if group & set(candidates[slot][0]) or not gap <= CONTESTED_WITHIN:
+            continue
+        within = reach <= gates.max_overhang and low <= gates.max_overhang
+        if within and gap <= EQUAL_WITHIN:
             return slot
-        if gap <= CONTESTED_WITHIN and not _clearly_better(
-            fit(chosen), fit(slot), patches
+        if not within and gap > EQUAL_WITHIN:
+            continue  # beyond the model or in the table, and scores lower: another object
+        if (within or fit(slot)[2] <= gates.max_overhang) and not _clearly_better(
+            fit(chosen)[:2], fit(slot)[:2], patches
         ):  # fmt: skip
             return slot
     return None
@@ -239,27 +252,36 @@ def _clearly_better(fit, other, patches: int) -> bool:
 
 
 def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, noise, rng, eye):
-    """A candidate's best fit ``(score, shown)``: its coarse poses refined (:func:`_refit`),
-    and the best of them probed as an answer is (:func:`~jaxreg.pipeline._answer._probe`: a
-    mug whose coarse poses all put the handle where the image sees through it may find it);
-    the best one's score, and ``shown``, the share of the segment it explains times the
-    share of the judged model surface not seen through (occlusion aside)."""
+    """A candidate's best fit ``(score, shown, reach)``: its coarse poses refined
+    (:func:`_refit`), and the best of them probed as an answer is
+    (:func:`~jaxreg.pipeline._answer._probe`: a mug whose coarse poses all put the handle
+    where the image sees through it may find it); the best one's score, ``shown``, the share
+    of the segment it explains times the share of the judged model surface not seen through
+    (occlusion aside), and how far that fit goes beyond what the frame allows (metres: the
+    larger of the segment's span beyond the model, :func:`~jaxreg.pipeline._judge.overhang`,
+    and the model's depth in the table, :func:`~jaxreg.pipeline._judge.sunk`). The best is
+    among the fits within ``max_overhang`` both ways where there are any: a mug turned about
+    its axis spans its handle beyond the model."""
     fit = _refit(frame, model, plane, points, poses, explained, gates, settings, noise, rng,
                  eye)  # fmt: skip
     first = fit.ranked[:1]
     best = np.asarray(fit.results.pose.wxyz_xyz[first[0]])
-    _, scores, rmses, _, seen = _probe(
+    poses, scores, rmses, _, seen = _probe(
         frame, plane, model, fit.source, best, fit.trim, noise, gates.distances, gates.max_rmse,
         eye, settings,
     )  # fmt: skip
+    poses = np.concatenate([best[None], poses])
     seen = np.concatenate([fit.seen[first], seen]).astype(np.float64)
     scores = np.concatenate([fit.scores[first], scores])
     rmses = np.concatenate([fit.rmses[first], rmses])
-    top = fit_order(scores, rmses)[0]
+    reach = np.array([_beyond(model, plane, pose, points) for pose in poses])
+    within = np.flatnonzero(reach <= gates.max_overhang)
+    kept = within if within.size else np.arange(len(poses))
+    top = kept[fit_order(scores[kept], rmses[kept])[0]]
     # score = explained * confirmed / judged, so explained * confirmed / (confirmed +
     # contradicted) = score * judged / (confirmed + contradicted)
     shown = scores[top] * seen[top, :3].sum() / max(seen[top, :2].sum(), 1.0)
-    return float(scores[top]), float(shown)
+    return float(scores[top]), float(shown), float(reach[top])
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -267,7 +289,7 @@ class _Refit:
     """A segment's coarse poses refined and judged (:func:`_refit`): the padded ``source``
     ``(max_points, 3)``, the ``trim`` fraction, the number of ``starts``, ICP's ``results``
     ``(S,)``, their ``scores``, ``rmses`` and image counts ``seen`` (:func:`judged_fits`),
-    and the indices ``ranked`` best first (:func:`fit_order`)."""
+    and the indices ``ranked`` best first (:func:`fit_order`; see :func:`_refit`)."""
 
     source: np.ndarray
     trim: np.float32
@@ -283,7 +305,9 @@ def _refit(frame, model, plane, points, poses, explained, gates, settings, noise
     """The best distinct of a segment's coarse ``poses`` ``(K, 7)`` (object_T_base, best
     first) refined on its ``points`` ``(N, 3)`` (base frame; subsampled to the register
     settings' ``max_points``), trimmed to the share its best coarse pose ``explained``
-    (0.6-0.95), and judged as the refinement judges its starts (``eye`` the ICP viewpoint)."""
+    (0.6-0.95), and judged as the refinement judges its starts (``eye`` the ICP viewpoint);
+    the fits within ``max_overhang`` of the model's span and out of the table
+    (:func:`_beyond`) rank before the others."""
     s = settings.register
     source = _padded(points, s.max_points, rng)
     picks = _distinct(poses, s.refined_starts)
@@ -295,16 +319,23 @@ def _refit(frame, model, plane, points, poses, explained, gates, settings, noise
     )  # fmt: skip
     fitted = np.asarray(results.pose.wxyz_xyz)
     scores, rmses, seen = judged_fits(frame, plane, fitted, model.points, results, noise)
-    ranked = fit_order(scores, rmses)
+    order = fit_order(scores, rmses)
+    within = np.array([_beyond(model, plane, pose, points) for pose in fitted])[order] <= (
+        gates.max_overhang
+    )
+    ranked = np.concatenate([order[within], order[~within]])
     return _Refit(source, trim, len(picks), results, scores, rmses, seen, ranked)
 
 
 def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, gates):
     """Coarse registration of the candidate ``clouds`` (each ``(N, 3)``, base frame) in one
     compiled call, and each one's evidence, best first: tuples ``(score, explained,
-    contradicted, overhang, slot)``; a candidate whose points reach beyond the model
-    (``max_overhang``: a larger object of a similar shape, or a span that cannot be measured)
-    ranks after those that do not. ``noise``: the camera's ``DepthNoise`` (the image's
+    contradicted, overhang, sunk, slot)`` of its best coarse pose that keeps its points within
+    the model's span and the model out of the table (``max_overhang`` each way; a mug turned
+    about its axis spans its handle beyond the model), or of its best pose when none does;
+    that pose leads the candidate's poses of the returned ``_Coarse``. A candidate with no
+    such pose (a larger or shorter object of a similar shape, or a span that cannot be
+    measured) ranks after those with one. ``noise``: the camera's ``DepthNoise`` (the image's
     judgement allows 4 sigma_z at each depth)."""
     s = settings.register
     padded = np.full((settings.segment.max_candidates, s.coarse_points, 3), np.nan, np.float32)
@@ -321,24 +352,46 @@ def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, 
             s.num_starts, s.resting_yaws, s.coarse_survivors, s.coarse_keep,
         )
     )  # fmt: skip
+    poses, explained, seen = (
+        np.array(a) for a in (coarse.poses, coarse.explained, coarse.visibility)
+    )
+    def within(reach, low):
+        return reach <= gates.max_overhang and low <= gates.max_overhang
+
     scored = []
     for i, cloud in enumerate(clouds):
-        confirmed, contradicted, _ = _support(np.asarray(coarse.visibility[i, 0]))
-        explained = float(coarse.explained[i, 0])
-        reach = float(overhang(model, np.asarray(coarse.poses[i, 0]), cloud).max())
-        scored.append((explained * confirmed, explained, contradicted, reach, i))
-    # larger objects (or an unmeasurable span) last
-    scored.sort(key=lambda item: (not item[3] <= gates.max_overhang, -item[0]))
-    return coarse, scored
+        bounds = [
+            (overhang(model, pose, cloud).max(), sunk(model, plane, pose)) for pose in poses[i]
+        ]
+        first = next((k for k, bound in enumerate(bounds) if within(*bound)), 0)
+        order = [first, *(k for k in range(len(bounds)) if k != first)]
+        poses[i], explained[i], seen[i] = poses[i, order], explained[i, order], seen[i, order]
+        confirmed, contradicted, _ = _support(seen[i, 0])
+        reach, low = (float(bound) for bound in bounds[first])
+        score = float(explained[i, 0]) * confirmed
+        scored.append((score, float(explained[i, 0]), contradicted, reach, low, i))
+    # larger objects, poses in the table (or an unmeasurable span) last
+    scored.sort(key=lambda item: (not within(*item[3:5]), -item[0]))
+    return _Coarse(poses, explained, seen), scored
 
 
-def _candidate(clusters, score, explained, contradicted, reach) -> Candidate:
+def _beyond(model, plane, object_T_base: np.ndarray, points: np.ndarray) -> float:
+    """How far the pose ``object_T_base`` ``(7,)`` goes beyond what the frame allows (metres):
+    the larger of the segment ``points``' span beyond the model
+    (:func:`~jaxreg.pipeline._judge.overhang`) and the model's depth in the table
+    (:func:`~jaxreg.pipeline._judge.sunk`); NaN where the span cannot be measured."""
+    reach = overhang(model, object_T_base, points).max()
+    return float(np.maximum(reach, sunk(model, plane, object_T_base)))
+
+
+def _candidate(clusters, score, explained, contradicted, reach, low) -> Candidate:
     return Candidate(
         clusters=clusters,
         score=round(score, 3),
         explained=round(explained, 3),
         contradicted=round(contradicted, 3),
         overhang_mm=round(reach * 1e3, 1),
+        sunk_mm=round(low * 1e3, 1),
     )
 
 

@@ -50,11 +50,15 @@ class Candidate(_Record):
 
     Attributes:
         clusters: the cluster indices it joins (``[]``: the caller's mask).
-        score: ``explained * confirmed share`` of its best coarse pose.
+        score: ``explained * confirmed share`` of its best coarse pose that keeps the segment
+            within the model's span and the model out of the table (``max_overhang`` each
+            way), or of its best coarse pose when none does.
         explained: fraction of its points within the finest correspondence distance (which
             follows the depth noise and the model's sampling) of the model at that pose.
         contradicted: share of the model's judged surface the image sees through.
         overhang_mm: its largest span beyond the model along a principal axis.
+        sunk_mm: how far that pose puts the model's lowest point below the table (0 above it
+            or without a table).
     """
 
     clusters: list[int]
@@ -62,6 +66,7 @@ class Candidate(_Record):
     explained: float
     contradicted: float
     overhang_mm: float
+    sunk_mm: float
 
 
 @dataclasses.dataclass(frozen=True)
