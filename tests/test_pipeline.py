@@ -626,3 +626,60 @@ def test_a_target_whose_best_coarse_pose_spans_beyond_the_model_is_still_found()
     scene, est = _held_out(11204, "mug", 2048)
     assert est.success, est.reason
     assert float(add_s(scene.model_points, est.pose, scene.truth)) < 0.0127
+
+
+def test_the_model_flows_down_the_pipeline_modules_never_back_up():
+    """Following the model through one ``estimate_pose`` (every call that takes the model
+    points, or the model prepared from them, as an argument): each pipeline module is
+    entered from at most two other modules, and no module is entered from one it calls
+    (the stages hand records down; none reaches back into the stage that called it)."""
+    import collections
+    import graphlib
+    import sys
+
+    import jaxreg.pipeline.estimate as estimate
+    from jaxreg.synth import StereoSensor
+
+    scene, est = _held_out(11204, "mug", 2048)  # warm: the traced call compiles nothing
+    followed = {id(scene.model_points)}
+    prepare = estimate._prepare_model
+
+    def prepared(*args, **kwargs):
+        model = prepare(*args, **kwargs)
+        followed.update(id(v) for v in (args[0], model, model.points, model.normals))
+        return model
+
+    callers = collections.defaultdict(set)
+    stack = []
+
+    def profile(frame, event, _):
+        if event == "return" and stack:
+            stack.pop()
+        if event != "call":
+            return
+        name = frame.f_code.co_filename.replace("\\", "/")
+        module = None
+        if "/jaxreg/pipeline/" in name and any(
+            id(value) in followed for value in frame.f_locals.values()
+        ):
+            module = name.rsplit("/", 1)[1].removesuffix(".py")
+            caller = next((m for m in reversed(stack) if m is not None), None)
+            if caller not in (None, module):
+                callers[module].add(caller)
+        stack.append(module)
+
+    noise = StereoSensor.d435().depth_noise(scene.frame.intrinsics)
+    try:
+        estimate._prepare_model = prepared
+        sys.setprofile(profile)
+        again = estimate.estimate_pose(
+            scene.frame, scene.model_points, symmetry=scene.symmetry, depth_noise=noise
+        )
+    finally:
+        sys.setprofile(None)
+        estimate._prepare_model = prepare
+    assert again.success == est.success
+    assert callers["_segment_stage"] == callers["_register_stage"] == {"estimate"}
+    assert all(len(entered_from) <= 2 for entered_from in callers.values()), dict(callers)
+    graph = {module: entered_from for module, entered_from in callers.items()}
+    graphlib.TopologicalSorter(graph).prepare()  # raises CycleError on a climb back up
