@@ -1,8 +1,8 @@
 """The depth image's evidence about a model pose, for the stages of :func:`jaxreg.estimate_pose`:
 which model points the image confirms, contradicts or cannot judge (:func:`visibility`), how
 much of a segment the model explains, how far a segment reaches beyond the model
-(:func:`overhang`) and how far a pose sinks the model into the table (:func:`sunk`). The
-model comes prepared by :mod:`jaxreg.pipeline._model`.
+(:func:`overhang`, :func:`underneath`) and how far a pose sinks the model into the table
+(:func:`sunk`). The model comes prepared by :mod:`jaxreg.pipeline._model`.
 
 Conventions of :mod:`jaxreg.pipeline.estimate`: the segment (source, base frame) is registered
 into the model (target, object frame), so ICP's poses are ``object_T_base``.
@@ -138,6 +138,15 @@ def overhang(model: _Model, object_T_base: np.ndarray, points: np.ndarray) -> np
     return (high - low) - (model.bounds[1] - model.bounds[0])
 
 
+def _lowest(model: _Model, plane: TablePlane, object_T_base: np.ndarray) -> float:
+    """The height (metres) of the model's lowest point above the table ``plane`` at the pose
+    ``object_T_base`` ``(7,)`` (wxyz_xyz); NaN for a non-finite pose."""
+    rotation = Rotation.from_quat(np.asarray(object_T_base[:4], np.float64), scalar_first=True)
+    points = model.points[np.all(np.isfinite(model.points), axis=1)]
+    placed = rotation.inv().apply(points - np.asarray(object_T_base[4:], np.float64))
+    return float((placed @ np.asarray(plane.normal, np.float64)).min()) + float(plane.offset)
+
+
 def sunk(model: _Model, plane: TablePlane | None, object_T_base: np.ndarray) -> float:
     """How far (metres) the pose ``object_T_base`` ``(7,)`` (wxyz_xyz) puts the model's lowest
     point below the table ``plane`` (0 when it stays above, or without a plane). No object
@@ -145,11 +154,23 @@ def sunk(model: _Model, plane: TablePlane | None, object_T_base: np.ndarray) -> 
     (a can with a mug's top on it), or fits the object wrongly."""
     if plane is None:
         return 0.0
-    rotation = Rotation.from_quat(np.asarray(object_T_base[:4], np.float64), scalar_first=True)
-    points = model.points[np.all(np.isfinite(model.points), axis=1)]
-    placed = rotation.inv().apply(points - np.asarray(object_T_base[4:], np.float64))
-    heights = placed @ np.asarray(plane.normal, np.float64) + float(plane.offset)
-    return max(-float(heights.min()), 0.0)
+    return max(-_lowest(model, plane, object_T_base), 0.0)
+
+
+def underneath(
+    model: _Model, plane: TablePlane | None, object_T_base: np.ndarray, points: np.ndarray
+) -> float:
+    """How far (metres) a segment's ``points`` ``(N, 3)`` (base frame) reach below the
+    model's lowest point at the pose ``object_T_base`` ``(7,)``, along the table ``plane``'s
+    normal (their 2% quantile height; negative when they stay above it, 0 without a plane).
+    An object's own points rise from its lowest point; points beneath the model say it sits
+    on top of a taller object of a similar shape, or on a neighbour merged with the segment."""
+    if plane is None:
+        return 0.0
+    heights = np.asarray(points, np.float64) @ np.asarray(plane.normal, np.float64)
+    return _lowest(model, plane, object_T_base) - float(
+        np.quantile(heights + float(plane.offset), 0.02)
+    )
 
 
 def _confirmed_share(counts: Array) -> Array:

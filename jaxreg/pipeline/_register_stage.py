@@ -47,6 +47,7 @@ from jaxreg.pipeline._judge import (
     overhang,
     patch_count,
     sunk,
+    underneath,
 )
 from jaxreg.pipeline._model import viewpoint
 from jaxreg.pipeline._stages import _Failed, _padded
@@ -194,18 +195,18 @@ def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, set
     Rivals are the candidates that share no cluster with the winner nor with the pieces its pose
     explains (``joined``, :func:`_joined`: parts of one object are no rivals) and whose coarse
     score is within ``CONTESTED_WITHIN`` standard errors of the winner's (or above it;
-    :func:`evidence_gap` over the winner's ``PATCH`` cubes), in the order of ``scored``; one
-    whose coarse pose spans beyond the model, or sinks it into the table, by more than
-    ``max_overhang`` only within ``EQUAL_WITHIN``. One whose span stays within and whose score
-    is within ``EQUAL_WITHIN`` is a twin. For the others, both are refined and probed
-    (:func:`_rival_fit`), and the rival is a twin when its refined fit stays within
-    ``max_overhang`` both ways and the winner's fit is not better by more than ``EQUAL_WITHIN``
-    both in score and in how well the model fits what the segment shows
-    (:func:`_clearly_better`): a coarse pose a few degrees off (a mug's handle where the image
-    sees through it) can put the object behind a neighbour that only resembles it, or make its
-    own segment seem to span beyond the model or to sink it. Refined fits never make a rival the
-    winner: a failed search on the object itself (a handle ICP cannot find) would hand the win
-    to the neighbour."""
+    :func:`evidence_gap` over the winner's ``PATCH`` cubes), in the order of ``scored``. One
+    within ``EQUAL_WITHIN`` whose coarse pose keeps within ``max_overhang`` (:func:`_bounds`)
+    is a twin. For the others, both are refined and probed (:func:`_rival_fit`), and the
+    rival is a twin unless the winner's fit keeps within ``max_overhang`` and is better by
+    more than ``EQUAL_WITHIN`` both in score and in how well the model fits what the segment
+    shows (:func:`_clearly_better`), or the rival's fits all go beyond ``max_overhang`` where
+    its coarse pose did too. A coarse pose a few degrees off (a mug's handle where the image
+    sees through it) can put the object behind a neighbour that only resembles it, or make
+    its segment seem to span beyond the model. Refined fits never make a rival the winner: a
+    failed search on the object itself (a handle ICP cannot find) would hand the win to the
+    neighbour.
+    """
     candidates = segmented.candidates
     score, *_, chosen = scored[0]
     group = set(candidates[chosen][0]) | set(joined or ())
@@ -222,18 +223,17 @@ def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, set
             )  # fmt: skip
         return fits[slot]
 
-    for other, _, _, reach, low, slot in scored[1:]:
+    for other, _, _, bounds, slot in scored[1:]:
         gap = evidence_gap([other], np.ones(1), score, 1.0, patches)[0]
         if group & set(candidates[slot][0]) or not gap <= CONTESTED_WITHIN:
             continue
-        within = reach <= gates.max_overhang and low <= gates.max_overhang
+        within = _within(bounds, gates)
         if within and gap <= EQUAL_WITHIN:
             return slot
-        if not within and gap > EQUAL_WITHIN:
-            continue  # beyond the model or in the table, and scores lower: another object
-        if (within or fit(slot)[2] <= gates.max_overhang) and not _clearly_better(
-            fit(chosen)[:2], fit(slot)[:2], patches
-        ):  # fmt: skip
+        ours, theirs = fit(chosen), fit(slot)
+        if not (within or theirs[2] <= gates.max_overhang):
+            continue
+        if not (ours[2] <= gates.max_overhang and _clearly_better(ours[:2], theirs[:2], patches)):
             return slot
     return None
 
@@ -257,11 +257,9 @@ def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, n
     (:func:`~jaxreg.pipeline._answer._probe`: a mug whose coarse poses all put the handle
     where the image sees through it may find it); the best one's score, ``shown``, the share
     of the segment it explains times the share of the judged model surface not seen through
-    (occlusion aside), and how far that fit goes beyond what the frame allows (metres: the
-    larger of the segment's span beyond the model, :func:`~jaxreg.pipeline._judge.overhang`,
-    and the model's depth in the table, :func:`~jaxreg.pipeline._judge.sunk`). The best is
-    among the fits within ``max_overhang`` both ways where there are any: a mug turned about
-    its axis spans its handle beyond the model."""
+    (occlusion aside), and how far that fit goes beyond what the frame allows (metres, the
+    largest of :func:`_bounds`). The best is among the fits within ``max_overhang`` where
+    there are any: a mug turned about its axis spans its handle beyond the model."""
     fit = _refit(frame, model, plane, points, poses, explained, gates, settings, noise, rng,
                  eye)  # fmt: skip
     first = fit.ranked[:1]
@@ -274,7 +272,7 @@ def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, n
     seen = np.concatenate([fit.seen[first], seen]).astype(np.float64)
     scores = np.concatenate([fit.scores[first], scores])
     rmses = np.concatenate([fit.rmses[first], rmses])
-    reach = np.array([_beyond(model, plane, pose, points) for pose in poses])
+    reach = np.array([_bounds(model, plane, pose, points).max() for pose in poses])
     within = np.flatnonzero(reach <= gates.max_overhang)
     kept = within if within.size else np.arange(len(poses))
     top = kept[fit_order(scores[kept], rmses[kept])[0]]
@@ -306,8 +304,7 @@ def _refit(frame, model, plane, points, poses, explained, gates, settings, noise
     first) refined on its ``points`` ``(N, 3)`` (base frame; subsampled to the register
     settings' ``max_points``), trimmed to the share its best coarse pose ``explained``
     (0.6-0.95), and judged as the refinement judges its starts (``eye`` the ICP viewpoint);
-    the fits within ``max_overhang`` of the model's span and out of the table
-    (:func:`_beyond`) rank before the others."""
+    the fits within ``max_overhang`` (:func:`_bounds`) rank before the others."""
     s = settings.register
     source = _padded(points, s.max_points, rng)
     picks = _distinct(poses, s.refined_starts)
@@ -320,10 +317,8 @@ def _refit(frame, model, plane, points, poses, explained, gates, settings, noise
     fitted = np.asarray(results.pose.wxyz_xyz)
     scores, rmses, seen = judged_fits(frame, plane, fitted, model.points, results, noise)
     order = fit_order(scores, rmses)
-    within = np.array([_beyond(model, plane, pose, points) for pose in fitted])[order] <= (
-        gates.max_overhang
-    )
-    ranked = np.concatenate([order[within], order[~within]])
+    within = np.array([_within(_bounds(model, plane, pose, points), gates) for pose in fitted])
+    ranked = np.concatenate([order[within[order]], order[~within[order]]])
     return _Refit(source, trim, len(picks), results, scores, rmses, seen, ranked)
 
 
@@ -355,43 +350,47 @@ def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, 
     poses, explained, seen = (
         np.array(a) for a in (coarse.poses, coarse.explained, coarse.visibility)
     )
-    def within(reach, low):
-        return reach <= gates.max_overhang and low <= gates.max_overhang
-
     scored = []
     for i, cloud in enumerate(clouds):
-        bounds = [
-            (overhang(model, pose, cloud).max(), sunk(model, plane, pose)) for pose in poses[i]
-        ]
-        first = next((k for k, bound in enumerate(bounds) if within(*bound)), 0)
+        bounds = [_bounds(model, plane, pose, cloud) for pose in poses[i]]
+        first = next((k for k, bound in enumerate(bounds) if _within(bound, gates)), 0)
         order = [first, *(k for k in range(len(bounds)) if k != first)]
         poses[i], explained[i], seen[i] = poses[i, order], explained[i, order], seen[i, order]
         confirmed, contradicted, _ = _support(seen[i, 0])
-        reach, low = (float(bound) for bound in bounds[first])
         score = float(explained[i, 0]) * confirmed
-        scored.append((score, float(explained[i, 0]), contradicted, reach, low, i))
-    # larger objects, poses in the table (or an unmeasurable span) last
-    scored.sort(key=lambda item: (not within(*item[3:5]), -item[0]))
+        scored.append((score, float(explained[i, 0]), contradicted, bounds[first], i))
+    # larger objects, poses in or above the table (or an unmeasurable span) last
+    scored.sort(key=lambda item: (not _within(item[3], gates), -item[0]))
     return _Coarse(poses, explained, seen), scored
 
 
-def _beyond(model, plane, object_T_base: np.ndarray, points: np.ndarray) -> float:
-    """How far the pose ``object_T_base`` ``(7,)`` goes beyond what the frame allows (metres):
-    the larger of the segment ``points``' span beyond the model
-    (:func:`~jaxreg.pipeline._judge.overhang`) and the model's depth in the table
-    (:func:`~jaxreg.pipeline._judge.sunk`); NaN where the span cannot be measured."""
-    reach = overhang(model, object_T_base, points).max()
-    return float(np.maximum(reach, sunk(model, plane, object_T_base)))
+def _bounds(model, plane, object_T_base: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """How far the pose ``object_T_base`` ``(7,)`` goes beyond what the frame allows (metres,
+    ``(3,)``): the segment ``points``' largest span beyond the model
+    (:func:`~jaxreg.pipeline._judge.overhang`; NaN where it cannot be measured), the model's
+    depth in the table (:func:`~jaxreg.pipeline._judge.sunk`) and the segment's reach below
+    the model (:func:`~jaxreg.pipeline._judge.underneath`)."""
+    return np.array([
+        overhang(model, object_T_base, points).max(),
+        sunk(model, plane, object_T_base),
+        underneath(model, plane, object_T_base, points),
+    ])  # fmt: skip
 
 
-def _candidate(clusters, score, explained, contradicted, reach, low) -> Candidate:
+def _within(bounds: np.ndarray, gates: Tolerances) -> bool:
+    """Whether :func:`_bounds` ``(3,)`` all stay within ``max_overhang`` (NaN never)."""
+    return bool(np.all(bounds <= gates.max_overhang))
+
+
+def _candidate(clusters, score, explained, contradicted, bounds) -> Candidate:
     return Candidate(
         clusters=clusters,
         score=round(score, 3),
         explained=round(explained, 3),
         contradicted=round(contradicted, 3),
-        overhang_mm=round(reach * 1e3, 1),
-        sunk_mm=round(low * 1e3, 1),
+        overhang_mm=round(float(bounds[0]) * 1e3, 1),
+        sunk_mm=round(float(bounds[1]) * 1e3, 1),
+        underneath_mm=round(float(bounds[2]) * 1e3, 1),
     )
 
 
@@ -422,6 +421,7 @@ def refine_stage(
     answers, contact, lowest = _rest(
         source, model, results, ranked[0], plane, trim, fine_distances, settings, eye,
     )  # fmt: skip
+    _, low, under = _bounds(model, plane, answers[ranked[0]], points)
     found = _alternatives(
         frame, plane, model, source, answers, int(ranked[0]), scores, rmses, patch_count(points),
         trim, noise, fine_distances, gates.max_rmse, eye, symmetry, settings,
@@ -443,6 +443,8 @@ def refine_stage(
         model_confirmed=round(confirmed, 3) if judged else None,
         model_contradicted=round(contradicted, 3) if judged else None,
         overhang_mm=[round(float(r) * 1e3, 1) for r in reach],
+        sunk_mm=round(float(low) * 1e3, 1),
+        underneath_mm=round(float(under) * 1e3, 1),
         resting_on_table=contact is not None,
         contact_shift_mm=None if lowest is None else round(-lowest * 1e3, 2),
     )
@@ -494,6 +496,17 @@ def refine_stage(
             f"{('longest', 'middle', 'shortest')[int(reach.argmax())]} axis (at most "
             f"{gates.max_overhang * 1e3:.1f}): a larger object of a similar shape, or the object "
             "merged with a neighbour"
+        )
+    if low > gates.max_overhang:
+        problems.append(
+            f"the fitted model reaches {low * 1e3:.0f} mm into the table (at most "
+            f"{gates.max_overhang * 1e3:.1f}): a shorter object of a similar shape"
+        )
+    if under > gates.max_overhang:
+        problems.append(
+            f"the segment reaches {under * 1e3:.0f} mm below the fitted model (at most "
+            f"{gates.max_overhang * 1e3:.1f}): the model sits on a taller object of a similar "
+            "shape, or on a neighbour merged with the segment"
         )
     if problems:
         fail("the model is not there: " + "; ".join(problems))

@@ -59,6 +59,8 @@ class Candidate(_Record):
         overhang_mm: its largest span beyond the model along a principal axis.
         sunk_mm: how far that pose puts the model's lowest point below the table (0 above it
             or without a table).
+        underneath_mm: how far its points reach below the model's lowest point at that pose
+            (negative: they stay above it; 0 without a table).
     """
 
     clusters: list[int]
@@ -67,6 +69,7 @@ class Candidate(_Record):
     contradicted: float
     overhang_mm: float
     sunk_mm: float
+    underneath_mm: float
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,6 +150,8 @@ class RegisterRecord(_Record):
         model_confirmed, model_contradicted: shares of the model's judged surface the image
             confirms and sees through (``None`` when the image judges none of it).
         overhang_mm: the segment's span beyond the model along its three principal axes.
+        sunk_mm: how far the answer puts the model's lowest point below the table (0 above).
+        underneath_mm: how far the segment reaches below the answer's lowest point.
         equally_good_probes: the answer turned about the model's axes and refined again, as
             good as the answer (each widens the ambiguity term of the error budget).
         resting_on_table: whether the answer was settled on the table plane.
@@ -170,6 +175,8 @@ class RegisterRecord(_Record):
     model_confirmed: float | None = None
     model_contradicted: float | None = None
     overhang_mm: list[float] | None = None
+    sunk_mm: float | None = None
+    underneath_mm: float | None = None
     equally_good_probes: int | None = None
     resting_on_table: bool | None = None
     contact_shift_mm: float | None = None
