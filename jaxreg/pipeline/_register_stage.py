@@ -38,6 +38,7 @@ from jaxreg.pipeline._error_sources import _pixels, mismatch_sigma, pose_budget
 from jaxreg.pipeline._judge import (
     CONTESTED_WITHIN,
     EQUAL_WITHIN,
+    NOISE_SIGMAS,
     TOLERANCE,
     _near_model,
     _support,
@@ -86,12 +87,17 @@ class Tolerances:
         max_rmse: the largest inlier RMSE of a fit (metres).
         max_overhang: how far the segment may span beyond the model (metres).
         sigma_z: the depth noise's standard deviation at the segment's depth (metres).
+        max_below: how far the model may reach into the table, or the segment below the
+            model (metres): ``max_overhang`` or ``NOISE_SIGMAS`` (4) ``sigma_z``, whichever is
+            larger (both measure against a plane fitted to noisy depth, as the image's
+            judgement does).
     """
 
     distances: np.ndarray
     max_rmse: float
     max_overhang: float
     sigma_z: float
+    max_below: float
 
 
 def tolerances(model, noise, depth: float, settings: PipelineSettings) -> Tolerances:
@@ -116,7 +122,8 @@ def tolerances(model, noise, depth: float, settings: PipelineSettings) -> Tolera
         distances = np.geomspace(0.015, final, 30).astype(np.float32)
     expected = float(np.sqrt(rms**2 + sigma**2 + mismatch_sigma(model) ** 2))
     max_rmse = RESIDUAL_FACTOR * expected if r.max_inlier_rmse is None else r.max_inlier_rmse
-    return Tolerances(distances, max_rmse, r.max_overhang, sigma)
+    max_below = max(r.max_overhang, NOISE_SIGMAS * sigma)
+    return Tolerances(distances, max_rmse, r.max_overhang, sigma, max_below)
 
 
 def _camera_depth(frame, points: np.ndarray) -> float:
@@ -196,16 +203,15 @@ def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, set
     explains (``joined``, :func:`_joined`: parts of one object are no rivals) and whose coarse
     score is within ``CONTESTED_WITHIN`` standard errors of the winner's (or above it;
     :func:`evidence_gap` over the winner's ``PATCH`` cubes), in the order of ``scored``. One
-    within ``EQUAL_WITHIN`` whose coarse pose keeps within ``max_overhang`` (:func:`_bounds`)
-    is a twin. For the others, both are refined and probed (:func:`_rival_fit`), and the
-    rival is a twin unless the winner's fit keeps within ``max_overhang`` and is better by
-    more than ``EQUAL_WITHIN`` both in score and in how well the model fits what the segment
-    shows (:func:`_clearly_better`), or the rival's fits all go beyond ``max_overhang`` where
-    its coarse pose did too. A coarse pose a few degrees off (a mug's handle where the image
-    sees through it) can put the object behind a neighbour that only resembles it, or make
-    its segment seem to span beyond the model. Refined fits never make a rival the winner: a
-    failed search on the object itself (a handle ICP cannot find) would hand the win to the
-    neighbour.
+    within ``EQUAL_WITHIN`` whose coarse pose keeps to what the frame allows (:func:`_within`)
+    is a twin. For the others, both are refined and probed (:func:`_rival_fit`), and the rival
+    is a twin unless the winner's fit keeps to it and is better by more than ``EQUAL_WITHIN``
+    both in score and in how well the model fits what the segment shows
+    (:func:`_clearly_better`), or the rival's fits all go beyond it where its coarse pose did
+    too. A coarse pose a few degrees off (a mug's handle where the image sees through it) can
+    put the object behind a neighbour that only resembles it, or make its segment seem to span
+    beyond the model. Refined fits never make a rival the winner: a failed search on the object
+    itself (a handle ICP cannot find) would hand the win to the neighbour.
     """
     candidates = segmented.candidates
     score, *_, chosen = scored[0]
@@ -231,9 +237,9 @@ def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, set
         if within and gap <= EQUAL_WITHIN:
             return slot
         ours, theirs = fit(chosen), fit(slot)
-        if not (within or theirs[2] <= gates.max_overhang):
+        if not (within or theirs[2]):
             continue
-        if not (ours[2] <= gates.max_overhang and _clearly_better(ours[:2], theirs[:2], patches)):
+        if not (ours[2] and _clearly_better(ours[:2], theirs[:2], patches)):
             return slot
     return None
 
@@ -252,14 +258,14 @@ def _clearly_better(fit, other, patches: int) -> bool:
 
 
 def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, noise, rng, eye):
-    """A candidate's best fit ``(score, shown, reach)``: its coarse poses refined
+    """A candidate's best fit ``(score, shown, within)``: its coarse poses refined
     (:func:`_refit`), and the best of them probed as an answer is
     (:func:`~jaxreg.pipeline._answer._probe`: a mug whose coarse poses all put the handle
     where the image sees through it may find it); the best one's score, ``shown``, the share
     of the segment it explains times the share of the judged model surface not seen through
-    (occlusion aside), and how far that fit goes beyond what the frame allows (metres, the
-    largest of :func:`_bounds`). The best is among the fits within ``max_overhang`` where
-    there are any: a mug turned about its axis spans its handle beyond the model."""
+    (occlusion aside), and whether that fit keeps to what the frame allows (:func:`_bounds`,
+    :func:`_within`). The best is among the fits that keep to it where there are any: a mug
+    turned about its axis spans its handle beyond the model."""
     fit = _refit(frame, model, plane, points, poses, explained, gates, settings, noise, rng,
                  eye)  # fmt: skip
     first = fit.ranked[:1]
@@ -272,14 +278,13 @@ def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, n
     seen = np.concatenate([fit.seen[first], seen]).astype(np.float64)
     scores = np.concatenate([fit.scores[first], scores])
     rmses = np.concatenate([fit.rmses[first], rmses])
-    reach = np.array([_bounds(model, plane, pose, points).max() for pose in poses])
-    within = np.flatnonzero(reach <= gates.max_overhang)
-    kept = within if within.size else np.arange(len(poses))
+    within = np.array([_within(_bounds(model, plane, pose, points), gates) for pose in poses])
+    kept = np.flatnonzero(within) if within.any() else np.arange(len(poses))
     top = kept[fit_order(scores[kept], rmses[kept])[0]]
     # score = explained * confirmed / judged, so explained * confirmed / (confirmed +
     # contradicted) = score * judged / (confirmed + contradicted)
     shown = scores[top] * seen[top, :3].sum() / max(seen[top, :2].sum(), 1.0)
-    return float(scores[top]), float(shown), float(reach[top])
+    return float(scores[top]), float(shown), bool(within[top])
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -304,7 +309,7 @@ def _refit(frame, model, plane, points, poses, explained, gates, settings, noise
     first) refined on its ``points`` ``(N, 3)`` (base frame; subsampled to the register
     settings' ``max_points``), trimmed to the share its best coarse pose ``explained``
     (0.6-0.95), and judged as the refinement judges its starts (``eye`` the ICP viewpoint);
-    the fits within ``max_overhang`` (:func:`_bounds`) rank before the others."""
+    the fits that keep to what the frame allows (:func:`_within`) rank before the others."""
     s = settings.register
     source = _padded(points, s.max_points, rng)
     picks = _distinct(poses, s.refined_starts)
@@ -325,13 +330,13 @@ def _refit(frame, model, plane, points, poses, explained, gates, settings, noise
 def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, gates):
     """Coarse registration of the candidate ``clouds`` (each ``(N, 3)``, base frame) in one
     compiled call, and each one's evidence, best first: tuples ``(score, explained,
-    contradicted, overhang, sunk, slot)`` of its best coarse pose that keeps its points within
-    the model's span and the model out of the table (``max_overhang`` each way; a mug turned
-    about its axis spans its handle beyond the model), or of its best pose when none does;
-    that pose leads the candidate's poses of the returned ``_Coarse``. A candidate with no
-    such pose (a larger or shorter object of a similar shape, or a span that cannot be
-    measured) ranks after those with one. ``noise``: the camera's ``DepthNoise`` (the image's
-    judgement allows 4 sigma_z at each depth)."""
+    contradicted, bounds, slot)`` (:func:`_bounds`) of its best coarse pose that keeps its
+    points within the model's span, the model out of the table and the segment not below the
+    model (:func:`_within`; a mug turned about its axis spans its handle beyond the model), or
+    of its best pose when none does; that pose leads the candidate's poses of the returned
+    ``_Coarse``. A candidate with no such pose (a larger or shorter object of a similar shape,
+    or a span that cannot be measured) ranks after those with one. ``noise``: the camera's
+    ``DepthNoise`` (the image's judgement allows 4 sigma_z at each depth)."""
     s = settings.register
     padded = np.full((settings.segment.max_candidates, s.coarse_points, 3), np.nan, np.float32)
     for i, cloud in enumerate(clouds):
@@ -378,8 +383,9 @@ def _bounds(model, plane, object_T_base: np.ndarray, points: np.ndarray) -> np.n
 
 
 def _within(bounds: np.ndarray, gates: Tolerances) -> bool:
-    """Whether :func:`_bounds` ``(3,)`` all stay within ``max_overhang`` (NaN never)."""
-    return bool(np.all(bounds <= gates.max_overhang))
+    """Whether :func:`_bounds` ``(3,)`` stay within the ``gates``: the span within
+    ``max_overhang``, the two heights within ``max_below`` (NaN never)."""
+    return bool(bounds[0] <= gates.max_overhang and np.all(bounds[1:] <= gates.max_below))
 
 
 def _candidate(clusters, score, explained, contradicted, bounds) -> Candidate:
@@ -497,15 +503,15 @@ def refine_stage(
             f"{gates.max_overhang * 1e3:.1f}): a larger object of a similar shape, or the object "
             "merged with a neighbour"
         )
-    if low > gates.max_overhang:
+    if low > gates.max_below:
         problems.append(
             f"the fitted model reaches {low * 1e3:.0f} mm into the table (at most "
-            f"{gates.max_overhang * 1e3:.1f}): a shorter object of a similar shape"
+            f"{gates.max_below * 1e3:.1f}): a shorter object of a similar shape"
         )
-    if under > gates.max_overhang:
+    if under > gates.max_below:
         problems.append(
             f"the segment reaches {under * 1e3:.0f} mm below the fitted model (at most "
-            f"{gates.max_overhang * 1e3:.1f}): the model sits on a taller object of a similar "
+            f"{gates.max_below * 1e3:.1f}): the model sits on a taller object of a similar "
             "shape, or on a neighbour merged with the segment"
         )
     if problems:
