@@ -1,21 +1,22 @@
 """The register stage of :func:`jaxreg.estimate_pose`, in two parts around the lift.
 
-:func:`coarse_search` (before the lift): every candidate segment registered into the model
-from many starts in one compiled call (:func:`jaxreg.pipeline._coarse._score_candidates`) and
-scored by the fraction of its points the model explains times the share of the model's
-camera-facing surface the depth image confirms; the best candidate wins unless its points
-reach beyond the model (a larger object of a similar shape). On the table route the clusters
-its coarse pose explains (60% of their points within 1 cm) join it first: pieces of one
-object are no rivals. A candidate sharing no cluster with it whose coarse score is as good
-within the frame's noise is a twin (refused, naming both, since depth cannot tell which one
-is meant); one whose coarse score comes close is refined and probed beside the winner, and
-is a twin too unless the winner's refined fit is clearly better (:func:`_twin`).
+:func:`coarse_search` (before the lift): every candidate segment registered into the model from
+many starts in one compiled call (:func:`jaxreg.pipeline._coarse._score_candidates`) and scored
+by the fraction of its points the model explains times the share of the model's camera-facing
+surface the depth image confirms, at its best coarse pose that keeps to what the frame allows
+(the segment within the model's span, the model out of the table, the segment not below the
+model); the best candidate wins, those with no such pose last. On the table route the clusters
+its coarse pose explains (60% of their points within 1 cm) join it first: pieces of one object
+are no rivals. A candidate sharing no cluster with it whose coarse score is as good within the
+frame's noise is a twin (refused, naming both, since depth cannot tell which one is meant); one
+whose coarse score comes close is refined and probed beside the winner, and is a twin too unless
+the winner's refined fit is clearly better (:func:`_twin`).
 
 :func:`refine_stage` (after it): the winner's best distinct coarse poses refined on the lifted
-points, ranked by inlier fraction times the confirmed share (those that keep the segment
-within the model's span and the model out of the table first), the answer settled on the table
-and probed (:mod:`jaxreg.pipeline._answer`), the checks that refuse a model that is not there,
-and the pose's error budget (:mod:`jaxreg.pipeline._error_sources`).
+points, ranked by inlier fraction times the confirmed share (those that keep to what the frame
+allows first), the answer settled on the table and probed (:mod:`jaxreg.pipeline._answer`), the
+checks that refuse a model that is not there, and the pose's error budget
+(:mod:`jaxreg.pipeline._error_sources`).
 """
 
 from __future__ import annotations

@@ -20,9 +20,12 @@ diagnostics. The stages:
    voxels, or more where the depth noise or the model's sampling ask for it) times the share
    of the model's camera-facing surface that the depth image confirms (:func:`visibility`,
    within 1 cm or 4 sigma_z of the depth noise; seeing through the model, or the model below
-   the table, counts against it). The best candidate wins, unless its points span beyond
-   the model at its coarse pose (``max_overhang``: a larger object of a similar shape), and
-   every cluster that its coarse pose explains (60% of its points within 1 cm) joins it.
+   the table, counts against it), at its best coarse pose that keeps to what the frame
+   allows: its points within the model's span (``max_overhang``: a larger object of a similar
+   shape reaches beyond), the model out of the table and its points not below the model
+   (``max_overhang`` or 4 sigma_z: a shorter or a taller object). The best candidate wins,
+   those with no such pose last, and every cluster that its coarse pose explains (60% of its
+   points within 1 cm) joins it.
 3. **Lift**: the winning clusters' footprint at full resolution (their pixels and the depth
    holes between them), its valid-depth fraction, the pixels above the table band, flying
    pixels removed (a pixel needs ``min_consistent_neighbors`` of its 8 neighbours within the
@@ -75,7 +78,8 @@ names the units when the model's scale cannot fit the frame's metres); too few
 pixels with depth in the footprint, or too few points left after filtering (lift); too small
 a fraction of the segment explained by the model, too large a residual, a model that the
 depth image contradicts (surface predicted where the camera sees through it), a segment
-that spans beyond the model or whose span cannot be measured, or a final registration whose
+that spans beyond the model or whose span cannot be measured, a model sunk into the table
+or with the segment reaching below it, or a final registration whose
 ICP failed (non-finite, too few pairs, or degenerate geometry without a ``symmetry`` to
 explain it) (register).
 

@@ -107,7 +107,9 @@ class RegisterSettings:
         max_overhang: how far (metres) the segment may span beyond the model along one of
             its principal axes at the fitted pose (2% to 98% quantiles, which hold the depth
             noise's tails): a larger object of a similar shape fits well by every other
-            measure but reaches beyond the model.
+            measure but reaches beyond the model. The model may reach this far into the
+            table, and the segment this far below the model, or 4 sigma_z of the depth noise
+            at the segment's depth where that is more.
     """
 
     num_starts: int = 24
