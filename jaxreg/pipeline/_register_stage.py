@@ -3,14 +3,13 @@
 :func:`coarse_search` (before the lift): every candidate segment registered into the model from
 many starts in one compiled call (:func:`jaxreg.pipeline._coarse._score_candidates`) and scored
 by the fraction of its points the model explains times the share of the model's camera-facing
-surface the depth image confirms, at its best coarse pose that keeps to what the frame allows
-(the segment within the model's span, the model out of the table, the segment not below the
-model); the best candidate wins, those with no such pose last. On the table route the clusters
-its coarse pose explains (60% of their points within 1 cm) join it first: pieces of one object
-are no rivals. A candidate sharing no cluster with it whose coarse score is as good within the
-frame's noise is a twin (refused, naming both, since depth cannot tell which one is meant); one
-whose coarse score comes close is refined and probed beside the winner, and is a twin too unless
-the winner's refined fit is clearly better (:func:`_twin`).
+surface the depth image confirms, at its best coarse pose that keeps its points within the
+model's span; the best candidate wins, those with no such pose last. On the table route the
+clusters its coarse pose explains (60% of their points within 1 cm) join it first: pieces of one
+object are no rivals. A candidate sharing no cluster with it whose coarse score is as good
+within the frame's noise is a twin (refused, naming both, since depth cannot tell which one is
+meant); one whose coarse score comes close is refined and probed beside the winner, and is a
+twin too unless the winner's refined fit is clearly better (:func:`_twin`).
 
 :func:`refine_stage` (after it): the winner's best distinct coarse poses refined on the lifted
 points, ranked by inlier fraction times the confirmed share (those that keep to what the frame
@@ -28,7 +27,7 @@ import jax
 import numpy as np
 from jaxlie import SE3
 
-from jaxreg.pipeline._answer import _alternatives, _distinct, _probe, _rest
+from jaxreg.pipeline._answer import _alternatives, _distinct, _onto_table, _probe, _rest
 from jaxreg.pipeline._coarse import (
     _Coarse,
     _coarse_problem,
@@ -204,11 +203,11 @@ def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, set
     explains (``joined``, :func:`_joined`: parts of one object are no rivals) and whose coarse
     score is within ``CONTESTED_WITHIN`` standard errors of the winner's (or above it;
     :func:`evidence_gap` over the winner's ``PATCH`` cubes), in the order of ``scored``. One
-    within ``EQUAL_WITHIN`` whose coarse pose keeps to what the frame allows (:func:`_within`)
+    within ``EQUAL_WITHIN`` whose coarse pose keeps within ``max_overhang`` of the model's span
     is a twin. For the others, both are refined and probed (:func:`_rival_fit`), and the rival
     is a twin unless the winner's fit keeps to it and is better by more than ``EQUAL_WITHIN``
     both in score and in how well the model fits what the segment shows
-    (:func:`_clearly_better`), or the rival's fits all go beyond it where its coarse pose did
+    (:func:`_clearly_better`), or the rival's fits all go beyond it where its coarse span did
     too. A coarse pose a few degrees off (a mug's handle where the image sees through it) can
     put the object behind a neighbour that only resembles it, or make its segment seem to span
     beyond the model. Refined fits never make a rival the winner: a failed search on the object
@@ -234,7 +233,7 @@ def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, set
         gap = evidence_gap([other], np.ones(1), score, 1.0, patches)[0]
         if group & set(candidates[slot][0]) or not gap <= CONTESTED_WITHIN:
             continue
-        within = _within(bounds, gates)
+        within = bounds[0] <= gates.max_overhang
         if within and gap <= EQUAL_WITHIN:
             return slot
         ours, theirs = fit(chosen), fit(slot)
@@ -261,12 +260,13 @@ def _clearly_better(fit, other, patches: int) -> bool:
 def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, noise, rng, eye):
     """A candidate's best fit ``(score, shown, within)``: its coarse poses refined
     (:func:`_refit`), and the best of them probed as an answer is
-    (:func:`~jaxreg.pipeline._answer._probe`: a mug whose coarse poses all put the handle
-    where the image sees through it may find it); the best one's score, ``shown``, the share
-    of the segment it explains times the share of the judged model surface not seen through
-    (occlusion aside), and whether that fit keeps to what the frame allows (:func:`_bounds`,
-    :func:`_within`). The best is among the fits that keep to it where there are any: a mug
-    turned about its axis spans its handle beyond the model."""
+    (:func:`~jaxreg.pipeline._answer._probe`: a mug whose coarse poses all put the handle where
+    the image sees through it may find it); the best one's score, ``shown``, the share of the
+    segment it explains times the share of the judged model surface not seen through (occlusion
+    aside), and whether that fit keeps to what the frame allows (:func:`_bounds`,
+    :func:`_within`, placed on the table where it rests on it). The best is among the fits that
+    keep to it where there are any: a mug turned about its axis spans its handle beyond the
+    model."""
     fit = _refit(frame, model, plane, points, poses, explained, gates, settings, noise, rng,
                  eye)  # fmt: skip
     first = fit.ranked[:1]
@@ -275,7 +275,7 @@ def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, n
         frame, plane, model, fit.source, best, fit.trim, noise, gates.distances, gates.max_rmse,
         eye, settings,
     )  # fmt: skip
-    poses = np.concatenate([best[None], poses])
+    poses = np.concatenate([_onto_table(model, best[None], plane, settings)[0], poses])
     seen = np.concatenate([fit.seen[first], seen]).astype(np.float64)
     scores = np.concatenate([fit.scores[first], scores])
     rmses = np.concatenate([fit.rmses[first], rmses])
@@ -310,7 +310,8 @@ def _refit(frame, model, plane, points, poses, explained, gates, settings, noise
     first) refined on its ``points`` ``(N, 3)`` (base frame; subsampled to the register
     settings' ``max_points``), trimmed to the share its best coarse pose ``explained``
     (0.6-0.95), and judged as the refinement judges its starts (``eye`` the ICP viewpoint);
-    the fits that keep to what the frame allows (:func:`_within`) rank before the others."""
+    the fits that keep to what the frame allows (:func:`_within`, once moved onto the table
+    where they rest on it, as answers are) rank before the others."""
     s = settings.register
     source = _padded(points, s.max_points, rng)
     picks = _distinct(poses, s.refined_starts)
@@ -323,7 +324,8 @@ def _refit(frame, model, plane, points, poses, explained, gates, settings, noise
     fitted = np.asarray(results.pose.wxyz_xyz)
     scores, rmses, seen = judged_fits(frame, plane, fitted, model.points, results, noise)
     order = fit_order(scores, rmses)
-    within = np.array([_within(_bounds(model, plane, pose, points), gates) for pose in fitted])
+    placed, _ = _onto_table(model, fitted, plane, settings)  # as answers are placed
+    within = np.array([_within(_bounds(model, plane, pose, points), gates) for pose in placed])
     ranked = np.concatenate([order[within[order]], order[~within[order]]])
     return _Refit(source, trim, len(picks), results, scores, rmses, seen, ranked)
 
@@ -332,11 +334,12 @@ def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, 
     """Coarse registration of the candidate ``clouds`` (each ``(N, 3)``, base frame) in one
     compiled call, and each one's evidence, best first: tuples ``(score, explained,
     contradicted, bounds, slot)`` (:func:`_bounds`) of its best coarse pose that keeps its
-    points within the model's span, the model out of the table and the segment not below the
-    model (:func:`_within`; a mug turned about its axis spans its handle beyond the model), or
-    of its best pose when none does; that pose leads the candidate's poses of the returned
-    ``_Coarse``. A candidate with no such pose (a larger or shorter object of a similar shape,
-    or a span that cannot be measured) ranks after those with one. ``noise``: the camera's
+    points within ``max_overhang`` of the model's span (a mug turned about its axis spans its
+    handle beyond the model), or of its best pose when none does; that pose leads the
+    candidate's poses of the returned ``_Coarse``. A candidate with no such pose (a larger
+    object of a similar shape, or a span that cannot be measured) ranks after those with one.
+    The heights are not judged here: a coarse pose may sit several millimetres off the
+    table (an open tray's). ``noise``: the camera's
     ``DepthNoise`` (the image's judgement allows 4 sigma_z at each depth)."""
     s = settings.register
     padded = np.full((settings.segment.max_candidates, s.coarse_points, 3), np.nan, np.float32)
@@ -359,14 +362,14 @@ def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, 
     scored = []
     for i, cloud in enumerate(clouds):
         bounds = [_bounds(model, plane, pose, cloud) for pose in poses[i]]
-        first = next((k for k, bound in enumerate(bounds) if _within(bound, gates)), 0)
+        first = next((k for k, bound in enumerate(bounds) if bound[0] <= gates.max_overhang), 0)
         order = [first, *(k for k in range(len(bounds)) if k != first)]
         poses[i], explained[i], seen[i] = poses[i, order], explained[i, order], seen[i, order]
         confirmed, contradicted, _ = _support(seen[i, 0])
         score = float(explained[i, 0]) * confirmed
         scored.append((score, float(explained[i, 0]), contradicted, bounds[first], i))
-    # larger objects, poses in or above the table (or an unmeasurable span) last
-    scored.sort(key=lambda item: (not _within(item[3], gates), -item[0]))
+    # larger objects (or an unmeasurable span) last
+    scored.sort(key=lambda item: (not item[3][0] <= gates.max_overhang, -item[0]))
     return _Coarse(poses, explained, seen), scored
 
 

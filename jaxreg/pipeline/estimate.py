@@ -20,12 +20,10 @@ diagnostics. The stages:
    voxels, or more where the depth noise or the model's sampling ask for it) times the share
    of the model's camera-facing surface that the depth image confirms (:func:`visibility`,
    within 1 cm or 4 sigma_z of the depth noise; seeing through the model, or the model below
-   the table, counts against it), at its best coarse pose that keeps to what the frame
-   allows: its points within the model's span (``max_overhang``: a larger object of a similar
-   shape reaches beyond), the model out of the table and its points not below the model
-   (``max_overhang`` or 4 sigma_z: a shorter or a taller object). The best candidate wins,
-   those with no such pose last, and every cluster that its coarse pose explains (60% of its
-   points within 1 cm) joins it.
+   the table, counts against it), at its best coarse pose that keeps its points within the
+   model's span (``max_overhang``: a larger object of a similar shape reaches beyond). The
+   best candidate wins, those with no such pose last, and every cluster that its coarse pose
+   explains (60% of its points within 1 cm) joins it.
 3. **Lift**: the winning clusters' footprint at full resolution (their pixels and the depth
    holes between them), its valid-depth fraction, the pixels above the table band, flying
    pixels removed (a pixel needs ``min_consistent_neighbors`` of its 8 neighbours within the

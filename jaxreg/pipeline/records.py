@@ -51,9 +51,8 @@ class Candidate(_Record):
     Attributes:
         clusters: the cluster indices it joins (``[]``: the caller's mask).
         score: ``explained * confirmed share`` of its best coarse pose that keeps the segment
-            within the model's span (``max_overhang``), the model out of the table and the
-            segment not below the model (``max_overhang``, or 4 sigma_z of the depth noise
-            where that is more), or of its best coarse pose when none does.
+            within ``max_overhang`` of the model's span, or of its best coarse pose when none
+            does.
         explained: fraction of its points within the finest correspondence distance (which
             follows the depth noise and the model's sampling) of the model at that pose.
         contradicted: share of the model's judged surface the image sees through.
