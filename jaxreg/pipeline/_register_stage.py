@@ -338,9 +338,9 @@ def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, 
     handle beyond the model), or of its best pose when none does; that pose leads the
     candidate's poses of the returned ``_Coarse``. A candidate with no such pose (a larger
     object of a similar shape, or a span that cannot be measured) ranks after those with one.
-    The heights are not judged here: a coarse pose may sit several millimetres off the
-    table (an open tray's). ``noise``: the camera's
-    ``DepthNoise`` (the image's judgement allows 4 sigma_z at each depth)."""
+    The heights are not judged here: a coarse pose may sit several millimetres off the table (an
+    open tray's). ``noise``: the camera's ``DepthNoise`` (the image's judgement allows 4 sigma_z
+    at each depth)."""
     s = settings.register
     padded = np.full((settings.segment.max_candidates, s.coarse_points, 3), np.nan, np.float32)
     for i, cloud in enumerate(clouds):
@@ -361,13 +361,14 @@ def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, 
     )
     scored = []
     for i, cloud in enumerate(clouds):
-        bounds = [_bounds(model, plane, pose, cloud) for pose in poses[i]]
-        first = next((k for k, bound in enumerate(bounds) if bound[0] <= gates.max_overhang), 0)
-        order = [first, *(k for k in range(len(bounds)) if k != first)]
+        spans = [overhang(model, pose, cloud).max() for pose in poses[i]]
+        first = next((k for k, span in enumerate(spans) if span <= gates.max_overhang), 0)
+        order = [first, *(k for k in range(len(spans)) if k != first)]
         poses[i], explained[i], seen[i] = poses[i, order], explained[i, order], seen[i, order]
         confirmed, contradicted, _ = _support(seen[i, 0])
         score = float(explained[i, 0]) * confirmed
-        scored.append((score, float(explained[i, 0]), contradicted, bounds[first], i))
+        bounds = _bounds(model, plane, poses[i, 0], cloud)
+        scored.append((score, float(explained[i, 0]), contradicted, bounds, i))
     # larger objects (or an unmeasurable span) last
     scored.sort(key=lambda item: (not item[3][0] <= gates.max_overhang, -item[0]))
     return _Coarse(poses, explained, seen), scored
@@ -431,7 +432,8 @@ def refine_stage(
     answers, contact, lowest = _rest(
         source, model, results, ranked[0], plane, trim, fine_distances, settings, eye,
     )  # fmt: skip
-    _, low, under = _bounds(model, plane, answers[ranked[0]], points)
+    low = sunk(model, plane, answers[ranked[0]])
+    under = underneath(model, plane, answers[ranked[0]], points)
     found = _alternatives(
         frame, plane, model, source, answers, int(ranked[0]), scores, rmses, patch_count(points),
         trim, noise, fine_distances, gates.max_rmse, eye, symmetry, settings,
