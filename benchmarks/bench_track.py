@@ -40,6 +40,7 @@ from _timing import DATA, print_table
 from bench_real import ICP_DISTANCE, ICP_ITERATIONS, VOXEL, diameter, model_target, open3d_unless
 
 import jaxreg as jr
+from jaxreg.uncertainty.budget import region_contains
 
 REACH = 0.05  # metres beyond the model's radius that Open3D's crop keeps (track's max_motion)
 FOLLOWED = 0.1  # ADD-S below this fraction of the diameter
@@ -172,6 +173,7 @@ def claimed(tally, pose, truth, points, size, gone, cells) -> None:
 def synthetic(o3d, seeds) -> None:
     """The synthetic sequences' table (module docstring)."""
     counts = {"jaxreg": [0, 0, 0, 0], "Open3D": [0, 0, 0, 0]}  # followed, refused, wrong, lost
+    inside = {"carried": [0, 0], "measured": [0, 0]}  # truth inside jaxreg's 95% region, steps
     print()
     print("synthetic: object/seed  | jaxreg ADD-S mm per frame 1-5 | Open3D ADD-S mm per frame")
     for name in jr.synth.OBJECTS:
@@ -194,6 +196,11 @@ def synthetic(o3d, seeds) -> None:
                 est = jr.track(scene.frame, points, ours, symmetry=symmetry)
                 if est.success:
                     claimed(counts["jaxreg"], est.pose, scene.truth, points, size, k == 5, line)
+                    if k < 5:
+                        view = est.stages["register"].view_carried_deg
+                        tally = inside["measured" if view is None else "carried"]
+                        tally[0] += covers(est, scene.truth, symmetry)
+                        tally[1] += 1
                     ours = est
                 else:  # restart from the truth, as a re-detection would
                     line.append("lost")
@@ -216,6 +223,22 @@ def synthetic(o3d, seeds) -> None:
         ["method", "followed (frames 1-4)", "refused (1-4)", "wrong (1-5)", "lost (frame 5)"],
         rows,
     )
+    print()
+    print_table(
+        "jaxreg's error bars on the tracked frames 1-4: the truth inside the 95% region (6-dof, "
+        "free axes left out), by whether the step carried the view's terms from the previous "
+        "estimate or measured them",
+        ["view terms", "steps", "truth inside 95%"],
+        [[name, n, f"{k} ({k / max(n, 1):.0%})"] for name, (k, n) in inside.items()],
+    )
+
+
+def covers(estimate, truth, symmetry) -> bool:
+    """Whether ``truth`` (moved to the estimate's symmetry branch) lies inside the 95% region
+    of the estimate's covariance."""
+    truth = jr.canonicalise(truth, estimate.pose, symmetry)
+    delta = np.asarray((estimate.pose.inverse() @ truth).log(), np.float64)
+    return region_contains(delta, np.asarray(estimate.covariance, np.float64), 0.95)
 
 
 if __name__ == "__main__":

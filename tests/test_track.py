@@ -1,6 +1,8 @@
 """jaxreg.track: the pose in the next frame from the previous one, without segmentation; it
 follows a moved object and refuses (lost) when the object is not where the previous pose says."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from jaxlie import SE3, SO3
@@ -124,3 +126,53 @@ def test_follows_a_pushed_box_through_occlusion_and_loses_it_when_it_leaves(push
 def test_bad_sequence_requests_raise(request_, message):
     with pytest.raises(ValueError, match=message):
         jr.synth.tracking_sequence(0, **request_)
+
+
+def test_a_previous_estimate_lends_its_view_terms_while_the_view_holds(scene):
+    """From a previous ``PoseEstimate`` the costly view terms (the probes' alternatives, the
+    segmentation term) are carried, and the bars are no narrower than measured ones; they are
+    measured again once the camera's direction in the object frame turned past
+    ``CARRY_TURN_DEG``, or the segment's point count changed past ``CARRY_POINTS``."""
+    from jaxreg.pipeline.track import CARRY_POINTS, CARRY_TURN_DEG
+
+    first = jr.estimate_pose(scene.frame, scene.model_points, symmetry=scene.symmetry)
+    assert first.success and first.measured_view is not None
+    carried = jr.track(scene.frame, scene.model_points, first, symmetry=scene.symmetry)
+    assert carried.success, carried.reason
+    turn = carried.stages["register"].view_carried_deg
+    assert turn is not None and turn < 1.0
+    assert carried.measured_view is first.measured_view
+    unmeasured = dataclasses.replace(first, measured_view=None)  # the same table, no view
+    fresh = jr.track(scene.frame, scene.model_points, unmeasured, symmetry=scene.symmetry)
+    assert fresh.stages["register"].view_carried_deg is None
+    assert fresh.measured_view is not None and fresh.measured_view is not first.measured_view
+    for name in ("segmentation", "ambiguity"):
+        np.testing.assert_allclose(
+            carried.budget.terms[name], first.budget.terms[name], rtol=1e-9, atol=1e-15
+        )
+    # on the same frame the carried bars are no narrower than those measured there (they may
+    # be wider: the estimate's ambiguity also holds its other refined starts, a step has one)
+    ratio = np.sqrt(np.diag(carried.covariance) / np.diag(fresh.covariance))
+    assert np.all(ratio > 0.8), ratio
+    view = first.measured_view
+    # the view measured from a camera direction turned further than the carry allows
+    centre = scene.model_points.mean(0)
+    ray = np.asarray(view.camera_T_object.inverse().translation()) - centre
+    axis = np.cross(ray, np.eye(3)[np.argmin(np.abs(ray))])  # across the line of sight
+    axis *= np.radians(CARRY_TURN_DEG + 3.0) / np.linalg.norm(axis)
+    turn_about = (
+        SE3.from_translation(centre) @ SE3.from_rotation(SO3.exp(axis))
+        @ SE3.from_translation(-centre)
+    )  # fmt: skip
+    turned = dataclasses.replace(view, camera_T_object=view.camera_T_object @ turn_about)
+    again = jr.track(
+        scene.frame, scene.model_points, dataclasses.replace(first, measured_view=turned),
+        symmetry=scene.symmetry,
+    )
+    assert again.success and again.stages["register"].view_carried_deg is None
+    fewer = dataclasses.replace(view, points=int(len(carried.points) / (CARRY_POINTS - 0.05)))
+    again = jr.track(
+        scene.frame, scene.model_points, dataclasses.replace(first, measured_view=fewer),
+        symmetry=scene.symmetry,
+    )
+    assert again.success and again.stages["register"].view_carried_deg is None

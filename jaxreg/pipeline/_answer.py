@@ -28,7 +28,7 @@ from jaxreg.pipeline._judge import (
     judged_fits,
 )
 from jaxreg.pipeline._model import PROBE_ANGLES_DEG, _bucketed_symmetry, _Model
-from jaxreg.pipeline.records import EquivalentPose
+from jaxreg.pipeline.records import EquivalentPose, MeasuredView
 from jaxreg.pipeline.settings import PipelineSettings
 from jaxreg.registration.icp import icp
 
@@ -419,4 +419,22 @@ def _alternatives(
     return _Alternatives(
         np.asarray(pose), np.asarray(spread), equal, equal_probes, tangents, weights, view_free,
         view_reason, equivalent,
+    )  # fmt: skip
+
+
+def _carried(view: MeasuredView, answers, best, scores, rmses, patches, symmetry) -> _Alternatives:
+    """:func:`_alternatives` with what the probes found carried from a previous frame's
+    ``view`` (:class:`~jaxreg.pipeline.records.MeasuredView`) instead of measured again: the
+    refined starts (``answers`` ``(S, 7)``, ``scores``, ``rmses``, ``best`` the answer's row)
+    judged against the answer as there, the equivalent poses moved with the answer, the
+    ambiguity's tangents and weights as they were (they are right perturbations in the
+    object's axes, which move with it)."""
+    gaps = evidence_gap(scores, rmses, scores[best], rmses[best], patches)
+    equal = gaps <= EQUAL_WITHIN
+    pose, spread, _ = _finish(answers, np.int32(best), equal, _bucketed_symmetry(symmetry))
+    moved = SE3(np.asarray(pose, np.float64)) @ view.pose.inverse()
+    equivalent = tuple(dataclasses.replace(e, pose=moved @ e.pose) for e in view.equivalent)
+    return _Alternatives(
+        np.asarray(pose), np.asarray(spread), equal, view.equal_probes, view.tangents,
+        view.weights, view.view_free, view.view_reason, equivalent,
     )  # fmt: skip

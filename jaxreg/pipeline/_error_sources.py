@@ -33,10 +33,9 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from jaxreg.core._program_cache import persistent_jit
-from jaxreg.core._sizes import power_of_two
 from jaxreg.pipeline._answer import CONTACT_WEIGHT
 from jaxreg.pipeline._judge import PATCH
-from jaxreg.pipeline._lift_stage import lift_pixels
+from jaxreg.pipeline._lift_stage import lift_pixels, project_points
 from jaxreg.pipeline._surface import depth_step
 from jaxreg.registration.icp import ICPStatus, icp
 from jaxreg.uncertainty.budget import combine
@@ -206,14 +205,10 @@ def _intrinsics_term(calibration, jac, points, frame, inverse):
 
 def _pixels(frame, points: np.ndarray) -> np.ndarray:
     """``(K, 2)`` int (row, col) of base-frame ``points`` in ``frame`` (clipped to it),
-    through the intrinsics' distortion (:meth:`~jaxreg.camera.model.Intrinsics.project`, one
-    program per padded count: the rows padded to a power of two)."""
+    through the intrinsics' distortion (:func:`~jaxreg.pipeline._lift_stage.project_points`)."""
     camera = frame.base_T_camera
     cam = (points - np.asarray(camera.translation())) @ np.asarray(camera.rotation().as_matrix())
-    size = power_of_two(len(cam), 1024)
-    padded = np.ones((size, 3), np.float32)  # in front of the camera: a finite projection
-    padded[: len(cam)] = cam
-    u, v = np.asarray(frame.intrinsics.project(padded))[: len(cam)].T
+    u, v = project_points(frame, cam.astype(np.float32)).T
     h, w = frame.depth.shape
     return np.stack(
         [np.clip(np.rint(v), 0, h - 1).astype(int), np.clip(np.rint(u), 0, w - 1).astype(int)], 1
@@ -376,8 +371,11 @@ def _free(symmetry, hessian_object: np.ndarray) -> tuple[np.ndarray, str | None]
 def pose_budget(
     *, points, source_size, model, object_T_base, pose, contact, frame, mask, plane,
     min_height, distances, trim, eye, noise, calibration, ambiguous, symmetry, view_free, rng,
+    segmentation=None,
 ):  # fmt: skip
-    """The error budget (:class:`~jaxreg.uncertainty.budget.PoseBudget`) of a refined pose.
+    """The error budget (:class:`~jaxreg.uncertainty.budget.PoseBudget`) of a refined pose,
+    and its segmentation term ``(6, 6)`` as measured (object axes, before the free axes are
+    set).
 
     Args:
         points: ``(K, 3)`` the lifted segment (base frame, metres).
@@ -403,6 +401,9 @@ def pose_budget(
         view_free: ``((6,) bool, reason)``: tangent axes the view leaves free (a mug whose
             handle is hidden turns about its body's axis and fits as well), or no axis.
         rng: numpy Generator of the perturbations' draws.
+        segmentation: ``((6, 6), why or None)`` a segmentation term measured before (object
+            axes; the reason it could not be, or ``None``), used instead of re-registering
+            perturbed segments; ``None``: measure it.
     """
     found = SE3(np.asarray(object_T_base, np.float64))
     branch = found @ SE3(np.asarray(pose, np.float64))  # the symmetry re-anchoring S
@@ -426,31 +427,22 @@ def pose_budget(
     fit_base = _fit_term(jac, residual, blocks, inverse, depth_base)
     mismatch_base = _mismatch_term(jac, blocks, sensed, inverse, mismatch_sigma(model))
 
-    segments = perturbed_segments(
-        frame, mask, points, plane, min_height, source_size, rng, noise=noise
-    )
-    segments = _with_contact(segments, contact)
     weights = np.ones(source_size, np.float32)
     if contact is not None:
         weights = np.concatenate([weights, np.full(len(contact), CONTACT_WEIGHT, np.float32)])
-    poses, status, finite = _perturbed_fits(
-        segments, weights, model.points, model.normals, model.fine_grid,
-        np.asarray(object_T_base, np.float32), np.asarray(distances)[-15:], np.float32(trim),
-        eye, np.arange(len(weights)) < source_size,
-    )  # fmt: skip
     lift = np.linalg.inv(to_object)
     free, reason = _free(symmetry, lift.T @ hessian @ lift)
     usable = (ICPStatus.success, ICPStatus.max_iterations)
     if free.any():  # a fit degenerate along the free axes still pins the others
         usable += (ICPStatus.degenerate,)
-    ok = _usable_fits(status, finite, usable)
-    moved = (_tangents(object_T_base, np.asarray(poses)) @ to_object.T)[ok]
     unknown = {}
-    if len(moved) < len(segments) // 2:
-        unknown["segmentation"] = (
-            f"{len(segments) - len(moved)} of the {len(segments)} re-registrations of the "
-            "perturbed segment failed"
-        )
+    if segmentation is None:
+        segmentation = _segmentation_term(
+            points, source_size, model, object_T_base, contact, weights, frame, mask, plane,
+            min_height, distances, trim, eye, noise, usable, to_object, rng,
+        )  # fmt: skip
+    if segmentation[1] is not None:
+        unknown["segmentation"] = segmentation[1]
 
     calibration_base = _intrinsics_term(calibration, jac, pairs_points, frame, inverse)
     scale = np.zeros((6, 6))
@@ -493,8 +485,36 @@ def pose_budget(
         "depth": to_object @ depth_base @ to_object.T,
         "fit": to_object @ fit_base @ to_object.T,
         "mismatch": to_object @ mismatch_base @ to_object.T,
-        "segmentation": moved.T @ moved / max(len(moved), 1),
+        "segmentation": segmentation[0],
         "calibration": hand_eye + to_object @ calibration_base @ to_object.T + scale,
         "ambiguity": (others.T * likelihood) @ others / (1.0 + likelihood.sum()),
     }
-    return combine(terms, free, reason, unknown=unknown)
+    return combine(terms, free, reason, unknown=unknown), segmentation
+
+
+def _segmentation_term(
+    points, source_size, model, object_T_base, contact, weights, frame, mask, plane, min_height,
+    distances, trim, eye, noise, usable, to_object, rng,
+):  # fmt: skip
+    """The budget's segmentation term (:func:`pose_budget`'s arguments; ``usable`` the ICP
+    statuses a perturbed fit may end with, ``to_object`` the map of right perturbations of
+    ``object_T_base`` to those of the reported pose): ``((6, 6)`` object axes, why it could
+    not be measured or ``None``)."""
+    segments = perturbed_segments(
+        frame, mask, points, plane, min_height, source_size, rng, noise=noise
+    )
+    segments = _with_contact(segments, contact)
+    poses, status, finite = _perturbed_fits(
+        segments, weights, model.points, model.normals, model.fine_grid,
+        np.asarray(object_T_base, np.float32), np.asarray(distances)[-15:], np.float32(trim),
+        eye, np.arange(len(weights)) < source_size,
+    )  # fmt: skip
+    ok = _usable_fits(status, finite, usable)
+    moved = (_tangents(object_T_base, np.asarray(poses)) @ to_object.T)[ok]
+    why = None
+    if len(moved) < len(segments) // 2:
+        why = (
+            f"{len(segments) - len(moved)} of the {len(segments)} re-registrations of the "
+            "perturbed segment failed"
+        )
+    return moved.T @ moved / max(len(moved), 1), why

@@ -85,6 +85,23 @@ def lift_pixels(frame: RGBDFrame, rows: np.ndarray, cols: np.ndarray) -> np.ndar
     return np.asarray(_lift_pixels(frame, r_pad, c_pad))[: len(rows)]
 
 
+@persistent_jit
+def _project(intrinsics, camera_points):
+    """Pixels ``(P, 2)`` of camera-frame points ``(P, 3)``: one stored program per padded
+    length."""
+    return intrinsics.project(camera_points)
+
+
+def project_points(frame: RGBDFrame, camera_points: np.ndarray) -> np.ndarray:
+    """Pixels ``(P, 2)`` (u, v; float) of camera-frame points ``(P, 3)`` (metres, z > 0)
+    through ``frame``'s intrinsics and their distortion, projected in a list padded to a
+    bucketed length (a few stored programs serve every count)."""
+    count = len(camera_points)
+    padded = np.ones((max(_PIXELS, 1 << (max(count, 1) - 1).bit_length()), 3), np.float32)
+    padded[:count] = camera_points  # the padding in front of the camera: a finite projection
+    return np.asarray(_project(frame.intrinsics, padded))[:count]
+
+
 def _band_floor(sigma: np.ndarray, min_height: float, band_sigmas: float) -> np.ndarray:
     """The lowest height above the table (metres) a point with depth noise ``sigma`` (metres,
     any shape) keeps: ``max(min_height, band_sigmas sigma)``."""

@@ -27,7 +27,14 @@ import jax
 import numpy as np
 from jaxlie import SE3
 
-from jaxreg.pipeline._answer import _alternatives, _distinct, _onto_table, _probe, _rest
+from jaxreg.pipeline._answer import (
+    _alternatives,
+    _carried,
+    _distinct,
+    _onto_table,
+    _probe,
+    _rest,
+)
 from jaxreg.pipeline._coarse import (
     _Coarse,
     _coarse_problem,
@@ -56,6 +63,7 @@ from jaxreg.pipeline.records import (
     Candidate,
     CoarseSearch,
     LiftedSegment,
+    MeasuredView,
     RegisterRecord,
     Registration,
     Segmented,
@@ -408,10 +416,12 @@ def _candidate(clusters, score, explained, contradicted, bounds) -> Candidate:
 
 def refine_stage(
     frame, model, coarse: CoarseSearch, lifted: LiftedSegment, plane, settings: PipelineSettings,
-    noise, symmetry, calibration, rng,
+    noise, symmetry, calibration, rng, carried: MeasuredView | None = None,
 ) -> Registration:  # fmt: skip
     """The best distinct coarse poses refined on the lifted points and judged (see the
-    module docstring). Raises ``_Failed`` when the evidence says the model is not there."""
+    module docstring). Raises ``_Failed`` when the evidence says the model is not there.
+    ``carried``: what a previous frame measured of the view (:func:`jaxreg.track`), used
+    instead of probing the answer and re-registering perturbed segments again."""
     coarse_poses, coarse_fraction = coarse.poses, coarse.explained
     mask, points = lifted.mask, lifted.points
     s = settings.register
@@ -434,10 +444,16 @@ def refine_stage(
     )  # fmt: skip
     low = sunk(model, plane, answers[ranked[0]])
     under = underneath(model, plane, answers[ranked[0]], points)
-    found = _alternatives(
-        frame, plane, model, source, answers, int(ranked[0]), scores, rmses, patch_count(points),
-        trim, noise, fine_distances, gates.max_rmse, eye, symmetry, settings,
-    )  # fmt: skip
+    if carried is None:
+        found = _alternatives(
+            frame, plane, model, source, answers, int(ranked[0]), scores, rmses,
+            patch_count(points), trim, noise, fine_distances, gates.max_rmse, eye, symmetry,
+            settings,
+        )  # fmt: skip
+    else:
+        found = _carried(
+            carried, answers, int(ranked[0]), scores, rmses, patch_count(points), symmetry
+        )
     spread_mm, spread_deg = (float(x) for x in found.spread)
     matched = fraction > 0 and rmse < 1.0  # no match leaves ICP's empty-sum residual
     record = dataclasses.replace(
@@ -526,17 +542,24 @@ def refine_stage(
         f"found: {fraction:.0%} of {len(points)} segment points within "
         f"{fine_distances[-1] * 1e3:.0f} mm of the model, residual {rmse * 1e3:.2f} mm"
     )
-    budget = pose_budget(
+    budget, segmentation = pose_budget(
         points=points, source_size=s.max_points, model=model,
         object_T_base=answers[ranked[0]], pose=found.pose, contact=contact,
         frame=frame, mask=mask, plane=plane, min_height=settings.lift.min_height,
         distances=fine_distances, trim=trim, eye=eye, noise=noise, calibration=calibration,
         ambiguous=(found.tangents, found.weights), symmetry=symmetry,
-        view_free=(found.view_free, found.view_reason),
-        rng=np.random.default_rng(1),
+        view_free=(found.view_free, found.view_reason), rng=np.random.default_rng(1),
+        segmentation=None if carried is None else
+        (carried.segmentation, carried.segmentation_unknown),
+    )  # fmt: skip
+    pose = SE3(found.pose)
+    view = carried or MeasuredView(
+        pose, frame.base_T_camera.inverse() @ pose, len(points), found.equal_probes,
+        found.tangents, found.weights, found.view_free, found.view_reason, found.equivalent,
+        *segmentation,
     )  # fmt: skip
     return Registration(
-        SE3(found.pose), rmse, fraction, budget, reason, _timed(record, start), found.equivalent
+        pose, rmse, fraction, budget, reason, _timed(record, start), found.equivalent, view
     )
 
 

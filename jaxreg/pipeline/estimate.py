@@ -111,7 +111,13 @@ from jaxreg.pipeline._model import _prepare_model
 from jaxreg.pipeline._register_stage import coarse_search, refine_stage
 from jaxreg.pipeline._segment_stage import height_ceiling, segment_stage
 from jaxreg.pipeline._stages import _Failed
-from jaxreg.pipeline.records import EquivalentPose, LiftRecord, RegisterRecord, SegmentRecord
+from jaxreg.pipeline.records import (
+    EquivalentPose,
+    LiftRecord,
+    MeasuredView,
+    RegisterRecord,
+    SegmentRecord,
+)
 from jaxreg.pipeline.segment import TablePlane
 from jaxreg.pipeline.settings import PipelineSettings
 from jaxreg.uncertainty import DepthNoise
@@ -155,6 +161,9 @@ class PoseEstimate:
             from its side), best first; empty when the view decides, or without a pose. A
             declared ``symmetry``'s copies are not listed (they are the same pose). The
             covariance's ambiguity term holds them, weighted by their evidence.
+        measured_view: what the register stage measured of the view beyond the fit
+            (:class:`~jaxreg.pipeline.records.MeasuredView`), which :func:`jaxreg.track`
+            carries to the next frame while the view changes little; ``None`` without a pose.
     """
 
     pose: SE3 | None
@@ -169,6 +178,7 @@ class PoseEstimate:
     budget: PoseBudget | None = None
     table: TablePlane | None = None
     equivalent_poses: tuple[EquivalentPose, ...] = ()
+    measured_view: MeasuredView | None = None
 
     @property
     def success(self) -> bool:
@@ -291,7 +301,7 @@ def _found(found, lifted, records: dict[str, Any], plane) -> PoseEstimate:
     return PoseEstimate(
         found.pose, found.inlier_rmse, found.inlier_fraction, found.budget.total, None,
         found.reason, _in_order(records), lifted.mask, lifted.points, found.budget, plane,
-        found.equivalent_poses,
+        found.equivalent_poses, found.view,
     )  # fmt: skip
 
 

@@ -23,7 +23,7 @@ from jaxreg.uncertainty.budget import PoseBudget
 
 __all__ = [
     "Candidate", "CoarseSearch", "EquivalentPose", "LiftRecord", "LiftedSegment",
-    "RegisterRecord", "Registration", "SegmentRecord", "Segmented",
+    "MeasuredView", "RegisterRecord", "Registration", "SegmentRecord", "Segmented",
 ]  # fmt: skip
 
 
@@ -156,6 +156,10 @@ class RegisterRecord(_Record):
             good as the answer (each widens the ambiguity term of the error budget).
         resting_on_table: whether the answer was settled on the table plane.
         contact_shift_mm: how far settling moved the model's lowest point onto the table.
+        view_carried_deg: with :func:`jaxreg.track`, how far (degrees) the camera's direction
+            in the object's frame has turned since the view's terms were measured, when they
+            were carried from the previous estimate (:class:`MeasuredView`); ``None`` when
+            they were measured on this frame.
     """
 
     ms: float
@@ -180,6 +184,7 @@ class RegisterRecord(_Record):
     equally_good_probes: int | None = None
     resting_on_table: bool | None = None
     contact_shift_mm: float | None = None
+    view_carried_deg: float | None = None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -294,6 +299,7 @@ class Registration:
         reason: a one-line summary of the success.
         record: the register stage's whole record.
         equivalent_poses: the turns of the model that fit the view as well.
+        view: what the stage measured of the view (or carried from the previous frame).
     """
 
     pose: SE3
@@ -303,3 +309,39 @@ class Registration:
     reason: str
     record: RegisterRecord
     equivalent_poses: tuple[EquivalentPose, ...] = ()
+    view: MeasuredView | None = None
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class MeasuredView:
+    """What the register stage measured of the view beyond the fit itself, the costly part of
+    an answer (the answer turned about the model's axes and refined again, the segment
+    re-registered with its membership perturbed). While the camera's view of the object
+    changes little these stay what they were, so :func:`jaxreg.track` carries them from the
+    previous estimate instead of measuring them again on every frame.
+
+    Attributes:
+        pose: ``base_T_object`` where they were measured.
+        camera_T_object: the pose in the camera's frame there.
+        points: the segment points registered there.
+        equal_probes: ``(P,)`` bool the probes as good as that answer.
+        tangents, weights: ``(A, 6)`` the poses that fit about as well, as right
+            perturbations of the answer (object axes), and ``(A,)`` their weights: the error
+            budget's ambiguity term.
+        view_free, view_reason: ``(6,)`` bool tangent axes the view leaves free, and why.
+        equivalent: the distinct turned answers as good as that answer.
+        segmentation: ``(6, 6)`` the budget's segmentation term (object axes).
+        segmentation_unknown: why that term could not be computed, or ``None``.
+    """
+
+    pose: SE3
+    camera_T_object: SE3
+    points: int
+    equal_probes: np.ndarray
+    tangents: np.ndarray
+    weights: np.ndarray
+    view_free: np.ndarray
+    view_reason: str | None
+    equivalent: tuple[EquivalentPose, ...]
+    segmentation: np.ndarray
+    segmentation_unknown: str | None

@@ -15,6 +15,16 @@ explains, the residual, the image seeing through the model, the segment reaching
 and the same error budget gives its covariance. A refusal says the object is lost (it moved
 farther than ``max_motion``, left the view, or is hidden): re-detect it with
 ``estimate_pose``.
+
+The budget's costly terms measure the view rather than the fit: the answer turned about the
+model's axes and refined again (the poses that fit as well: the ambiguity term, the axes the
+view leaves free, the equivalent poses) and the segment re-registered with its membership
+perturbed (the segmentation term). From a previous :class:`PoseEstimate` they are carried
+(:class:`~jaxreg.pipeline.records.MeasuredView`, in the object's axes, which move with it)
+while the camera's direction in the object's frame stays within :data:`CARRY_TURN_DEG` of
+where they were measured and the segment keeps its size (:data:`CARRY_POINTS`); then they
+are measured again. The depth, fit, mismatch and calibration terms are measured on every
+frame. ``RegisterRecord.view_carried_deg`` says which it was.
 """
 
 from __future__ import annotations
@@ -40,8 +50,8 @@ from jaxreg.pipeline._judge import (
     fit_order,
     judged_fits,
 )
-from jaxreg.pipeline._lift_stage import lift_pixels, lift_stage
-from jaxreg.pipeline._model import _prepare_model, viewpoint
+from jaxreg.pipeline._lift_stage import lift_pixels, lift_stage, project_points
+from jaxreg.pipeline._model import PROBE_ANGLES_DEG, _prepare_model, viewpoint
 from jaxreg.pipeline._register_stage import refine_stage, tolerances
 from jaxreg.pipeline._stages import _Failed, _padded
 from jaxreg.pipeline._surface import mask_surface
@@ -51,6 +61,14 @@ from jaxreg.pipeline.settings import PipelineSettings
 from jaxreg.uncertainty import DepthNoise
 
 __all__ = ["track"]
+
+# The view's terms are carried while the camera's direction in the object's frame has turned
+# less than the smallest turn the answer is probed with (a smaller change of view is one the
+# probes would not resolve) ...
+CARRY_TURN_DEG = float(min(abs(a) for a in PROBE_ANGLES_DEG))
+# ... and the segment holds at least this share of the points it held then (and at most its
+# inverse): an occluder coming or going changes what the view shows.
+CARRY_POINTS = 0.8
 
 
 def track(
@@ -121,10 +139,14 @@ def track(
         near = _near_model(model.fine_grid, coarse.poses[0], rows, np.float32(0.01))
         explained = np.asarray(near)
         coarse = dataclasses.replace(coarse, explained=float(explained[:count].mean()))
+        carried, turn = _carry(previous, frame, model, coarse.poses[0], len(lifted.points))
         found = refine_stage(
             frame, model, coarse, lifted, table, settings, noise, symmetry, calibration,
-            np.random.default_rng(0),
+            np.random.default_rng(0), carried,
         )  # fmt: skip
+        found = dataclasses.replace(
+            found, record=dataclasses.replace(found.record, view_carried_deg=turn)
+        )
         records["register"] = found.record
         _check_motion(base_T_object, found, max_motion, max_turn_deg, lifted, symmetry)
         return _found(found, lifted, records, table)
@@ -165,16 +187,17 @@ def _projected(frame, model, base_T_object: SE3):
     (``inf`` where no point projects)."""
     h, w = np.asarray(frame.depth).shape
     points = model.points[np.all(np.isfinite(model.points), axis=1)].astype(np.float64)
-    camera_T_object = frame.base_T_camera.inverse() @ SE3(
-        np.asarray(base_T_object.wxyz_xyz, np.float32)
-    )
-    cam = np.asarray(camera_T_object @ points)
+    camera_T_object = np.asarray(
+        (frame.base_T_camera.inverse() @ SE3(np.asarray(base_T_object.wxyz_xyz, np.float32)))
+        .as_matrix(), np.float64,
+    )  # fmt: skip
+    cam = points @ camera_T_object[:3, :3].T + camera_T_object[:3, 3]
     cam = cam[cam[:, 2] > 1e-3]
     nearest = np.full((h, w), np.inf)
     pixels = np.zeros((0, 2), int)
     inside = np.zeros(0, bool)
     if len(cam):
-        pixels = np.rint(np.asarray(frame.intrinsics.project(cam))).astype(int)
+        pixels = np.rint(project_points(frame, cam.astype(np.float32))).astype(int)
         inside = np.all((pixels >= 0) & (pixels < (w, h)), axis=1)
         np.minimum.at(nearest, (pixels[inside, 1], pixels[inside, 0]), cam[inside, 2])
     return cam, pixels, inside, nearest
@@ -193,7 +216,8 @@ def _around(frame, nearest, reach: float, noise, table, low) -> np.ndarray:
     z = nearest[footprint]
     fx = float(frame.intrinsics.fx)
     grow = int(np.clip(np.ceil(reach * fx / max(float(z.min()), 1e-3)), 1, 200))
-    grown = ndimage.binary_dilation(footprint, iterations=grow)
+    # ``grow`` 4-connected dilations: every pixel within that taxicab distance
+    grown = ndimage.distance_transform_cdt(~footprint, metric="taxicab") <= grow
     near = np.isfinite(depth) & (depth >= z.min() - reach) & (depth <= z.max() + reach)
     if table is not None:
         rows, cols = np.nonzero(near & grown)
@@ -208,7 +232,13 @@ def _on_model(frame, model, base_T_object: SE3, noise) -> np.ndarray:
     close the gaps between a sparse model's points; within 1 cm or 4 sigma_z, as the image's
     judgement allows): the object's surface, without the table or background beside it."""
     depth = np.asarray(frame.depth)
-    nearest = ndimage.grey_erosion(_projected(frame, model, base_T_object)[3], size=5)
+    nearest = _projected(frame, model, base_T_object)[3]
+    rows, cols = np.nonzero(np.isfinite(nearest))
+    if len(rows):  # the erosion only where the model projects (and 2 pixels about it)
+        box = np.s_[
+            max(rows.min() - 2, 0) : rows.max() + 3, max(cols.min() - 2, 0) : cols.max() + 3
+        ]
+        nearest[box] = ndimage.grey_erosion(nearest[box], size=5)
     sigma = np.polynomial.polynomial.polyval(
         np.where(np.isfinite(nearest), nearest, 0.0), np.asarray(noise.coefficients)
     )
@@ -326,6 +356,28 @@ def _starts(frame, projected, base_T_object: SE3, points, table, max_turn_deg) -
         )
         poses.append(about @ moved)
     return np.stack([np.asarray(p.inverse().wxyz_xyz, np.float32) for p in poses])
+
+
+def _carry(previous, frame, model, object_T_base: np.ndarray, points: int):
+    """What ``previous`` (a :class:`PoseEstimate`, or a bare pose) measured of the view, and
+    how far (degrees) the camera's direction from the model's centroid, in the object's
+    frame, has turned since, at the followed pose ``object_T_base`` ``(7,)``: carried while
+    that turn stays within :data:`CARRY_TURN_DEG` and the segment's ``points`` within
+    :data:`CARRY_POINTS` of the count measured (an occluder coming or going changes what the
+    view shows); else ``(None, None)``: measure them again."""
+    view = previous.measured_view if isinstance(previous, PoseEstimate) else None
+    if view is None or not (
+        CARRY_POINTS <= points / max(view.points, 1) <= 1 / CARRY_POINTS
+    ):
+        return None, None
+    then = np.asarray(view.camera_T_object.inverse().as_matrix(), np.float64)
+    object_T_camera = np.asarray(
+        (SE3(np.asarray(object_T_base, np.float64)) @ frame.base_T_camera).as_matrix()
+    )  # fmt: skip
+    rays = [m[:3, 3] - np.asarray(model.centroid, np.float64) for m in (then, object_T_camera)]
+    cosine = rays[0] @ rays[1] / max(np.linalg.norm(rays[0]) * np.linalg.norm(rays[1]), 1e-12)
+    turn = float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
+    return (view, round(turn, 2)) if turn <= CARRY_TURN_DEG else (None, None)
 
 
 def _check_motion(previous: SE3, found, max_motion, max_turn_deg, lifted, symmetry) -> None:
