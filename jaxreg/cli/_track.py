@@ -60,12 +60,15 @@ def run_demo_track(args) -> int:
             "sigma_mm": None,
             "ms": round(ms, 1),
             "reason": estimate.reason,
+            "view_terms": None,
         }
         if estimate.pose is not None:
             add_s = _truth_errors(estimate.pose, scene.truth, scene.model_points, first.symmetry)[3]
             row["add_s_mm"] = round(float(add_s) * 1e3, 2)
             sigma = np.sqrt(np.trace(np.asarray(estimate.covariance)[:3, :3]))
             row["sigma_mm"] = round(float(sigma) * 1e3, 2)
+            carried = estimate.stages["register"].view_carried_deg is not None
+            row["view_terms"] = "carried" if carried else "measured"
         rows.append(row)
         previous = estimate
     if args.json:
@@ -77,7 +80,7 @@ def run_demo_track(args) -> int:
 
 def _print_rows(rows: list[dict]) -> None:
     """The per-frame table on stdout."""
-    print("frame  step          answered by            ADD-S     sigma     time")
+    print("frame  step          answered by            ADD-S     sigma     time  view terms")
     for row in rows:
         step = (
             "" if row["step_mm"] is None else f"{row['step_mm']:.0f} mm {row['step_deg']:.0f} deg"
@@ -86,4 +89,7 @@ def _print_rows(rows: list[dict]) -> None:
             error = f"{row['add_s_mm']:6.2f} mm {row['sigma_mm']:6.2f} mm"
         else:
             error = f"refused: {row['reason'][:60]}"
-        print(f"{row['frame']:5d}  {step:12s}  {row['method']:21s}  {error}  {row['ms']:7.0f} ms")
+        print(
+            f"{row['frame']:5d}  {step:12s}  {row['method']:21s}  {error}  {row['ms']:7.0f} ms"
+            f"  {row['view_terms'] or ''}"
+        )

@@ -203,27 +203,41 @@ def _projected(frame, model, base_T_object: SE3):
     return cam, pixels, inside, nearest
 
 
+def _box(mask: np.ndarray, margin: int):
+    """The slices of ``mask``'s ``(H, W)`` bounding box grown by ``margin`` pixels (within the
+    image); ``mask`` holds at least one pixel."""
+    rows, cols = np.nonzero(mask)
+    return np.s_[
+        max(rows.min() - margin, 0) : rows.max() + margin + 1,
+        max(cols.min() - margin, 0) : cols.max() + margin + 1,
+    ]
+
+
 def _around(frame, nearest, reach: float, noise, table, low) -> np.ndarray:
     """``(H, W)`` bool: the model's footprint (``nearest``, its nearest depth per pixel at
     the previous pose, :func:`_projected`) grown by ``reach`` metres (at its nearest depth),
     the pixels with depth within ``reach`` of the model's depths and, with a ``table``,
     ``low`` metres or more above it, on one surface with the largest piece
     (:func:`~jaxreg.pipeline._surface.mask_surface`)."""
-    depth = np.asarray(frame.depth)
     footprint = np.isfinite(nearest)
     if not footprint.any():
         return footprint
     z = nearest[footprint]
     fx = float(frame.intrinsics.fx)
     grow = int(np.clip(np.ceil(reach * fx / max(float(z.min()), 1e-3)), 1, 200))
-    # ``grow`` 4-connected dilations: every pixel within that taxicab distance
-    grown = ndimage.distance_transform_cdt(~footprint, metric="taxicab") <= grow
-    near = np.isfinite(depth) & (depth >= z.min() - reach) & (depth <= z.max() + reach)
+    # ``grow`` 4-connected dilations: every pixel within that taxicab distance (all of them
+    # in the footprint's box grown by ``grow``)
+    box = _box(footprint, grow)
+    depth = np.asarray(frame.depth)[box]
+    near = ndimage.distance_transform_cdt(~footprint[box], metric="taxicab") <= grow
+    near &= np.isfinite(depth) & (depth >= z.min() - reach) & (depth <= z.max() + reach)
+    looked = np.zeros_like(footprint)
+    looked[box] = near
     if table is not None:
-        rows, cols = np.nonzero(near & grown)
+        rows, cols = np.nonzero(looked)
         height = lift_pixels(frame, rows, cols) @ np.asarray(table.normal, np.float64)
-        near[rows, cols] = height + float(table.offset) >= low
-    return mask_surface(depth, grown & near, np.asarray(noise.coefficients), fx)
+        looked[rows, cols] = height + float(table.offset) >= low
+    return mask_surface(frame.depth, looked, np.asarray(noise.coefficients), fx)
 
 
 def _on_model(frame, model, base_T_object: SE3, noise) -> np.ndarray:
@@ -231,19 +245,19 @@ def _on_model(frame, model, base_T_object: SE3, noise) -> np.ndarray:
     ``base_T_object`` (its points' nearest depth per pixel, spread over 5 x 5 pixels to
     close the gaps between a sparse model's points; within 1 cm or 4 sigma_z, as the image's
     judgement allows): the object's surface, without the table or background beside it."""
-    depth = np.asarray(frame.depth)
     nearest = _projected(frame, model, base_T_object)[3]
-    rows, cols = np.nonzero(np.isfinite(nearest))
-    if len(rows):  # the erosion only where the model projects (and 2 pixels about it)
-        box = np.s_[
-            max(rows.min() - 2, 0) : rows.max() + 3, max(cols.min() - 2, 0) : cols.max() + 3
-        ]
-        nearest[box] = ndimage.grey_erosion(nearest[box], size=5)
+    agree = np.zeros(nearest.shape, bool)
+    if not np.isfinite(nearest).any():
+        return agree
+    box = _box(np.isfinite(nearest), 2)  # the model's pixels and the erosion's reach
+    nearest = ndimage.grey_erosion(nearest[box], size=5)
+    depth = np.asarray(frame.depth)[box]
     sigma = np.polynomial.polynomial.polyval(
         np.where(np.isfinite(nearest), nearest, 0.0), np.asarray(noise.coefficients)
     )
     limit = np.maximum(float(TOLERANCE), NOISE_SIGMAS * sigma)
-    return np.isfinite(nearest) & np.isfinite(depth) & (np.abs(depth - nearest) <= limit)
+    agree[box] = np.isfinite(nearest) & np.isfinite(depth) & (np.abs(depth - nearest) <= limit)
+    return agree
 
 
 def _follow(frame, model, base_T_object: SE3, max_motion, max_turn_deg, noise, settings, table):
