@@ -48,8 +48,9 @@ _EXPORTS = {
     "jaxreg.pipeline.batch": ("estimate_poses",),
     "jaxreg.pipeline.estimate": ("PoseEstimate", "estimate_pose", "visibility"),
     "jaxreg.pipeline.records": (
-        "Candidate", "CoarseSearch", "EquivalentPose", "LiftedSegment", "LiftRecord",
-        "RegisterRecord", "Registration", "Segmented", "SegmentRecord",
+        "Alternatives", "Candidate", "CoarseSearch", "EquivalentPose", "LiftedSegment",
+        "LiftRecord", "MeasuredView", "RegisterRecord", "Registration", "Segmented",
+        "SegmentRecord",
     ),
     "jaxreg.pipeline.segment": (
         "Clusters", "Segmentation", "SegmentStatus", "TablePlane", "choose_cluster",
@@ -211,11 +212,13 @@ if TYPE_CHECKING:  # what type checkers and editors see; the same names as _EXPO
         visibility as visibility,
     )
     from jaxreg.pipeline.records import (
+        Alternatives as Alternatives,
         Candidate as Candidate,
         CoarseSearch as CoarseSearch,
         EquivalentPose as EquivalentPose,
         LiftedSegment as LiftedSegment,
         LiftRecord as LiftRecord,
+        MeasuredView as MeasuredView,
         RegisterRecord as RegisterRecord,
         Registration as Registration,
         Segmented as Segmented,

@@ -28,7 +28,7 @@ from jaxreg.pipeline._judge import (
     judged_fits,
 )
 from jaxreg.pipeline._model import PROBE_ANGLES_DEG, _bucketed_symmetry, _Model
-from jaxreg.pipeline.records import EquivalentPose, MeasuredView
+from jaxreg.pipeline.records import Alternatives, EquivalentPose, MeasuredView
 from jaxreg.pipeline.settings import PipelineSettings
 from jaxreg.registration.icp import icp
 
@@ -290,36 +290,6 @@ def _distinct(poses: np.ndarray, count: int) -> list[int]:
 # Everything that fits as well as the answer.
 
 
-@dataclasses.dataclass(frozen=True)
-class _Alternatives:
-    """What fits the view as well as the answer (:func:`_alternatives`).
-
-    Attributes:
-        pose: ``(7,)`` the reported ``base_T_object`` (the answer on its symmetry branch).
-        spread: ``(2,)`` the largest offset (metres) and angle (degrees) of the equally good
-            refined starts from it.
-        equal_starts: ``(S,)`` bool the refined starts as good as the answer.
-        equal_probes: ``(P,)`` bool the probes as good as the answer.
-        tangents, weights: ``(A, 6)`` the starts and probes that fit about as well, as right
-            perturbations of ``pose`` (object axes), and their weights (``exp(-gap^2/2)``,
-            :func:`~jaxreg.pipeline._judge.evidence_gap`): the budget's ambiguity term.
-        view_free, view_reason: the rotation axes the view leaves free (``(6,)`` bool) and
-            why (:func:`_unfixed_turns`).
-        equivalent: the distinct turned answers as good as the answer (or turns the model
-            makes onto itself, :func:`_alike_turns`).
-    """
-
-    pose: np.ndarray
-    spread: np.ndarray
-    equal_starts: np.ndarray
-    equal_probes: np.ndarray
-    tangents: np.ndarray
-    weights: np.ndarray
-    view_free: np.ndarray
-    view_reason: str | None
-    equivalent: tuple[EquivalentPose, ...]
-
-
 def _pivoted(tangents: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """``tangents`` ``(A, 6)`` (right perturbations ``(v, w)``, object axes) with their
     translations replaced so that the linear map ``v + w x centre`` gives the exact
@@ -351,7 +321,7 @@ def _axis_angle(rotation: np.ndarray) -> tuple[np.ndarray, float]:
 def _alternatives(
     frame, plane, model, source, answers, best, scores, rmses, patches, trim, noise, distances,
     max_rmse, eye, symmetry, settings,
-) -> _Alternatives:  # fmt: skip
+) -> Alternatives:  # fmt: skip
     """The refined starts (``answers`` ``(S, 7)`` object_T_base, their ``scores`` and
     ``rmses``, ``best`` the answer's row) and the answer's probes (:func:`_probe`) judged
     against the answer over the segment's ``patches``: which fit as well (within two
@@ -416,25 +386,25 @@ def _alternatives(
             alternatives[k - 1] for k in _distinct(ordered, len(alternatives) + 1)[1:]
         )
     )  # fmt: skip
-    return _Alternatives(
+    return Alternatives(
         np.asarray(pose), np.asarray(spread), equal, equal_probes, tangents, weights, view_free,
         view_reason, equivalent,
     )  # fmt: skip
 
 
-def _carried(view: MeasuredView, answers, best, scores, rmses, patches, symmetry) -> _Alternatives:
+def _carried(view: MeasuredView, answers, best, scores, rmses, patches, symmetry) -> Alternatives:
     """:func:`_alternatives` with what the probes found carried from a previous frame's
     ``view`` (:class:`~jaxreg.pipeline.records.MeasuredView`) instead of measured again: the
     refined starts (``answers`` ``(S, 7)``, ``scores``, ``rmses``, ``best`` the answer's row)
-    judged against the answer as there, the equivalent poses moved with the answer, the
-    ambiguity's tangents and weights as they were (they are right perturbations in the
-    object's axes, which move with it)."""
+    judged against the answer as there, the equivalent poses moved with the answer, the rest
+    as it was (the ambiguity's tangents are right perturbations in the object's axes, which
+    move with it)."""
     gaps = evidence_gap(scores, rmses, scores[best], rmses[best], patches)
     equal = gaps <= EQUAL_WITHIN
     pose, spread, _ = _finish(answers, np.int32(best), equal, _bucketed_symmetry(symmetry))
     moved = SE3(np.asarray(pose, np.float64)) @ view.pose.inverse()
-    equivalent = tuple(dataclasses.replace(e, pose=moved @ e.pose) for e in view.equivalent)
-    return _Alternatives(
-        np.asarray(pose), np.asarray(spread), equal, view.equal_probes, view.tangents,
-        view.weights, view.view_free, view.view_reason, equivalent,
+    then = view.alternatives
+    return dataclasses.replace(
+        then, pose=np.asarray(pose), spread=np.asarray(spread), equal_starts=equal,
+        equivalent=tuple(dataclasses.replace(e, pose=moved @ e.pose) for e in then.equivalent),
     )  # fmt: skip

@@ -554,10 +554,8 @@ def refine_stage(
     )  # fmt: skip
     pose = SE3(found.pose)
     view = carried or MeasuredView(
-        pose, frame.base_T_camera.inverse() @ pose, len(points), found.equal_probes,
-        found.tangents, found.weights, found.view_free, found.view_reason, found.equivalent,
-        *segmentation,
-    )  # fmt: skip
+        pose, frame.base_T_camera.inverse() @ pose, len(points), found, *segmentation
+    )
     return Registration(
         pose, rmse, fraction, budget, reason, _timed(record, start), found.equivalent, view
     )

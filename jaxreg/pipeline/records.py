@@ -22,7 +22,7 @@ from jaxreg.pipeline.segment import Segmentation, TablePlane
 from jaxreg.uncertainty.budget import PoseBudget
 
 __all__ = [
-    "Candidate", "CoarseSearch", "EquivalentPose", "LiftRecord", "LiftedSegment",
+    "Alternatives", "Candidate", "CoarseSearch", "EquivalentPose", "LiftRecord", "LiftedSegment",
     "MeasuredView", "RegisterRecord", "Registration", "SegmentRecord", "Segmented",
 ]  # fmt: skip
 
@@ -313,6 +313,36 @@ class Registration:
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
+class Alternatives:
+    """What fits the view as well as the register stage's answer.
+
+    Attributes:
+        pose: ``(7,)`` the reported ``base_T_object`` (the answer on its symmetry branch).
+        spread: ``(2,)`` the largest offset (metres) and angle (degrees) of the equally good
+            refined starts from it.
+        equal_starts: ``(S,)`` bool the refined starts as good as the answer.
+        equal_probes: ``(P,)`` bool the probes as good as the answer.
+        tangents, weights: ``(A, 6)`` the starts and probes that fit about as well, as right
+            perturbations of ``pose`` (object axes), and their weights (``exp(-gap^2/2)``,
+            :func:`~jaxreg.pipeline._judge.evidence_gap`): the budget's ambiguity term.
+        view_free, view_reason: the rotation axes the view leaves free (``(6,)`` bool) and
+            why.
+        equivalent: the distinct turned answers as good as the answer (or turns under which
+            the model matches itself).
+    """
+
+    pose: np.ndarray
+    spread: np.ndarray
+    equal_starts: np.ndarray
+    equal_probes: np.ndarray
+    tangents: np.ndarray
+    weights: np.ndarray
+    view_free: np.ndarray
+    view_reason: str | None
+    equivalent: tuple[EquivalentPose, ...]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
 class MeasuredView:
     """What the register stage measured of the view beyond the fit itself, the costly part of
     an answer (the answer turned about the model's axes and refined again, the segment
@@ -324,12 +354,7 @@ class MeasuredView:
         pose: ``base_T_object`` where they were measured.
         camera_T_object: the pose in the camera's frame there.
         points: the segment points registered there.
-        equal_probes: ``(P,)`` bool the probes as good as that answer.
-        tangents, weights: ``(A, 6)`` the poses that fit about as well, as right
-            perturbations of the answer (object axes), and ``(A,)`` their weights: the error
-            budget's ambiguity term.
-        view_free, view_reason: ``(6,)`` bool tangent axes the view leaves free, and why.
-        equivalent: the distinct turned answers as good as that answer.
+        alternatives: what fit the view as well as the answer there.
         segmentation: ``(6, 6)`` the budget's segmentation term (object axes).
         segmentation_unknown: why that term could not be computed, or ``None``.
     """
@@ -337,11 +362,6 @@ class MeasuredView:
     pose: SE3
     camera_T_object: SE3
     points: int
-    equal_probes: np.ndarray
-    tangents: np.ndarray
-    weights: np.ndarray
-    view_free: np.ndarray
-    view_reason: str | None
-    equivalent: tuple[EquivalentPose, ...]
+    alternatives: Alternatives
     segmentation: np.ndarray
     segmentation_unknown: str | None
