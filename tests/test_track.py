@@ -132,7 +132,8 @@ def test_a_previous_estimate_lends_its_view_terms_while_the_view_holds(scene):
     """From a previous ``PoseEstimate`` the costly view terms (the probes' alternatives, the
     segmentation term) are carried, and the bars are no narrower than measured ones; they are
     measured again once the camera's direction in the object frame turned past
-    ``CARRY_TURN_DEG``, or the segment's point count changed past ``CARRY_POINTS``."""
+    ``CARRY_TURN_DEG``, the segment's point count changed past ``CARRY_POINTS``, or for
+    another model."""
     from jaxreg.pipeline.track import CARRY_POINTS, CARRY_TURN_DEG
 
     first = jr.estimate_pose(scene.frame, scene.model_points, symmetry=scene.symmetry)
@@ -170,6 +171,9 @@ def test_a_previous_estimate_lends_its_view_terms_while_the_view_holds(scene):
         symmetry=scene.symmetry,
     )
     assert again.success and again.stages["register"].view_carried_deg is None
+    # another model (every second point of this one) measures its own view
+    other = jr.track(scene.frame, scene.model_points[::2], first, symmetry=scene.symmetry)
+    assert other.stages["register"].view_carried_deg is None
     fewer = dataclasses.replace(view, points=int(len(carried.points) / (CARRY_POINTS - 0.05)))
     again = jr.track(
         scene.frame, scene.model_points, dataclasses.replace(first, measured_view=fewer),

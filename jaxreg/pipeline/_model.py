@@ -37,6 +37,7 @@ class _Model:
     self_misfits: np.ndarray  # (3, len(PROBE_ANGLES_DEG)) metres: see _self_misfits
     centre: np.ndarray  # (3,) the centre of the given points' bounding box (object frame)
     oriented: bool  # normals given (a mesh's, pointing out): ICP matches only faces seen
+    key: tuple = ()  # the model's digest, shape and the settings it was prepared with
     # _coarse_problem's, per schedule (not in the repr that keys stored programs)
     coarse: dict = dataclasses.field(default_factory=dict, repr=False)
 
@@ -171,6 +172,7 @@ def _prepare_model(
         self_misfits=_self_misfits(points, centroid + axes @ given_centre, axes),
         centre=0.5 * (model_points.min(0) + model_points.max(0)).astype(np.float64),
         oriented=model_normals is not None,
+        key=key,
     )
     if len(_MODELS) > 8:
         _MODELS.clear()

@@ -554,7 +554,7 @@ def refine_stage(
     )  # fmt: skip
     pose = SE3(found.pose)
     view = carried or MeasuredView(
-        pose, frame.base_T_camera.inverse() @ pose, len(points), found, *segmentation
+        model.key, pose, frame.base_T_camera.inverse() @ pose, len(points), found, *segmentation
     )
     return Registration(
         pose, rmse, fraction, budget, reason, _timed(record, start), found.equivalent, view

@@ -351,6 +351,8 @@ class MeasuredView:
     previous estimate instead of measuring them again on every frame.
 
     Attributes:
+        model: identifies the model (its points and normals) and the settings they were
+            measured with: they are carried only to the same.
         pose: ``base_T_object`` where they were measured.
         camera_T_object: the pose in the camera's frame there.
         points: the segment points registered there.
@@ -359,6 +361,7 @@ class MeasuredView:
         segmentation_unknown: why that term could not be computed, or ``None``.
     """
 
+    model: tuple
     pose: SE3
     camera_T_object: SE3
     points: int

@@ -375,13 +375,15 @@ def _starts(frame, projected, base_T_object: SE3, points, table, max_turn_deg) -
 def _carry(previous, frame, model, object_T_base: np.ndarray, points: int):
     """What ``previous`` (a :class:`PoseEstimate`, or a bare pose) measured of the view, and
     how far (degrees) the camera's direction from the model's centroid, in the object's
-    frame, has turned since, at the followed pose ``object_T_base`` ``(7,)``: carried while
-    that turn stays within :data:`CARRY_TURN_DEG` and the segment's ``points`` within
-    :data:`CARRY_POINTS` of the count measured (an occluder coming or going changes what the
-    view shows); else ``(None, None)``: measure them again."""
+    frame, has turned since, at the followed pose ``object_T_base`` ``(7,)``: carried for the
+    same ``model`` while that turn stays within :data:`CARRY_TURN_DEG` and the segment's
+    ``points`` within :data:`CARRY_POINTS` of the count measured (an occluder coming or going
+    changes what the view shows); else ``(None, None)``: measure them again."""
     view = previous.measured_view if isinstance(previous, PoseEstimate) else None
-    if view is None or not (
-        CARRY_POINTS <= points / max(view.points, 1) <= 1 / CARRY_POINTS
+    if (
+        view is None
+        or view.model != model.key
+        or not CARRY_POINTS <= points / max(view.points, 1) <= 1 / CARRY_POINTS
     ):
         return None, None
     then = np.asarray(view.camera_T_object.inverse().as_matrix(), np.float64)
