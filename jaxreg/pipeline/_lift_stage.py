@@ -16,6 +16,7 @@ import numpy as np
 
 from jaxreg.camera.model import RGBDFrame
 from jaxreg.core._program_cache import persistent_jit
+from jaxreg.core._sizes import pad_rows, power_of_two
 from jaxreg.pipeline._stages import _Failed
 from jaxreg.pipeline.records import LiftedSegment, LiftRecord
 from jaxreg.pipeline.segment import TablePlane
@@ -97,8 +98,8 @@ def project_points(frame: RGBDFrame, camera_points: np.ndarray) -> np.ndarray:
     through ``frame``'s intrinsics and their distortion, projected in a list padded to a
     bucketed length (a few stored programs serve every count)."""
     count = len(camera_points)
-    padded = np.ones((max(_PIXELS, 1 << (max(count, 1) - 1).bit_length()), 3), np.float32)
-    padded[:count] = camera_points  # the padding in front of the camera: a finite projection
+    # the padding rows (1, 1, 1) lie in front of the camera: a finite projection
+    padded = pad_rows(np.asarray(camera_points, np.float32), power_of_two(count, 1024), 1.0)
     return np.asarray(_project(frame.intrinsics, padded))[:count]
 
 
