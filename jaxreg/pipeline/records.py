@@ -350,6 +350,11 @@ class MeasuredView:
     changes little these stay what they were, so :func:`jaxreg.track` carries them from the
     previous estimate instead of measuring them again on every frame.
 
+    They are carried only when a track step measured them: a track step registers the pixels
+    that agree with the model's projection, while :func:`jaxreg.estimate_pose` registers a
+    table cluster or the caller's mask, and the probes find a different set of equally good
+    turns on the two.
+
     Attributes:
         model: identifies the model (its points and normals) and the settings they were
             measured with: they are carried only to the same.
@@ -359,6 +364,8 @@ class MeasuredView:
         alternatives: what fit the view as well as the answer there.
         segmentation: ``(6, 6)`` the budget's segmentation term (object axes).
         segmentation_unknown: why that term could not be computed, or ``None``.
+        followed: measured by a :func:`jaxreg.track` step, on the pixels that agree with the
+            model's projection (the only kind it carries).
     """
 
     model: tuple
@@ -368,3 +375,4 @@ class MeasuredView:
     alternatives: Alternatives
     segmentation: np.ndarray
     segmentation_unknown: str | None
+    followed: bool = False

@@ -19,12 +19,14 @@ farther than ``max_motion``, left the view, or is hidden): re-detect it with
 The budget's costly terms measure the view rather than the fit: the answer turned about the
 model's axes and refined again (the poses that fit as well: the ambiguity term, the axes the
 view leaves free, the equivalent poses) and the segment re-registered with its membership
-perturbed (the segmentation term). From a previous :class:`PoseEstimate` they are carried
-(:class:`~jaxreg.pipeline.records.MeasuredView`, in the object's axes, which move with it)
-while the camera's direction in the object's frame stays within :data:`CARRY_TURN_DEG` of
+perturbed (the segmentation term). From a previous track step's :class:`PoseEstimate` they
+are carried (:class:`~jaxreg.pipeline.records.MeasuredView`, in the object's axes, which move
+with it) while the camera's direction in the object's frame stays within :data:`CARRY_TURN_DEG` of
 where they were measured and the segment keeps its size (:data:`CARRY_POINTS`); then they
-are measured again. The depth, fit, mismatch and calibration terms are measured on every
-frame. ``RegisterRecord.view_carried_deg`` says which it was.
+are measured again. The first step after :func:`jaxreg.estimate_pose` measures its own: the
+estimate registered another segment (a table cluster or the caller's mask), on which the
+probes find other equally good turns. The depth, fit, mismatch and calibration terms are
+measured on every frame. ``RegisterRecord.view_carried_deg`` says which it was.
 """
 
 from __future__ import annotations
@@ -145,8 +147,9 @@ def track(
             np.random.default_rng(0), carried,
         )  # fmt: skip
         found = dataclasses.replace(
-            found, record=dataclasses.replace(found.record, view_carried_deg=turn)
-        )
+            found, record=dataclasses.replace(found.record, view_carried_deg=turn),
+            view=carried or dataclasses.replace(found.view, followed=True),
+        )  # fmt: skip
         records["register"] = found.record
         _check_motion(base_T_object, found, max_motion, max_turn_deg, lifted, symmetry)
         return _found(found, lifted, records, table)
@@ -373,15 +376,16 @@ def _starts(frame, projected, base_T_object: SE3, points, table, max_turn_deg) -
 
 
 def _carry(previous, frame, model, object_T_base: np.ndarray, points: int):
-    """What ``previous`` (a :class:`PoseEstimate`, or a bare pose) measured of the view, and
-    how far (degrees) the camera's direction from the model's centroid, in the object's
-    frame, has turned since, at the followed pose ``object_T_base`` ``(7,)``: carried for the
-    same ``model`` while that turn stays within :data:`CARRY_TURN_DEG` and the segment's
+    """What ``previous`` (a track step's :class:`PoseEstimate`, or a bare pose) measured of
+    the view, and how far (degrees) the camera's direction from the model's centroid, in the
+    object's frame, has turned since, at the followed pose ``object_T_base`` ``(7,)``: carried
+    for the same ``model`` while that turn stays within :data:`CARRY_TURN_DEG` and the segment's
     ``points`` within :data:`CARRY_POINTS` of the count measured (an occluder coming or going
     changes what the view shows); else ``(None, None)``: measure them again."""
     view = previous.measured_view if isinstance(previous, PoseEstimate) else None
     if (
         view is None
+        or not view.followed
         or view.model != model.key
         or not CARRY_POINTS <= points / max(view.points, 1) <= 1 / CARRY_POINTS
     ):
