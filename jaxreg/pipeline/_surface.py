@@ -16,8 +16,7 @@ Pixels are ``(row, col)`` of the depth image; depths are metres along the camera
 from __future__ import annotations
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
+from scipy import ndimage
 
 __all__ = ["depth_step", "mask_surface"]
 
@@ -48,30 +47,30 @@ def mask_surface(
     ``sigma_coefficients``: the depth noise's ``sigma_z`` polynomial in the depth (ascending,
     metres); ``focal``: the focal length (pixels). Holes and pixels off the surface are
     False; an empty mask gives an empty surface."""
-    depth = np.asarray(depth, np.float64)
     valid = np.asarray(mask, bool) & np.isfinite(depth)
-    rows, cols = np.nonzero(valid)
     out = np.zeros(valid.shape, bool)
+    rows, cols = np.flatnonzero(valid.any(1)), np.flatnonzero(valid.any(0))
     if len(rows) == 0:
         return out
-    index = np.full(valid.shape, -1, np.int64)
-    index[rows, cols] = np.arange(len(rows))
-    z = depth[rows, cols]
+    box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+    valid = valid[box]
+    z = np.where(valid, np.asarray(depth, np.float64)[box], 0.0)
     sigma = np.polynomial.polynomial.polyval(z, np.asarray(sigma_coefficients, np.float64))
     limit = depth_step(z, sigma, focal)
-    links = []
-    for dr, dc in ((0, 1), (1, 0)):
-        r, c = rows + dr, cols + dc
-        inside = (r < valid.shape[0]) & (c < valid.shape[1])
-        a = np.flatnonzero(inside)
-        b = index[r[a], c[a]]
-        a, b = a[b >= 0], b[b >= 0]
-        near = np.abs(z[a] - z[b]) <= np.minimum(limit[a], limit[b])
-        links.append((a[near], b[near]))
-    a = np.concatenate([pair[0] for pair in links])
-    b = np.concatenate([pair[1] for pair in links])
-    graph = coo_matrix((np.ones(len(a), bool), (a, b)), shape=(len(rows), len(rows)))
-    count, labels = connected_components(graph, directed=False)
+    # pixels at even rows and columns of a grid twice the size, the links between 4-neighbours
+    # on one surface between them: its 4-connected components are the surfaces, labelled in
+    # the order of their first pixel
+    h, w = valid.shape
+    grid = np.zeros((2 * h - 1, 2 * w - 1), bool)
+    grid[::2, ::2] = valid
+    for axis, links in ((1, grid[::2, 1::2]), (0, grid[1::2, ::2])):
+        a, b = (np.s_[:, :-1], np.s_[:, 1:]) if axis else (np.s_[:-1], np.s_[1:])
+        links[...] = (
+            valid[a] & valid[b] & (np.abs(z[a] - z[b]) <= np.minimum(limit[a], limit[b]))
+        )  # fmt: skip
+    labels, count = ndimage.label(grid)
+    labels = labels[::2, ::2][valid] - 1
+    z = z[valid]
     sizes = np.bincount(labels, minlength=count)
     largest = int(np.argmax(sizes))
     near, far = np.percentile(z[labels == largest], [2, 98])
@@ -80,6 +79,5 @@ def mask_surface(
     for k in np.flatnonzero(sizes >= PIECE_SHARE * sizes[largest]):
         middle = np.median(z[labels == k])
         keep[k] |= bool(near - (far - near) <= middle <= far + (far - near))
-    chosen = keep[labels]
-    out[rows[chosen], cols[chosen]] = True
+    out[box][valid] = keep[labels]
     return out

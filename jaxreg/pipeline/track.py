@@ -206,41 +206,41 @@ def _projected(frame, model, base_T_object: SE3):
     return cam, pixels, inside, nearest
 
 
-def _box(mask: np.ndarray, margin: int):
-    """The slices of ``mask``'s ``(H, W)`` bounding box grown by ``margin`` pixels (within the
-    image); ``mask`` holds at least one pixel."""
-    rows, cols = np.nonzero(mask)
-    return np.s_[
-        max(rows.min() - margin, 0) : rows.max() + margin + 1,
-        max(cols.min() - margin, 0) : cols.max() + margin + 1,
-    ]
+def _box(pixels: np.ndarray, shape: tuple[int, int], margin: int):
+    """The slices of the bounding box of ``pixels`` ``(P, 2)`` (column, row; at least one, in
+    the ``(H, W)`` image) grown by ``margin`` pixels within the image."""
+    low, high = pixels.min(0) - margin, pixels.max(0) + margin + 1
+    return np.s_[max(low[1], 0) : min(high[1], shape[0]), max(low[0], 0) : min(high[0], shape[1])]
 
 
-def _around(frame, nearest, reach: float, noise, table, low) -> np.ndarray:
-    """``(H, W)`` bool: the model's footprint (``nearest``, its nearest depth per pixel at
-    the previous pose, :func:`_projected`) grown by ``reach`` metres (at its nearest depth),
-    the pixels with depth within ``reach`` of the model's depths and, with a ``table``,
-    ``low`` metres or more above it, on one surface with the largest piece
-    (:func:`~jaxreg.pipeline._surface.mask_surface`)."""
+def _around(frame, projected, reach: float, noise, table, low):
+    """The model's footprint (``projected``: :func:`_projected` at the previous pose) grown
+    by ``reach`` metres (at its nearest depth), the pixels with depth within ``reach`` of the
+    model's depths and, with a ``table``, ``low`` metres or more above it, on one surface
+    with the largest piece (:func:`~jaxreg.pipeline._surface.mask_surface`). Returns them
+    ``(H, W)`` bool and the slices of a box that holds them all."""
+    _, pixels, inside, nearest = projected
     footprint = np.isfinite(nearest)
-    if not footprint.any():
-        return footprint
-    z = nearest[footprint]
+    if not inside.any():
+        return footprint, np.s_[0:0, 0:0]
+    z = nearest[pixels[inside, 1], pixels[inside, 0]]
     fx = float(frame.intrinsics.fx)
     grow = int(np.clip(np.ceil(reach * fx / max(float(z.min()), 1e-3)), 1, 200))
     # ``grow`` 4-connected dilations: every pixel within that taxicab distance (all of them
     # in the footprint's box grown by ``grow``)
-    box = _box(footprint, grow)
+    box = _box(pixels[inside], footprint.shape, grow)
     depth = np.asarray(frame.depth)[box]
     near = ndimage.distance_transform_cdt(~footprint[box], metric="taxicab") <= grow
     near &= np.isfinite(depth) & (depth >= z.min() - reach) & (depth <= z.max() + reach)
-    looked = np.zeros_like(footprint)
-    looked[box] = near
     if table is not None:
-        rows, cols = np.nonzero(looked)
-        height = lift_pixels(frame, rows, cols) @ np.asarray(table.normal, np.float64)
-        looked[rows, cols] = height + float(table.offset) >= low
-    return mask_surface(frame.depth, looked, np.asarray(noise.coefficients), fx)
+        rows, cols = np.nonzero(near)
+        height = lift_pixels(frame, rows + box[0].start, cols + box[1].start) @ np.asarray(
+            table.normal, np.float64
+        )
+        near[rows, cols] = height + float(table.offset) >= low
+    looked = np.zeros_like(footprint)
+    looked[box] = mask_surface(depth, near, np.asarray(noise.coefficients), fx)
+    return looked, box
 
 
 def _on_model(frame, model, base_T_object: SE3, noise) -> np.ndarray:
@@ -248,11 +248,11 @@ def _on_model(frame, model, base_T_object: SE3, noise) -> np.ndarray:
     ``base_T_object`` (its points' nearest depth per pixel, spread over 5 x 5 pixels to
     close the gaps between a sparse model's points; within 1 cm or 4 sigma_z, as the image's
     judgement allows): the object's surface, without the table or background beside it."""
-    nearest = _projected(frame, model, base_T_object)[3]
+    _, pixels, inside, nearest = _projected(frame, model, base_T_object)
     agree = np.zeros(nearest.shape, bool)
-    if not np.isfinite(nearest).any():
+    if not inside.any():
         return agree
-    box = _box(np.isfinite(nearest), 2)  # the model's pixels and the erosion's reach
+    box = _box(pixels[inside], nearest.shape, 2)  # the model's pixels and the erosion's reach
     nearest = ndimage.grey_erosion(nearest[box], size=5)
     depth = np.asarray(frame.depth)[box]
     sigma = np.polynomial.polynomial.polyval(
@@ -277,23 +277,24 @@ def _follow(frame, model, base_T_object: SE3, max_motion, max_turn_deg, noise, s
     found."""
     start = time.perf_counter()
     projected = _projected(frame, model, base_T_object)
-    looked = _around(frame, projected[3], max_motion, noise, table, settings.lift.min_height)
+    looked, box = _around(frame, projected, max_motion, noise, table, settings.lift.min_height)
     need = settings.lift.min_segment_points
     record = SegmentRecord(
         ms=0.0, valid_grid_points=int(np.isfinite(np.asarray(frame.depth)).sum()),
-        mask_pixels=int(looked.sum()),
+        mask_pixels=int(looked[box].sum()),
     )  # fmt: skip
-    if looked.sum() < need:
+    if record.mask_pixels < need:
         raise _Failed(
             "segment",
-            f"the model at the previous pose meets {int(looked.sum())} pixels with depth "
+            f"the model at the previous pose meets {record.mask_pixels} pixels with depth "
             f"within {max_motion * 1e3:.0f} mm of it (need {need}): it moved farther, left "
             "the view or is hidden",
             record.with_ms(start),
         )
+    rows, cols = np.nonzero(looked[box])
+    rows, cols = rows + box[0].start, cols + box[1].start
     depth = np.asarray(frame.depth)
-    gates = tolerances(model, noise, float(np.median(depth[looked])), settings)
-    rows, cols = np.nonzero(looked)
+    gates = tolerances(model, noise, float(np.median(depth[rows, cols])), settings)
     points = lift_pixels(frame, rows, cols)
     source = _padded(points, settings.register.max_points, np.random.default_rng(0))
     previous = np.asarray(base_T_object.inverse().wxyz_xyz, np.float32)[None]
