@@ -28,19 +28,25 @@ __all__ = ["below_band", "lift_pixels", "lift_region", "lift_stage"]
 
 
 def _flying(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray, tolerance: np.ndarray, need):
-    """Bool per pixel: fewer than ``need`` of its 8 neighbours have depth within
-    ``tolerance`` of its own."""
-    h, w = depth.shape
-    z = depth[rows, cols]
-    consistent = np.zeros(len(rows), np.int32)
+    """Bool per pixel ``(rows, cols)`` (at least one): fewer than ``need`` of its 8
+    neighbours have depth within ``tolerance`` (per pixel) of its own."""
+    top, left = rows.min(), cols.min()
+    h, w = rows.max() - top + 1, cols.max() - left + 1
+    # the pixels' box and a border of one (NaN beyond the image: no neighbour there)
+    around = np.full((h + 2, w + 2), np.nan, depth.dtype)
+    r0, r1 = max(top - 1, 0), min(top + h + 1, depth.shape[0])
+    c0, c1 = max(left - 1, 0), min(left + w + 1, depth.shape[1])
+    around[r0 - top + 1 : r1 - top + 1, c0 - left + 1 : c1 - left + 1] = depth[r0:r1, c0:c1]
+    allowed = np.zeros((h, w), np.asarray(tolerance).dtype)
+    allowed[rows - top, cols - left] = tolerance
+    centre = around[1:-1, 1:-1]
+    consistent = np.zeros((h, w), np.int32)
     for dy in (-1, 0, 1):
         for dx in (-1, 0, 1):
-            if dy == 0 and dx == 0:
-                continue
-            r, c = np.clip(rows + dy, 0, h - 1), np.clip(cols + dx, 0, w - 1)
-            inside = (rows + dy >= 0) & (rows + dy < h) & (cols + dx >= 0) & (cols + dx < w)
-            consistent += inside & (np.abs(depth[r, c] - z) <= tolerance)
-    return consistent < need
+            if dy or dx:
+                shifted = around[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
+                consistent += np.abs(shifted - centre) <= allowed
+    return consistent[rows - top, cols - left] < need
 
 
 def _isolated(points: np.ndarray, voxel: float, need: int = 2) -> np.ndarray:

@@ -331,10 +331,11 @@ def _refit(frame, model, plane, points, poses, explained, gates, settings, noise
     )  # fmt: skip
     fitted = np.asarray(results.pose.wxyz_xyz)
     scores, rmses, seen = judged_fits(frame, plane, fitted, model.points, results, noise)
-    order = fit_order(scores, rmses)
-    placed, _ = _onto_table(model, fitted, plane, settings)  # as answers are placed
-    within = np.array([_within(_bounds(model, plane, pose, points), gates) for pose in placed])
-    ranked = np.concatenate([order[within[order]], order[~within[order]]])
+    ranked = fit_order(scores, rmses)
+    if len(ranked) > 1:  # (one fit ranks first whatever it keeps to)
+        placed, _ = _onto_table(model, fitted, plane, settings)  # as answers are placed
+        within = np.array([_within(_bounds(model, plane, p, points), gates) for p in placed])
+        ranked = np.concatenate([ranked[within[ranked]], ranked[~within[ranked]]])
     return _Refit(source, trim, len(picks), results, scores, rmses, seen, ranked)
 
 
