@@ -54,7 +54,7 @@ class AbstractResult(eqx.Module):
             return jax.tree.map(lambda leaf: leaf[index], self)
         if isinstance(index, jax.Array):
             index = np.asarray(index)
-        return jax.tree.map(lambda leaf: jax.device_put(np.asarray(leaf)[index]), self)
+        return jax.device_put(jax.tree.map(lambda leaf: np.asarray(leaf)[index], self))
 
     def status_message(self) -> str | np.ndarray:
         """The status as text, on the host: a string, or an array of strings for a batch."""

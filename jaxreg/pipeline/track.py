@@ -218,11 +218,12 @@ def _around(frame, projected, reach: float, noise, table, low):
     by ``reach`` metres (at its nearest depth), the pixels with depth within ``reach`` of the
     model's depths and, with a ``table``, ``low`` metres or more above it, on one surface
     with the largest piece (:func:`~jaxreg.pipeline._surface.mask_surface`). Returns them
-    ``(H, W)`` bool and the slices of a box that holds them all."""
+    ``(H, W)`` bool, the slices of a box that holds them all, and the base-frame points of
+    that box's pixels ``(h, w, 3)`` (NaN where none is lifted)."""
     _, pixels, inside, nearest = projected
     footprint = np.isfinite(nearest)
     if not inside.any():
-        return footprint, np.s_[0:0, 0:0]
+        return footprint, np.s_[0:0, 0:0], np.zeros((0, 0, 3), np.float32)
     z = nearest[pixels[inside, 1], pixels[inside, 0]]
     fx = float(frame.intrinsics.fx)
     grow = int(np.clip(np.ceil(reach * fx / max(float(z.min()), 1e-3)), 1, 200))
@@ -232,15 +233,16 @@ def _around(frame, projected, reach: float, noise, table, low):
     depth = np.asarray(frame.depth)[box]
     near = ndimage.distance_transform_cdt(~footprint[box], metric="taxicab") <= grow
     near &= np.isfinite(depth) & (depth >= z.min() - reach) & (depth <= z.max() + reach)
+    rows, cols = np.nonzero(near)
+    lifted = lift_pixels(frame, rows + box[0].start, cols + box[1].start)
+    points = np.full((*near.shape, 3), np.nan, np.float32)
+    points[rows, cols] = lifted
     if table is not None:
-        rows, cols = np.nonzero(near)
-        height = lift_pixels(frame, rows + box[0].start, cols + box[1].start) @ np.asarray(
-            table.normal, np.float64
-        )
+        height = lifted @ np.asarray(table.normal, np.float64)
         near[rows, cols] = height + float(table.offset) >= low
     looked = np.zeros_like(footprint)
     looked[box] = mask_surface(depth, near, np.asarray(noise.coefficients), fx)
-    return looked, box
+    return looked, box, points
 
 
 def _on_model(frame, model, base_T_object: SE3, noise) -> np.ndarray:
@@ -277,7 +279,9 @@ def _follow(frame, model, base_T_object: SE3, max_motion, max_turn_deg, noise, s
     found."""
     start = time.perf_counter()
     projected = _projected(frame, model, base_T_object)
-    looked, box = _around(frame, projected, max_motion, noise, table, settings.lift.min_height)
+    looked, box, lifted = _around(
+        frame, projected, max_motion, noise, table, settings.lift.min_height
+    )
     need = settings.lift.min_segment_points
     record = SegmentRecord(
         ms=0.0, valid_grid_points=int(np.isfinite(np.asarray(frame.depth)).sum()),
@@ -292,10 +296,10 @@ def _follow(frame, model, base_T_object: SE3, max_motion, max_turn_deg, noise, s
             record.with_ms(start),
         )
     rows, cols = np.nonzero(looked[box])
+    points = lifted[rows, cols]
     rows, cols = rows + box[0].start, cols + box[1].start
     depth = np.asarray(frame.depth)
     gates = tolerances(model, noise, float(np.median(depth[rows, cols])), settings)
-    points = lift_pixels(frame, rows, cols)
     source = _padded(points, settings.register.max_points, np.random.default_rng(0))
     previous = np.asarray(base_T_object.inverse().wxyz_xyz, np.float32)[None]
     # a small motion: the previous pose, pairs within the refinement's distances (clutter
