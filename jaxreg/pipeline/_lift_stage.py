@@ -85,10 +85,8 @@ def _lift_pixels(frame: RGBDFrame, rows, cols):
 def lift_pixels(frame: RGBDFrame, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """Base-frame points ``(P, 3)`` of the pixels ``(rows, cols)`` (NaN at holes), lifted
     in a list padded to a bucketed length (a few stored programs serve every count)."""
-    padded = max(_PIXELS, 1 << (max(len(rows), 1) - 1).bit_length())
-    r_pad = np.zeros(padded, np.int32)
-    c_pad = np.zeros(padded, np.int32)
-    r_pad[: len(rows)], c_pad[: len(cols)] = rows, cols
+    size = power_of_two(len(rows), _PIXELS)  # the padding lifts pixel (0, 0), dropped
+    r_pad, c_pad = (pad_rows(np.asarray(a, np.int32), size, 0) for a in (rows, cols))
     return np.asarray(_lift_pixels(frame, r_pad, c_pad))[: len(rows)]
 
 
