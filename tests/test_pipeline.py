@@ -285,6 +285,22 @@ def test_depth_holes_over_the_object_fail_the_lift(scene):
     assert est.stages["lift"].valid_depth_fraction < 0.5
 
 
+def test_a_segment_without_depth_lifts_no_points(scene):
+    """No pixel left to lift (every one a hole) gives an empty mask and no points, which the
+    lift stage reports as too few points, not an indexing error."""
+    from jaxreg.pipeline._lift_stage import lift_region
+
+    scene, _, _ = scene
+    none = np.zeros(0, np.int64)
+    mask, points, counts = lift_region(
+        scene.frame, none, none, np.zeros(0), None, None, min_height=0.0, max_height=np.inf,
+        band_sigmas=3.0, voxel_size=0.004, min_consistent_neighbors=5,
+    )  # fmt: skip
+    assert mask.shape == np.asarray(scene.frame.depth).shape and not mask.any()
+    assert points.shape == (0, 3)
+    assert counts["points"] == 0 and counts["flying_pixels_removed"] == 0
+
+
 def test_phantom_edge_points_are_removed_as_flying_pixels(scene):
     scene, model, symmetry = scene
     depth = np.asarray(scene.frame.depth).copy()

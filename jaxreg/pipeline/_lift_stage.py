@@ -28,8 +28,10 @@ __all__ = ["below_band", "lift_pixels", "lift_region", "lift_stage"]
 
 
 def _flying(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray, tolerance: np.ndarray, need):
-    """Bool per pixel ``(rows, cols)`` (at least one): fewer than ``need`` of its 8
-    neighbours have depth within ``tolerance`` (per pixel) of its own."""
+    """Bool per pixel ``(rows, cols)``: fewer than ``need`` of its 8 neighbours have depth
+    within ``tolerance`` (per pixel) of its own."""
+    if len(rows) == 0:
+        return np.zeros(0, bool)
     top, left = rows.min(), cols.min()
     h, w = rows.max() - top + 1, cols.max() - left + 1
     # the pixels' box and a border of one (NaN beyond the image: no neighbour there)
