@@ -117,3 +117,36 @@ def test_hybrid_host_search_is_cKDTree_radius_capped_knn():
     np.testing.assert_array_equal(np.isfinite(sq), inside)
     np.testing.assert_allclose(np.sqrt(sq[inside]), dist[inside], rtol=1e-12)
     np.testing.assert_array_equal(idx[~inside], len(x))
+
+
+def test_match_features_on_concrete_arrays_is_the_compiled_search_with_exact_ties():
+    """Concrete arrays take the k-d tree; under ``jit`` the blocked brute force runs: the same
+    matches, distances and masks on descriptors without ties (every filter). On small
+    integer descriptors, full of exact ties (three or more rows equally near), the k-d tree
+    gives each source row its nearest target row of lowest index, as a float64 reference
+    does (the brute force's float32 screen may settle such ties either way)."""
+    rng = np.random.default_rng(3)
+    a = rng.random((500, 33)).astype(np.float32)
+    b = rng.random((3000, 33)).astype(np.float32)
+    b[11] = 0.0
+    compiled = jax.jit(match_features, static_argnames=("mutual", "ratio"))
+    for options in ({}, {"mutual": False}, {"ratio": 0.9}, {"mutual": False, "ratio": 0.9}):
+        host, traced = match_features(a, b, **options), compiled(a, b, **options)
+        for got, want in zip(jax.tree.leaves(host), jax.tree.leaves(traced), strict=True):
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    for _ in range(50):
+        n, m = rng.integers(1, 60, 2)
+        a = rng.integers(0, 3, (n, 4)).astype(np.float32)
+        b = rng.integers(0, 3, (m, 4)).astype(np.float32)
+        usable_a, usable_b = np.any(a != 0, 1), np.any(b != 0, 1)
+        d2 = ((a[:, None].astype(np.float64) - b[None]) ** 2).sum(-1)
+        d2[:, ~usable_b] = np.inf
+        nearest = np.lexsort((np.broadcast_to(np.arange(m), d2.shape), d2), axis=-1)[:, :2]
+        lowe = match_features(a, b, mutual=False, ratio=1.0)
+        found = usable_a & usable_b.any()
+        got = np.asarray(match_features(a, b, mutual=False).target_index)
+        np.testing.assert_array_equal(got[found], nearest[found, 0])
+        assert np.all(got[~found] == m)
+        if m > 1:  # equally near first and second rows fail the ratio test
+            ties = d2[np.arange(n), nearest[:, 0]] == d2[np.arange(n), nearest[:, 1]]
+            np.testing.assert_array_equal(np.asarray(lowe.mask)[found], ~ties[found])

@@ -34,9 +34,10 @@ same silently). On a concrete cloud they come from exact compiled host loops
 **Correspondences** (:func:`match_features`): each source descriptor's nearest target
 descriptor (Euclidean, as Open3D), optionally kept only when mutual (the target's nearest
 source descriptor is that source point) and when it passes Lowe's ratio test. The result
-is padded to one row per source point with a mask. A descriptor row that is all zero (an
-undefined FPFH: every defined one sums to 200 per sub-histogram) or not finite takes no
-part, so undefined points never match each other.
+is padded to one row per source point with a mask. On concrete arrays the nearest rows come
+from a k-d tree (scipy's, exact); under ``jit`` from blocked brute force. A descriptor row
+that is all zero (an undefined FPFH: every defined one sums to 200 per sub-histogram) or not
+finite takes no part, so undefined points never match each other.
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
+from scipy.spatial import cKDTree
 
 from jaxreg.core._brute import pad_slots, valid_rows
 from jaxreg.search.neighbors import radius_search
@@ -251,11 +253,13 @@ def _usable(features: Array, mask) -> Bool[Array, " N"]:
 def _nearest(a, a_ok, b, b_ok, second: bool):
     """For every row of ``a (N, D)``, its nearest row of ``b (M, D)`` and, with ``second``,
     the second nearest: indices and exact squared distances ``(N, 1 or 2)``, the sentinel
-    ``M`` and ``inf`` where missing (ties to the lower index).
+    ``M`` and ``inf`` where missing. Rows equally near within the screen's float32 rounding
+    may resolve to either (:func:`_host_nearest` gives exact ties the lower index).
 
-    Blocked brute force: squared distances are screened by one matrix product per block of
-    ``a`` (about 4M distances at once) and the chosen ones recomputed exactly. Row minima by
-    ``argmin`` (a second masked pass for the runner-up) cost a third of ``top_k`` on CPU.
+    Blocked brute force (under ``jit``): squared distances are screened by one matrix product
+    per block of ``a`` (about 4M distances at once) and the chosen ones recomputed exactly
+    (:func:`_exact`). Row minima by ``argmin`` (a second masked pass for the runner-up) cost
+    a third of ``top_k`` on CPU.
     """
     n, m = a.shape[0], b.shape[0]
     centre = jnp.where(b_ok[:, None], b, 0).sum(0) / jnp.maximum(b_ok.sum(), 1)
@@ -277,14 +281,57 @@ def _nearest(a, a_ok, b, b_ok, second: bool):
     index = jax.lax.map(one, blocks).reshape(n + pad, -1)[:n].astype(jnp.int32)
     if m == 1:
         index = index[:, :1]
-    diff = a[:, None, :] - b[index]
-    d2 = jnp.where(a_ok[:, None] & b_ok[index], (diff * diff).sum(-1), jnp.inf)
-    if second and m > 1:  # the exact distances may swap a near tie
+    return _exact(a, a_ok, b, b_ok, index, second)
+
+
+def _exact(a, a_ok, b, b_ok, index, second: bool):
+    """The squared distances ``(N, 1 or 2)`` from each row of ``a`` to its chosen rows
+    ``index`` of ``b`` (the sentinel ``M`` allowed), computed exactly; with ``second`` the
+    two reordered by them (a screened near tie may swap). Returns ``(index, d2)`` as
+    :func:`_nearest` does."""
+    m = b.shape[0]
+    diff = a[:, None, :] - b[jnp.minimum(index, m - 1)]
+    known = a_ok[:, None] & b_ok[jnp.minimum(index, m - 1)] & (index < m)
+    d2 = jnp.where(known, (diff * diff).sum(-1), jnp.inf)
+    if second and m > 1:
         order = jnp.argsort(d2, axis=-1)
         index, d2 = jnp.take_along_axis(index, order, -1), jnp.take_along_axis(d2, order, -1)
     found = jnp.isfinite(d2)
     index, d2, _ = pad_slots(jnp.where(found, index, m), d2, found, 2 if second else 1, m)
     return index, d2
+
+
+_exact_jit = jax.jit(_exact, static_argnames="second")
+
+
+def _host_nearest(a, a_ok, b, b_ok, second: bool):
+    """:func:`_nearest` of concrete arrays by a k-d tree over the usable rows of ``b``
+    (scipy's ``cKDTree``, exact in float64; a few thousand rows against tens of thousands of
+    33-bin FPFH rows take a fraction of the brute force's time). One neighbour more than
+    needed is fetched so that equally near rows resolve to the lower index, as the brute
+    force's do; the distances are then computed as :func:`_nearest` computes them."""
+    n, m = a.shape[0], b.shape[0]
+    k = 2 if second and m > 1 else 1
+    index = np.full((n, k), m, np.int32)
+    rows, cols = np.flatnonzero(np.asarray(a_ok)), np.flatnonzero(np.asarray(b_ok))
+    if len(rows) and len(cols):
+        queries, targets = np.asarray(a, np.float64)[rows], np.asarray(b, np.float64)[cols]
+        fetch = min(k + 1, len(cols))
+        tree = cKDTree(targets)
+        distance, found = tree.query(queries, k=fetch, workers=-1)
+        distance, found = distance.reshape(len(rows), fetch), found.reshape(len(rows), fetch)
+        order = np.lexsort((found, distance), axis=-1)[:, :k]  # by distance, then index
+        chosen = np.take_along_axis(found, order, -1)
+        kept = min(k, fetch)
+        # where the row fetched beyond the kept ones is as near as the last kept, more rows
+        # may be: all those within that distance, by distance and then index
+        for i in np.flatnonzero(distance[:, -1] <= distance[:, kept - 1]) if fetch > k else ():
+            reach = distance[i, kept - 1] * (1 + 1e-9)  # the ball's rounding aside
+            near = np.asarray(tree.query_ball_point(queries[i], reach), np.intp)
+            gaps = np.linalg.norm(targets[near] - queries[i], axis=-1)
+            chosen[i] = near[np.lexsort((near, gaps))[:k]]
+        index[rows, :kept] = cols[chosen]
+    return _exact_jit(a, a_ok, b, b_ok, jnp.asarray(index), second)
 
 
 def match_features(
@@ -298,7 +345,9 @@ def match_features(
 ) -> FeatureMatches:
     """Correspondences by nearest neighbour in descriptor space (jittable).
 
-    Each usable source row is matched to its nearest usable target row (Euclidean). With
+    Each usable source row is matched to its nearest usable target row (Euclidean; on
+    concrete arrays by a k-d tree, exact, equally near rows to the lower index; under ``jit``
+    by blocked brute force, which may settle a tie within float32 rounding either way). With
     ``mutual`` the match is kept only if that target row's nearest source row is this one
     (Open3D's ``mutual_filter``); with ``ratio`` only if the nearest distance is below
     ``ratio`` times the second nearest (Lowe's test; 0.8-0.95 suits FPFH).
@@ -335,11 +384,12 @@ def match_features(
         return FeatureMatches(
             jnp.full(n, m, jnp.int32), jnp.full(n, jnp.inf, dtype), jnp.zeros(n, bool)
         )
-    top, d2 = _nearest(a, a_ok, b, b_ok, ratio is not None)
+    nearest = _host_nearest if _is_concrete(a, b, a_ok, b_ok) else _nearest
+    top, d2 = nearest(a, a_ok, b, b_ok, ratio is not None)
     index = top[:, 0]
     keep = jnp.isfinite(d2[:, 0])
     if mutual:  # only the matched target rows need their nearest source row
-        back, _ = _nearest(b[jnp.minimum(index, m - 1)], keep, a, a_ok, False)
+        back, _ = nearest(b[jnp.minimum(index, m - 1)], keep, a, a_ok, False)
         keep = keep & (back[:, 0] == jnp.arange(a.shape[0]))
     if ratio is not None:
         keep = keep & (d2[:, 0] < ratio**2 * d2[:, 1])
