@@ -318,6 +318,33 @@ def _global(stage: str) -> Callable[[Run], tuple[str, float]]:
     return read
 
 
+def _goals_row(script: str, goal: str) -> Callable[[Run], tuple[str, float] | None]:
+    """The ``measured`` cell of the row of ``script``'s own "Goals" table whose goal starts
+    with ``goal``; its number is the compared value (a ``%`` share, a ratio, a count)."""
+
+    def read(run: Run) -> tuple[str, float] | None:
+        table = run.sections[script].table("Goals")
+        measured = table.cell("measured", goal=goal)
+        if measured is None:
+            return None
+        return measured, _number(measured.split()[0])
+
+    return read
+
+
+def _real(run: Run) -> tuple[str, float]:
+    table = run.sections["bench_real.py"].table("Real frames:")
+    posed, instances = (table.cell(c, method="jaxreg") for c in ("posed", "instances"))
+    wrong = table.cell("wrong successes", method="jaxreg")
+    inside = table.cell("inside allowing 2 mm", method="jaxreg")
+    peer = table.cell("posed", method="Open3D")
+    text = f"{posed.split()[0]}/{instances} posed, {wrong} wrong; box centre in the 95% region"
+    text += f" (2 mm allowed): {inside}"
+    if peer:
+        text += f"; Open3D's pipeline {peer.split()[0]}/{instances} posed"
+    return text, _number(posed.split()[0]) / _number(instances) * 100
+
+
 GOALS = [
     Goal("single point-to-point ICP, milk.pcd at 4 mm, 40 iterations, grid built in the call",
          ">= 2x Open3D", _icp("single start: Open3D / jaxreg (builds its grid)",
@@ -348,6 +375,18 @@ GOALS = [
          ">= 3x an Open3D loop", _basin("fresh"), 3),
     Goal("FPFH on both clouds of a Kinect scene", ">= 1x Open3D", _global("fpfh"), 1),
     Goal("RANSAC with matching, the same clouds", ">= 1x Open3D", _global("ransac"), 1),
+    Goal("error bars, 120 synthetic frames: the truth inside the 95% region (6-dof)",
+         "85-99%", _goals_row("bench_calibration.py", "95% region covers 85-99% (6-dof)"),
+         85, 99),
+    Goal("real YCB-Video frames, dataset masks: posed within 10% ADD-S", "reported", _real),
+    Goal("tracking, real consecutive frames: steps followed within 10% ADD-S", ">= 95%",
+         _goals_row("bench_track.py", ">= 95% of the steps followed"), 95),
+    Goal("tracking: a step against a warm `estimate_pose` on the same frame", "<= 0.2",
+         _goals_row("bench_track.py", "a step <= 1/5"), at_most=0.2),
+    Goal("held-out synthetic frames with look-alike clutter: wrong poses claimed", "0",
+         _goals_row("bench_silent.py", "no wrong pose"), at_most=0),
+    Goal("the same frames: refusals", "<= 5%", _goals_row("bench_silent.py", "refusals"),
+         at_most=5),
 ]  # fmt: skip
 
 
