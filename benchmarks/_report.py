@@ -335,14 +335,15 @@ def _goals_row(script: str, goal: str) -> Callable[[Run], tuple[str, float] | No
 def _real(run: Run) -> tuple[str, float]:
     table = run.sections["bench_real.py"].table("Real frames:")
     posed, instances = (table.cell(c, method="jaxreg") for c in ("posed", "instances"))
+    posed = posed.split()[0]  # "35 (100%)"
     wrong = table.cell("wrong successes", method="jaxreg")
     inside = table.cell("inside allowing 2 mm", method="jaxreg")
     peer = table.cell("posed", method="Open3D")
-    text = f"{posed.split()[0]}/{instances} posed, {wrong} wrong; box centre in the 95% region"
+    text = f"{posed}/{instances} posed, {wrong} wrong; box centre in the 95% region"
     text += f" (2 mm allowed): {inside}"
     if peer:
         text += f"; Open3D's pipeline {peer.split()[0]}/{instances} posed"
-    return text, _number(posed.split()[0]) / _number(instances) * 100
+    return text, _number(posed) / _number(instances) * 100
 
 
 GOALS = [

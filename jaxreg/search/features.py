@@ -290,8 +290,9 @@ def _exact(a, a_ok, b, b_ok, index, second: bool):
     two reordered by them (a screened near tie may swap). Returns ``(index, d2)`` as
     :func:`_nearest` does."""
     m = b.shape[0]
-    diff = a[:, None, :] - b[jnp.minimum(index, m - 1)]
-    known = a_ok[:, None] & b_ok[jnp.minimum(index, m - 1)] & (index < m)
+    row = jnp.minimum(index, m - 1)  # the sentinel reads a row, then counts as missing
+    diff = a[:, None, :] - b[row]
+    known = a_ok[:, None] & b_ok[row] & (index < m)
     d2 = jnp.where(known, (diff * diff).sum(-1), jnp.inf)
     if second and m > 1:
         order = jnp.argsort(d2, axis=-1)
@@ -307,9 +308,10 @@ _exact_jit = jax.jit(_exact, static_argnames="second")
 def _host_nearest(a, a_ok, b, b_ok, second: bool):
     """:func:`_nearest` of concrete arrays by a k-d tree over the usable rows of ``b``
     (scipy's ``cKDTree``, exact in float64; a few thousand rows against tens of thousands of
-    33-bin FPFH rows take a fraction of the brute force's time). One neighbour more than
-    needed is fetched so that equally near rows resolve to the lower index, as the brute
-    force's do; the distances are then computed as :func:`_nearest` computes them."""
+    33-bin FPFH rows take a fraction of the brute force's time). Equally near rows resolve
+    to the lower index: one neighbour more than needed is fetched, and where it ties the
+    last kept one, every row within that distance is; the distances are then computed as
+    :func:`_nearest` computes them."""
     n, m = a.shape[0], b.shape[0]
     k = 2 if second and m > 1 else 1
     index = np.full((n, k), m, np.int32)
@@ -323,13 +325,14 @@ def _host_nearest(a, a_ok, b, b_ok, second: bool):
         order = np.lexsort((found, distance), axis=-1)[:, :k]  # by distance, then index
         chosen = np.take_along_axis(found, order, -1)
         kept = min(k, fetch)
-        # where the row fetched beyond the kept ones is as near as the last kept, more rows
-        # may be: all those within that distance, by distance and then index
-        for i in np.flatnonzero(distance[:, -1] <= distance[:, kept - 1]) if fetch > k else ():
-            reach = distance[i, kept - 1] * (1 + 1e-9)  # the ball's rounding aside
-            near = np.asarray(tree.query_ball_point(queries[i], reach), np.intp)
-            gaps = np.linalg.norm(targets[near] - queries[i], axis=-1)
-            chosen[i] = near[np.lexsort((near, gaps))[:k]]
+        if fetch > k:
+            # where the row fetched beyond the kept ones is as near as the last kept, more
+            # rows may be: all those within that distance, by distance and then index
+            for i in np.flatnonzero(distance[:, -1] <= distance[:, kept - 1]):
+                reach = distance[i, kept - 1] * (1 + 1e-9)  # the ball's rounding aside
+                near = np.asarray(tree.query_ball_point(queries[i], reach), np.intp)
+                gaps = np.linalg.norm(targets[near] - queries[i], axis=-1)
+                chosen[i] = near[np.lexsort((near, gaps))[:k]]
         index[rows, :kept] = cols[chosen]
     return _exact_jit(a, a_ok, b, b_ok, jnp.asarray(index), second)
 
