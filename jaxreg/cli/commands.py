@@ -9,7 +9,8 @@ the same).
   same on your data: an organized PCD, or a 16-bit depth PNG with its intrinsics JSON
   (:func:`jaxreg.io.read_frame`), and a model as points (PCD, PLY) or a mesh (OBJ, STL, PLY),
   in metres unless ``--model-units mm|cm`` says otherwise; ``--rgb FILE`` the colour image
-  registered to the depth (the pictures are drawn on it). ``--mask PNG`` (nonzero = the
+  registered to the depth (the pictures are drawn on it; with ``--model-color R G B``, the
+  object's paint, clusters of other colours are no candidates). ``--mask PNG`` (nonzero = the
   object, from your own segmenter), ``--pixel U V`` or ``--box U0 V0 U1 V1`` name the object;
   ``--symmetry`` and ``--depth-noise`` describe the model and the camera (see ``--help``).
 * ``jaxreg pose --ycbv PREFIX --object NAME_OR_INDEX`` does it on a YCB-Video frame, with the
@@ -483,6 +484,10 @@ def _pose_options(args, frame) -> dict:
         options["pixel"] = tuple(args.pixel)
     if args.box is not None:
         options["box"] = tuple(args.box)
+    if args.model_color is not None:
+        if not all(0 <= c <= 255 for c in args.model_color):
+            raise ValueError(f"--model-color takes sRGB counts 0-255, got {args.model_color}")
+        options["model_colors"] = np.asarray(args.model_color) / 255.0
     if args.hand_eye_sigma is not None:
         metres, degrees = args.hand_eye_sigma[0] * 1e-3, np.radians(args.hand_eye_sigma[1])
         options["hand_eye_covariance"] = np.diag([metres**2] * 3 + [degrees**2] * 3)
@@ -569,6 +574,11 @@ def _add_pose(sub) -> None:
         "--rgb", type=Path,
         help="colour image registered to the depth (same size): the pictures of --out are "
         "drawn on it",
+    )  # fmt: skip
+    pose.add_argument(
+        "--model-color", type=float, nargs=3, metavar=("R", "G", "B"),
+        help="the object's paint as sRGB counts 0-255: with --rgb, clusters whose pixels show "
+        "other colours are no candidates (a look-alike of another colour)",
     )  # fmt: skip
     which = pose.add_mutually_exclusive_group()
     which.add_argument("--mask", type=Path, help="PNG of the object's pixels (nonzero = object)")

@@ -41,6 +41,7 @@ from jaxreg.pipeline._coarse import (
     _register_starts,
     _score_candidates,
 )
+from jaxreg.pipeline._colour import other_colour
 from jaxreg.pipeline._error_sources import _pixels, mismatch_sigma, pose_budget
 from jaxreg.pipeline._judge import (
     CONTESTED_WITHIN,
@@ -177,12 +178,29 @@ def coarse_search(
     region = segmented.mask
     if joined is not None:
         region = cluster_mask(segmented.clusters, joined, frame.depth.shape)
+        if segmented.colour is not None:
+            region = _painted(frame, region, *segmented.colour)
     record = RegisterRecord(
         ms=0.0, starts=starts, candidates=candidates,
         coarse_kept_starts=int(poses.shape[0]),
         chosen_clusters=None if joined is None else list(joined),
     )  # fmt: skip
     return CoarseSearch(region, poses, explained, gates, record.with_ms(start))
+
+
+def _painted(frame, region: np.ndarray, palette: np.ndarray, tolerance: float) -> np.ndarray:
+    """``region`` ``(H, W)`` without its pixels of another colour than the model's
+    (:func:`~jaxreg.pipeline._colour.other_colour`, in the region's bounding box, one-pixel
+    rims aside): a touching neighbour of another paint that a cluster or its footprint
+    holds."""
+    rows, cols = np.nonzero(region)
+    if not len(rows):
+        return region
+    box = np.s_[rows.min() : rows.max() + 1, cols.min() : cols.max() + 1]
+    painted = region.copy()
+    rgb = np.asarray(frame.rgb)[box]
+    painted[box] &= ~other_colour(rgb, region[box], palette, tolerance, rim=1)
+    return painted
 
 
 def _joined(model, segmented: Segmented, chosen: int, pose: np.ndarray) -> list[int] | None:

@@ -2,17 +2,21 @@
 stage's coarse search chooses from. The table route finds the table plane and the clusters
 standing on it; each cluster, and each cluster with the clusters near it (one object split
 by a thin rim), is a candidate when its diameter fits the model's. The mask route takes the
-caller's own mask as the one candidate, with the table plane fitted outside it.
+caller's own mask as the one candidate, with the table plane fitted outside it. Given the
+model's colours and a frame with RGB, the table route sets aside the clusters whose pixels do
+not show them (:mod:`jaxreg.pipeline._colour`): a look-alike of another paint.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import jax
 import numpy as np
 
 from jaxreg.camera.model import RGBDFrame
+from jaxreg.pipeline._colour import colour_match, other_colour
 from jaxreg.pipeline._lift_stage import below_band, lift_pixels
 from jaxreg.pipeline._model import _diameter
 from jaxreg.pipeline._stages import _Failed
@@ -26,17 +30,19 @@ __all__ = ["segment_stage"]
 
 def segment_stage(
     frame: RGBDFrame, model, settings: SegmentSettings, key, noise, *, mask=None, pixel=None,
-    box=None, lift: LiftSettings,
+    box=None, lift: LiftSettings, palette=None,
 ) -> Segmented:  # fmt: skip
     """The candidates of ``frame`` for the prepared ``model``: the object's surface in the
     caller's ``mask`` ``(H, W)`` (:func:`_mask_route`), or the table route's clusters
     (:func:`_table_route`; a ``pixel`` ``(u, v)`` or ``box`` ``(u0, v0, u1, v1)`` prompt names
     the seed cluster). ``key``: the plane hypotheses' PRNG key; ``noise``: the camera's
     ``DepthNoise``; ``lift``: the lift's settings, whose band above the table the mask route's
-    surface leaves out. Raises ``_Failed`` when no candidate can be the model."""
+    surface leaves out; ``palette``: the model's chromaticities
+    (:func:`~jaxreg.pipeline._colour.model_palette`) or ``None``. Raises ``_Failed`` when no
+    candidate can be the model."""
     if mask is not None:
         return _mask_route(frame, model, settings, mask, key, noise, lift)
-    return _table_route(frame, model, settings, key, pixel, box)
+    return _table_route(frame, model, settings, key, pixel, box, palette)
 
 
 def height_ceiling(model, settings: SegmentSettings) -> float:
@@ -58,10 +64,12 @@ def _segment(frame: RGBDFrame, model, settings: SegmentSettings, key):
     )  # fmt: skip
 
 
-def _table_route(frame, model, settings: SegmentSettings, key, pixel, box) -> Segmented:
+def _table_route(frame, model, settings: SegmentSettings, key, pixel, box, palette) -> Segmented:
     """Plane and clusters; every cluster (or the prompted one), alone and with the clusters
     within 1.2 model radii of it, whose diameter is at most the model's plus
-    ``cluster_margin``; the ``max_candidates`` largest."""
+    ``cluster_margin``; the ``max_candidates`` largest. Unprompted, with a ``palette`` and the
+    frame's RGB, the clusters whose pixels do not show the model's colours are no candidates,
+    and the grid points of another colour are left out of the others' (:func:`_by_colour`)."""
     s = settings
     start = time.perf_counter()
     seg = _segment(frame, model, s, key)
@@ -102,12 +110,29 @@ def _table_route(frame, model, settings: SegmentSettings, key, pixel, box) -> Se
         for group in ((k,), tuple(sorted({k, *np.asarray(live)[near].tolist()}))):
             if group not in groups:
                 groups.append(group)
+    keep, other, colour = labels >= 0, set(), None
+    if palette is not None and frame.rgb is not None and pixel is None and box is None:
+        rgb = np.asarray(frame.rgb)[:: s.stride, :: s.stride]
+        other_points = other_colour(rgb, labels >= 0, palette, s.colour_tolerance, rim=1)
+        other, stripped = _by_colour(rgb, other_points, labels, live, palette, s)
+        keep &= ~other_points
+        colour = (palette, s.colour_tolerance)
+        record = dataclasses.replace(record, other_colour=other, stripped_by_colour=stripped)
     candidates, spans = [], []
     for group in groups:  # a partial view's centroid is off the object's: compare diameters
-        cloud = grid_points[np.isin(labels, group)]
-        spans.append(_diameter(cloud))
+        if set(group) & set(other):
+            continue
+        cloud = grid_points[np.isin(labels, group) & keep]
+        spans.append(_diameter(cloud) if len(cloud) else np.inf)
         if spans[-1] <= model.diameter + s.cluster_margin:
             candidates.append((group, cloud))
+    if not candidates and other:
+        fail(
+            f"every cluster shows other colours than the model's (clusters {other} under "
+            f"{s.min_colour_share:.0%} of their pixels within the colour tolerance, the others "
+            "not of the model's size): check model_colors (sRGB) and the lighting, or name the "
+            "object with pixel=, box= or mask="
+        )
     candidates.sort(key=lambda item: -len(item[1]))
     candidates = candidates[: s.max_candidates]
     if not candidates:
@@ -121,7 +146,25 @@ def _table_route(frame, model, settings: SegmentSettings, key, pixel, box) -> Se
     too_small = _units_hint(model, 2 * max(float(radii[k]) for k in live))
     if too_small:
         fail("every cluster is far smaller than the model (is it in view?)" + too_small)
-    return Segmented(seg.plane, candidates, seg, None, record.with_ms(start))
+    return Segmented(seg.plane, candidates, seg, None, record.with_ms(start), colour)
+
+
+def _by_colour(rgb, other_points, labels, live, palette, settings):
+    """The clusters (of ``live``, labels of the ``labels`` grid) whose judged grid pixels
+    (``rgb`` ``(h, w, 3)``) show the model's colours (``palette``) less often than
+    ``min_colour_share`` (a cluster with none judged is kept), and of the others those that
+    hold grid points of another colour (``other_points`` ``(h, w)``, a touching neighbour of
+    another paint), sorted lists both."""
+    judged, match = colour_match(rgb, palette, settings.colour_tolerance)
+    other, stripped = [], []
+    for k in live:
+        members = labels == k
+        seen = int(judged[members].sum())
+        if seen and match[members].sum() / seen < settings.min_colour_share:
+            other.append(k)
+        elif other_points[members].any():
+            stripped.append(k)
+    return other, stripped
 
 
 def _mask_route(

@@ -13,7 +13,8 @@ diagnostics. The stages:
    model's plus ``cluster_margin`` (a partial view's centroid lies off the object's centre,
    so its points can lie farther from it than the model's radius); the
    ``max_candidates`` largest are kept, or a ``pixel`` / ``box`` prompt names the seed
-   cluster.
+   cluster. Given the model's colours (``model_colors``) and a frame with RGB, a cluster whose
+   pixels do not show them (by chromaticity, :mod:`jaxreg.pipeline._colour`) is no candidate.
 2. **Register, coarse search**: every candidate is registered in one compiled call (the
    starts below, on its grid points) and scored: the fraction of its points the model
    explains (within the final correspondence distance of the segment's tolerances: 1.5
@@ -104,6 +105,7 @@ from jaxtyping import Array, Bool, Float
 
 from jaxreg.camera.model import RGBDFrame
 from jaxreg.geometry.metrics import Symmetry
+from jaxreg.pipeline._colour import model_palette
 from jaxreg.pipeline._error_sources import Calibration
 from jaxreg.pipeline._judge import visibility as visibility
 from jaxreg.pipeline._lift_stage import lift_stage
@@ -192,6 +194,7 @@ def estimate_pose(
     *,
     mask: Bool[Any, "H W"] | None = None,
     model_normals: Float[Any, "M 3"] | None = None,
+    model_colors: Any | None = None,
     symmetry: Symmetry | None = None,
     depth_noise: DepthNoise | None = None,
     hand_eye_covariance: Float[Any, "6 6"] | None = None,
@@ -221,6 +224,13 @@ def estimate_pose(
             mixes. With them every registration pairs the segment's points only with model
             points facing the camera (ICP's ``viewpoint``): a cup's inner face behind the
             outer one the camera saw takes no pairs.
+        model_colors: the model's sRGB colours, ``(M, 3)`` (a textured model's vertex
+            colours, one per model point) or ``(3,)`` (one paint), floats in [0, 1] or uint8.
+            With a frame that has ``rgb``, the table route sets aside the clusters whose
+            pixels do not show them (``SegmentRecord.other_colour``): a neighbour of the
+            model's shape but another colour is then no rival (see
+            :mod:`jaxreg.pipeline._colour` and the segment settings' ``colour_tolerance``,
+            ``min_colour_share``).
         symmetry: the model's :class:`~jaxreg.Symmetry`, if any.
         depth_noise: the camera's noise as a :class:`~jaxreg.uncertainty.DepthNoise` in the
             camera frame (its ``base_T_camera`` is replaced by the frame's); default a
@@ -250,8 +260,12 @@ def estimate_pose(
         ValueError: a frame that is not an ``RGBDFrame`` or whose depth is not in metres, a
             model that is not ``(M, 3)`` finite points in metres, a mask that is not an
             ``(H, W)`` image of the frame with some pixel set, more than one of ``mask``,
-            ``pixel``, ``box``, or an unknown or invalid setting.
+            ``pixel``, ``box``, model colours that are not sRGB of the model's shape, or an
+            unknown or invalid setting.
     """
+    palette = (
+        None if model_colors is None else model_palette(model_colors, len(np.asarray(model_points)))
+    )
     model_points, model_normals = _checked_model(frame, model_points, model_normals)
     mask = _checked_prompt(frame, mask, pixel, box)
     settings = (settings or PipelineSettings()).replace(**keywords)
@@ -270,7 +284,7 @@ def estimate_pose(
         progress("segment")
         segmented = segment_stage(
             frame, model, settings.segment, key, noise, mask=mask, pixel=pixel, box=box,
-            lift=settings.lift,
+            lift=settings.lift, palette=palette,
         )
         records["segment"], plane = segmented.record, segmented.plane
         coarse = coarse_search(frame, model, segmented, settings, noise, rng)

@@ -84,6 +84,10 @@ class SegmentRecord(_Record):
         above_plane: grid points in the band above the plane (table route).
         cluster_sizes, cluster_radii_mm: grid points and radius of each cluster (table route).
         overflow: the clustering's capacity overflowed (table route).
+        other_colour: the clusters set aside as showing other colours than the model's
+            (table route, given ``model_colors`` and a frame with RGB; else ``None``).
+        stripped_by_colour: the clusters whose grid points of another colour (a touching
+            neighbour of another paint) were left out of their candidates (same condition).
         mask_pixels: pixels of the caller's mask (mask route).
         surface_pixels: of them, pixels on the object's surface (mask route: with depth, and
             connected to the object by the depth image, not the background behind it or an
@@ -100,6 +104,8 @@ class SegmentRecord(_Record):
     cluster_sizes: list[int] | None = None
     cluster_radii_mm: list[float] | None = None
     overflow: bool | None = None
+    other_colour: list[int] | None = None
+    stripped_by_colour: list[int] | None = None
     mask_pixels: int | None = None
     surface_pixels: int | None = None
     mask_grid_points: int | None = None
@@ -242,6 +248,9 @@ class Segmented:
             points, footprints), or ``None`` with a mask.
         mask: the caller's mask ``(H, W)`` bool, or ``None`` on the table route.
         record: the stage's evidence.
+        colour: on the table route with the model's colours, ``(palette, tolerance)``: the
+            model's chromaticities and the tolerance (:mod:`jaxreg.pipeline._colour`); the
+            winner's region keeps only its pixels of the model's colours; else ``None``.
     """
 
     plane: TablePlane | None
@@ -249,6 +258,7 @@ class Segmented:
     clusters: Segmentation | None
     mask: np.ndarray | None
     record: SegmentRecord
+    colour: tuple[np.ndarray, float] | None = None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

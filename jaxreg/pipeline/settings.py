@@ -33,6 +33,14 @@ class SegmentSettings:
         cluster_margin: a candidate's diameter may exceed the model's by this (metres): a
             partial view's points can lie farther from its centroid than the model's radius.
         max_candidates: the largest clusters (by grid points) scored by registration.
+        colour_tolerance: with the model's colours (``model_colors``) and the frame's RGB, a
+            pixel shows a model colour when its chromaticity (red and green shares of the
+            sRGB sum) lies within this of one of the model's (:mod:`jaxreg.pipeline._colour`):
+            about three times the spread of an 8-bit camera pixel's chromaticity at mid
+            brightness (two counts of noise per channel); raise it for a camera whose white
+            balance or colour noise moves one paint's chromaticity more.
+        min_colour_share: a cluster whose judged pixels show the model's colours less often
+            than this is another object, and no candidate (a look-alike of another paint).
     """
 
     stride: int = 4
@@ -42,6 +50,15 @@ class SegmentSettings:
     cluster_distance: float = 0.015
     cluster_margin: float = 0.02
     max_candidates: int = 4
+    colour_tolerance: float = 0.03
+    min_colour_share: float = 0.3
+
+    def __post_init__(self):
+        if not 0.0 < self.colour_tolerance < 1.0 or not 0.0 <= self.min_colour_share <= 1.0:
+            raise ValueError(
+                "colour_tolerance must lie in (0, 1) and min_colour_share in [0, 1], got "
+                f"{self.colour_tolerance!r} and {self.min_colour_share!r}"
+            )
 
 
 @dataclasses.dataclass(frozen=True)

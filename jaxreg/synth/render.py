@@ -25,6 +25,13 @@ _BACKGROUND_RGB = (40, 40, 46)
 _AMBIENT = 0.35
 _LIGHT_BASE = np.array([0.3, -0.4, 1.0]) / np.linalg.norm([0.3, -0.4, 1.0])  # toward the light
 LUMA = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 luminance of linear RGB
+DISPLAY_GAMMA = 1 / 2.2  # linear RGB to the image's display values
+
+
+def display_color(colors: np.ndarray) -> np.ndarray:
+    """Linear RGB ``(..., 3)`` (clipped to [0, 1]) as display (sRGB-like) values in [0, 1]:
+    a fully lit paint's colour in :meth:`Rendering.shade`'s images."""
+    return np.clip(np.asarray(colors, float), 0.0, 1.0) ** DISPLAY_GAMMA
 
 # One stored program, not the dozens of small ones `pixel_rays` compiles op by op when called
 # eagerly (the same XLA arithmetic: bitwise the same rays; numpy's division rounds otherwise).
@@ -111,9 +118,8 @@ class Rendering:
         lambert = np.clip(np.nan_to_num(self.normals @ light_camera), 0.0, None)
         shading = _AMBIENT + (1 - _AMBIENT) * lambert
         # display gamma: (colour * shading)^g = colour^g * shading^g, one power per pixel
-        gamma = 1 / 2.2
-        palette = np.vstack([np.clip(self.colors, 0.0, 1.0) ** gamma, np.zeros(3)])
-        srgb = np.minimum(palette[self.labels] * (shading**gamma)[..., None], 1.0)
+        palette = np.vstack([display_color(self.colors), np.zeros(3)])
+        srgb = np.minimum(palette[self.labels] * (shading**DISPLAY_GAMMA)[..., None], 1.0)
         rgb = np.rint(255 * srgb).astype(np.uint8)
         rgb[self.labels < 0] = _BACKGROUND_RGB
         return rgb

@@ -33,7 +33,7 @@ from jaxreg.geometry.lie import se3_from_matrix
 from jaxreg.geometry.metrics import Symmetry
 from jaxreg.synth._depth_noise import StereoSensor
 from jaxreg.synth._meshes import OBJECTS, distractor_mesh, object_mesh
-from jaxreg.synth.render import LUMA, Rendering, render
+from jaxreg.synth.render import LUMA, Rendering, display_color, render
 
 __all__ = [
     "OBJECTS",
@@ -90,6 +90,9 @@ class TabletopScene:
         symmetry: the target's `Symmetry`.
         exact_depth: `(H, W)` float64 noise-free z-depth (metres, NaN where nothing is hit).
         labels: `(H, W)` int32 per pixel: 0 table, 1 target, 2... distractors, -1 nothing.
+        model_colors: `(N, 3)` float32 sRGB in [0, 1], the target's paint at each of
+            `model_points` (as a textured model's vertex colours give it:
+            `estimate_pose(..., model_colors=)`).
     """
 
     frame: RGBDFrame
@@ -100,6 +103,7 @@ class TabletopScene:
     symmetry: Symmetry
     exact_depth: np.ndarray
     labels: np.ndarray
+    model_colors: np.ndarray
 
 
 def _as_matrix(pose: SE3 | np.ndarray, name: str) -> np.ndarray:
@@ -270,4 +274,5 @@ def tabletop_scene(
         symmetry=symmetry,
         exact_depth=rendering.depth,
         labels=rendering.labels,
+        model_colors=np.tile(display_color(colors[1]), (model_points, 1)).astype(np.float32),
     )
