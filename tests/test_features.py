@@ -150,3 +150,22 @@ def test_match_features_on_concrete_arrays_is_the_compiled_search_with_exact_tie
         if m > 1:  # equally near first and second rows fail the ratio test
             ties = d2[np.arange(n), nearest[:, 0]] == d2[np.arange(n), nearest[:, 1]]
             np.testing.assert_array_equal(np.asarray(lowe.mask)[found], ~ties[found])
+
+
+def test_match_features_compiles_once_for_counts_of_one_bucket():
+    """Concrete descriptors are padded to bucketed row counts: clouds of 301 and 310 rows
+    against 701 and 690 run the program compiled for 300 against 700 (a long-running process
+    meets a few sizes per doubling), and each answer is the unpadded compiled search's."""
+    from jaxreg.search.features import _exact_jit
+
+    rng = np.random.default_rng(3)
+    match_features(rng.random((300, 33)), rng.random((700, 33)), ratio=0.9)
+    compiled = _exact_jit._cache_size()
+    for n, m in ((301, 701), (310, 690)):
+        a, b = rng.random((n, 33)), rng.random((m, 33))
+        found = match_features(a, b, ratio=0.9)
+        traced = jax.jit(lambda a, b: match_features(a, b, ratio=0.9))(a, b)
+        assert found.target_index.shape == (n,) and int(found.target_index.max()) <= m
+        np.testing.assert_array_equal(found.mask, traced.mask)
+        np.testing.assert_array_equal(found.target_index, traced.target_index)
+    assert _exact_jit._cache_size() == compiled

@@ -52,6 +52,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from scipy.spatial import cKDTree
 
 from jaxreg.core._brute import pad_slots, valid_rows
+from jaxreg.core._sizes import bucket, pad_rows
 from jaxreg.search.neighbors import radius_search
 from jaxreg.search.normals import _host_knn, _is_concrete
 
@@ -350,7 +351,9 @@ def match_features(
 
     Each usable source row is matched to its nearest usable target row (Euclidean; on
     concrete arrays by a k-d tree, exact, equally near rows to the lower index; under ``jit``
-    by blocked brute force, which may settle a tie within float32 rounding either way). With
+    by blocked brute force, which may settle a tie within float32 rounding either way;
+    concrete rows are padded to :func:`~jaxreg.core._sizes.bucket` counts, so clouds of many
+    sizes share a few compiled programs). With
     ``mutual`` the match is kept only if that target row's nearest source row is this one
     (Open3D's ``mutual_filter``); with ``ratio`` only if the nearest distance is below
     ``ratio`` times the second nearest (Lowe's test; 0.8-0.95 suits FPFH).
@@ -378,24 +381,41 @@ def match_features(
         )
     if ratio is not None and not 0 < ratio <= 1:
         raise ValueError(f"ratio must lie in (0, 1], got {ratio}")
+    n, m = a.shape[0], b.shape[0]
+    concrete = _is_concrete(a, b, source_mask, target_mask)
+    if concrete:  # bucketed row counts: clouds of many sizes share a few programs
+        (a, source_mask), (b, target_mask) = _bucketed(a, source_mask), _bucketed(b, target_mask)
     dtype = jnp.result_type(a.dtype, b.dtype, jnp.float32)
     a, b = a.astype(dtype), b.astype(dtype)
     a_ok, b_ok = _usable(a, source_mask), _usable(b, target_mask)
-    m = b.shape[0]
-    if a.shape[0] == 0 or m == 0:
-        n = a.shape[0]
+    if n == 0 or m == 0:
         return FeatureMatches(
             jnp.full(n, m, jnp.int32), jnp.full(n, jnp.inf, dtype), jnp.zeros(n, bool)
         )
-    nearest = _host_nearest if _is_concrete(a, b, a_ok, b_ok) else _nearest
+    nearest = _host_nearest if concrete else _nearest
     top, d2 = nearest(a, a_ok, b, b_ok, ratio is not None)
     index = top[:, 0]
     keep = jnp.isfinite(d2[:, 0])
     if mutual:  # only the matched target rows need their nearest source row
-        back, _ = nearest(b[jnp.minimum(index, m - 1)], keep, a, a_ok, False)
+        back, _ = nearest(b[jnp.minimum(index, b.shape[0] - 1)], keep, a, a_ok, False)
         keep = keep & (back[:, 0] == jnp.arange(a.shape[0]))
     if ratio is not None:
         keep = keep & (d2[:, 0] < ratio**2 * d2[:, 1])
-    return FeatureMatches(
-        jnp.where(keep, index, m), jnp.where(keep, jnp.sqrt(d2[:, 0]), jnp.inf), keep
-    )
+    matches = (jnp.where(keep, index, m), jnp.where(keep, jnp.sqrt(d2[:, 0]), jnp.inf), keep)
+    if concrete:  # the source's own rows, cut on the host (no program per count)
+        matches = (jnp.asarray(np.asarray(x)[:n]) for x in matches)
+    return FeatureMatches(*matches)
+
+
+def _bucketed(features: Array, mask):
+    """Concrete ``features`` ``(N, D)`` and their ``mask`` (``(N,)`` or ``None``) grown to
+    :func:`~jaxreg.core._sizes.bucket` ``(N)`` rows (zero rows, unset in the mask: no part in
+    any match), or ``ValueError`` for a mask that is not ``(N,)``."""
+    rows = features.shape[0]
+    if mask is not None and np.shape(mask) != (rows,):
+        raise ValueError(f"mask must be ({rows},), got {np.shape(mask)}")
+    if rows == 0:
+        return features, mask
+    size = bucket(rows)
+    mask = np.arange(size) < rows if mask is None else pad_rows(np.asarray(mask, bool), size, False)
+    return jnp.asarray(pad_rows(np.asarray(features), size, 0)), mask
