@@ -184,27 +184,32 @@ def test_pose_on_a_depth_png_exits_0_found_and_1_not_there(tmp_path, capsys, mon
 
 
 def test_pose_sets_aside_clusters_of_another_colour_given_model_color(tmp_path, capsys):
-    """``--model-color R G B`` with ``--rgb``: the distractors, painted otherwise, are set aside
-    (the report's segment stage lists them) and the box is found; counts beyond 0-255 exit 2."""
+    """``--model-color R G B`` (or ``--model-colors``: the model file's own) with ``--rgb``:
+    the distractors, painted otherwise, are set aside (the report's segment stage lists them)
+    and the box is found; counts beyond 0-255, or both flags, exit 2."""
     from jaxreg.geometry.metrics import add_s
-    from jaxreg.io import write_frame, write_pcd
+    from jaxreg.io import write_frame, write_ply
     from jaxreg.synth import tabletop_scene
 
     scene = tabletop_scene(4, object="box")
     write_frame(tmp_path / "scene.png", scene.frame)
     Image.fromarray(np.asarray(scene.frame.rgb)).save(tmp_path / "colour.png")
-    write_pcd(tmp_path / "model.pcd", np.asarray(scene.model_points, np.float32))
+    write_ply(tmp_path / "model.ply", np.asarray(scene.model_points, np.float32),
+              colors=scene.model_colors)  # fmt: skip
     paint = [str(c) for c in 255 * scene.model_colors[0]]
     common = ["pose", "--scene", str(tmp_path / "scene.png"), "--model",
-              str(tmp_path / "model.pcd"), "--rgb", str(tmp_path / "colour.png"), "--json",
+              str(tmp_path / "model.ply"), "--rgb", str(tmp_path / "colour.png"), "--json",
               "--symmetry", "box"]  # fmt: skip
-    assert main([*common, "--model-color", *paint]) == 0
-    report = json.loads(capsys.readouterr().out)
-    assert len(report["stages"]["segment"]["other_colour"]) == 2  # both distractors
-    pose = SE3.from_matrix(jnp.asarray(report["pose"], jnp.float32))
-    assert float(add_s(scene.model_points, pose, scene.truth)) < 0.005
+    for colours in (["--model-color", *paint], ["--model-colors"]):
+        assert main([*common, *colours]) == 0
+        report = json.loads(capsys.readouterr().out)
+        assert len(report["stages"]["segment"]["other_colour"]) == 2  # both distractors
+        pose = SE3.from_matrix(jnp.asarray(report["pose"], jnp.float32))
+        assert float(add_s(scene.model_points, pose, scene.truth)) < 0.005
     assert main([*common, "--model-color", "300", "0", "0"]) == 2
     assert "--model-color takes sRGB counts 0-255" in capsys.readouterr().err
+    assert main([*common, "--model-colors", "--model-color", *paint]) == 2
+    assert "not both" in capsys.readouterr().err
 
 
 def test_pose_draws_its_pictures_on_the_colour_image_given_by_rgb(tmp_path, capsys):

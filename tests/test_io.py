@@ -673,3 +673,35 @@ def test_malformed_pcd_raises_value_error(tmp_path, content, match):
     assert str(path) in str(info.value)
     # Declared sizes (up to 12 TB here) are checked against the file before any allocation.
     assert peak[0] < 32 * 2**20
+
+
+def test_load_points_with_colors_from_clouds_and_meshes(tmp_path):
+    """Colours as estimate_pose's model_colors take them (uint8 RGB): a PLY's and a PCD's
+    vertex colours row for row (holes dropped with their points), a mesh's vertex colours
+    interpolated at each surface sample; a file without colours says so."""
+    rng = np.random.default_rng(4)
+    points = rng.random((50, 3)).astype(np.float32)
+    colors = rng.integers(0, 256, (50, 3)).astype(np.uint8)
+    points[7] = np.nan
+    for name, write in (("c.ply", write_ply), ("c.pcd", write_pcd)):
+        write(tmp_path / name, points, colors=colors)
+        loaded, loaded_colors = load_points(tmp_path / name, with_colors=True)
+        np.testing.assert_array_equal(loaded, np.delete(points, 7, axis=0))
+        np.testing.assert_array_equal(loaded_colors, np.delete(colors, 7, axis=0))
+    box = trimesh.creation.box((0.1, 0.1, 0.1))
+    paint = np.where(box.vertices[:, :1] > 0, [200, 20, 20, 255], [20, 20, 200, 255])
+    box.visual.vertex_colors = paint.astype(np.uint8)  # red at x > 0, blue at x < 0
+    box.export(tmp_path / "box.ply")
+    samples, normals, sampled = load_points(
+        tmp_path / "box.ply", n_points=500, with_normals=True, with_colors=True
+    )
+    assert samples.shape == normals.shape == sampled.shape == (500, 3)
+    expected = 20 + 180 * (samples[:, 0] + 0.05) / 0.1  # linear across the faces along x
+    np.testing.assert_allclose(sampled[:, 0], expected, atol=1.01)
+    np.testing.assert_allclose(sampled[:, 2], 220 - expected, atol=1.01)
+    write_ply(tmp_path / "plain.ply", points)
+    with pytest.raises(ValueError, match="no red green blue vertex colours"):
+        load_points(tmp_path / "plain.ply", with_colors=True)
+    trimesh.creation.box((0.1, 0.1, 0.1)).export(tmp_path / "plain_box.stl")
+    with pytest.raises(ValueError, match="no vertex colours or texture"):
+        load_points(tmp_path / "plain_box.stl", with_colors=True)

@@ -10,7 +10,8 @@ the same).
   (:func:`jaxreg.io.read_frame`), and a model as points (PCD, PLY) or a mesh (OBJ, STL, PLY),
   in metres unless ``--model-units mm|cm`` says otherwise; ``--rgb FILE`` the colour image
   registered to the depth (the pictures are drawn on it; with ``--model-color R G B``, the
-  object's paint, clusters of other colours are no candidates). ``--mask PNG`` (nonzero = the
+  object's paint, or ``--model-colors``, the model file's own, clusters of other colours are
+  no candidates). ``--mask PNG`` (nonzero = the
   object, from your own segmenter), ``--pixel U V`` or ``--box U0 V0 U1 V1`` name the object;
   ``--symmetry`` and ``--depth-noise`` describe the model and the camera (see ``--help``).
 * ``jaxreg pose --ycbv PREFIX --object NAME_OR_INDEX`` does it on a YCB-Video frame, with the
@@ -509,11 +510,16 @@ def run_pose(args) -> int:
     if args.model is None:
         raise ValueError("--scene needs --model FILE (the object's points or mesh)")
     frame = read_frame(args.scene, args.intrinsics, rgb=args.rgb)
-    model = np.asarray(load_points(args.model, n_points=None), np.float32)
-    model = model * np.float32(UNITS[args.model_units])
+    if args.model_colors and args.model_color is not None:
+        raise ValueError("give --model-color R G B or --model-colors, not both")
+    loaded = load_points(args.model, n_points=None, with_colors=args.model_colors)
+    model, colors = loaded if args.model_colors else (loaded, None)
+    model = np.asarray(model, np.float32) * np.float32(UNITS[args.model_units])
     if len(model) < 10:
         raise ValueError(f"{args.model}: the model has {len(model)} points; give a surface")
     options = _pose_options(args, frame)
+    if colors is not None:
+        options["model_colors"] = colors
     progress = _progress(args.json)
     estimate = estimate_pose(frame, model, progress=progress, **options)
     progress(None)
@@ -574,6 +580,11 @@ def _add_pose(sub) -> None:
         "--rgb", type=Path,
         help="colour image registered to the depth (same size): the pictures of --out are "
         "drawn on it",
+    )  # fmt: skip
+    pose.add_argument(
+        "--model-colors", action="store_true",
+        help="with --rgb: the model file's own colours (a PLY's or PCD's vertex colours, a "
+        "mesh's vertex colours or texture) set aside clusters of other colours",
     )  # fmt: skip
     pose.add_argument(
         "--model-color", type=float, nargs=3, metavar=("R", "G", "B"),

@@ -167,7 +167,8 @@ def _ply_vertex_normals(geometry) -> np.ndarray | None:
     return np.stack([vertex["nx"], vertex["ny"], vertex["nz"]], axis=-1).reshape(-1, 3)
 
 
-def _load_with_trimesh(path: Path, n_points: int | None, with_normals: bool, seed: int):
+def _load_with_trimesh(path: Path, n_points: int | None, with_normals: bool, with_colors: bool,
+                       seed: int):  # fmt: skip
     import trimesh  # imported here so that `import jaxreg` stays light
 
     try:
@@ -184,6 +185,8 @@ def _load_with_trimesh(path: Path, n_points: int | None, with_normals: bool, see
         arrays = (np.asarray(samples),)
         if with_normals:
             arrays += (np.asarray(geometry.face_normals)[face_index],)
+        if with_colors:
+            arrays += (_surface_colors(path, geometry, np.asarray(samples), face_index),)
         return arrays
     vertices = np.asarray(getattr(geometry, "vertices", np.empty((0, 3)))).reshape(-1, 3)
     arrays = (vertices,)
@@ -192,19 +195,52 @@ def _load_with_trimesh(path: Path, n_points: int | None, with_normals: bool, see
         if normals is None:
             raise ValueError(f"{path}: the point cloud has no nx ny nz vertex normals")
         arrays += (normals,)
+    if with_colors:
+        colors = getattr(geometry, "colors", None)
+        if colors is None or len(colors) != len(vertices):
+            raise ValueError(f"{path}: the point cloud has no red green blue vertex colours")
+        arrays += (np.asarray(colors)[:, :3].astype(np.uint8),)
     mask = np.isfinite(vertices).all(axis=-1)
     return _subsample(tuple(a[mask] for a in arrays), n_points, seed)
 
 
+def _surface_colors(path: Path, mesh, samples: np.ndarray, face_index: np.ndarray) -> np.ndarray:
+    """``(N, 3)`` uint8 RGB of a mesh's surface ``samples`` on faces ``face_index``: its
+    vertex colours (a texture's, sampled at the vertices' UVs, when it has one instead)
+    interpolated over each face; ``ValueError`` for a mesh with neither."""
+    import trimesh
+
+    visual = mesh.visual
+    if visual.kind == "texture":
+        visual = visual.to_color()
+    if visual.kind != "vertex":
+        raise ValueError(f"{path}: the mesh has no vertex colours or texture")
+    vertex = np.asarray(visual.vertex_colors, np.float64)[:, :3]
+    corners = np.asarray(mesh.faces)[face_index]
+    weights = trimesh.triangles.points_to_barycentric(
+        np.asarray(mesh.vertices)[corners], samples
+    )  # fmt: skip
+    mixed = np.einsum("nk,nkc->nc", np.clip(weights, 0.0, 1.0), vertex[corners])
+    return np.clip(np.rint(mixed), 0, 255).astype(np.uint8)
+
+
 def load_points(
-    path: str | Path, *, n_points: int | None = None, with_normals: bool = False, seed: int = 0
+    path: str | Path,
+    *,
+    n_points: int | None = None,
+    with_normals: bool = False,
+    with_colors: bool = False,
+    seed: int = 0,
 ):
     """Loads ``(N, 3)`` finite points from a point-cloud or mesh file.
 
-    * ``.pcd``: `read_pcd`, NaN holes dropped. Normals come from ``normal_x/y/z``.
+    * ``.pcd``: `read_pcd`, NaN holes dropped. Normals come from ``normal_x/y/z``, colours
+      from ``rgb``.
     * anything trimesh reads (``.ply``, ``.obj``, ``.stl``, ``.off``, ...): a point cloud
-      (a PLY without faces) is read as is, with its ``nx/ny/nz`` vertex normals; a mesh is
-      sampled uniformly over its surface area and each sample gets its face's normal.
+      (a PLY without faces) is read as is, with its ``nx/ny/nz`` vertex normals and
+      ``red/green/blue`` colours; a mesh is sampled uniformly over its surface area and each
+      sample gets its face's normal and the colour there (vertex colours, or a texture's at
+      the vertices, interpolated over the face).
 
     Args:
         path: the file.
@@ -212,15 +248,20 @@ def load_points(
             cloud, a random subset of this many points (all points when the cloud has fewer,
             or when ``None``).
         with_normals: also return ``(N, 3)`` unit normals; ValueError when the file has none.
+        with_colors: also return ``(N, 3)`` uint8 sRGB colours (as
+            :func:`jaxreg.estimate_pose`'s ``model_colors`` takes them); ValueError when the
+            file has none.
         seed: seeds the mesh sampling and the subset choice.
 
     Returns:
-        ``points`` ``(N, 3)``, or ``(points, normals)`` with ``with_normals``. The dtype is
-        the file's: float32 for PCD ``F 4`` data, float64 from trimesh.
+        ``points`` ``(N, 3)``, or a tuple of ``points``, then ``normals`` and ``colors`` as
+        asked. The points' dtype is the file's: float32 for PCD ``F 4`` data, float64 from
+        trimesh.
 
     Raises:
         FileNotFoundError: the file does not exist.
-        ValueError: the file is malformed, holds no points, or has no normals when asked.
+        ValueError: the file is malformed, holds no points, or has no normals or colours
+            when asked.
     """
     path = Path(path)
     if not path.is_file():
@@ -237,12 +278,16 @@ def load_points(
             if cloud.normals is None:
                 raise ValueError(f"{path}: the file has no normal_x normal_y normal_z fields")
             arrays += (cloud.normals[mask],)
+        if with_colors:
+            if cloud.colors is None:
+                raise ValueError(f"{path}: the file has no rgb field")
+            arrays += (cloud.colors[mask],)
         arrays = _subsample(arrays, n_points, seed)
     else:
-        arrays = _load_with_trimesh(path, n_points, with_normals, seed)
+        arrays = _load_with_trimesh(path, n_points, with_normals, with_colors, seed)
     if len(arrays[0]) == 0:
         raise ValueError(f"{path}: the file holds no finite points")
-    return arrays if with_normals else arrays[0]
+    return arrays if with_normals or with_colors else arrays[0]
 
 
 # --------------------------------------------------------------------------------------------
