@@ -9,7 +9,7 @@ import trimesh
 
 from jaxreg.camera import RGBDFrame
 from jaxreg.pipeline import estimate_pose
-from jaxreg.pipeline._colour import colour_share, model_palette
+from jaxreg.pipeline._colour import colour_match, model_palette
 from jaxreg.synth import object_mesh, render, tabletop_scene
 from jaxreg.synth.render import display_color
 
@@ -79,17 +79,18 @@ def test_no_cluster_of_the_model_paint_is_refused(painted_twins):
     assert "shows other colours than the model's" in est.reason and "pixel=" in est.reason
 
 
-def test_colour_share_ignores_shading_and_judges_only_clear_pixels():
+def test_colour_match_ignores_shading_and_judges_only_clear_pixels():
     """One paint lit and in shade shares its chromaticity; dark and clipped pixels are not
     judged; another paint is not within the tolerance."""
     palette = model_palette(display_color(RED), 1)
     red = np.rint(255 * display_color(RED) * np.array([[1.0], [0.6], [0.3]]) ** (1 / 2.2))
-    share, judged = colour_share(red.astype(np.uint8), palette, 0.03)
-    assert (share, judged) == (1.0, 3)
+    judged, match = colour_match(red.astype(np.uint8), palette, 0.03)
+    assert judged.tolist() == match.tolist() == [True] * 3
     dark_and_clipped = np.array([[3, 1, 1], [255, 40, 30]], np.uint8)
-    assert np.isnan(colour_share(dark_and_clipped, palette, 0.03)[0])
+    assert not colour_match(dark_and_clipped, palette, 0.03)[0].any()
     blue = np.rint(255 * display_color(BLUE))[None].astype(np.uint8)
-    assert colour_share(blue, palette, 0.03) == (0.0, 1)
+    judged, match = colour_match(blue, palette, 0.03)
+    assert judged.tolist() == [True] and match.tolist() == [False]
 
 
 @pytest.mark.parametrize(

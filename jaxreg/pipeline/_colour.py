@@ -19,7 +19,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-__all__ = ["colour_match", "colour_share", "model_palette", "other_colour"]
+__all__ = ["colour_match", "model_palette", "other_colour"]
 
 
 def model_palette(model_colors, points: int) -> np.ndarray:
@@ -72,26 +72,15 @@ def colour_match(pixels: np.ndarray, palette: np.ndarray, tolerance: float):
     return judged, match
 
 
-def colour_share(pixels: np.ndarray, palette: np.ndarray, tolerance: float) -> tuple[float, int]:
-    """The share of ``pixels``' judged ones that show a colour of the ``palette``
-    (:func:`colour_match`), and how many were judged (the share is NaN when none was)."""
-    judged, match = colour_match(pixels, palette, tolerance)
-    count = int(judged.sum())
-    return (float(match.sum() / count) if count else float("nan")), count
-
-
-def other_colour(
-    rgb: np.ndarray, within: np.ndarray, palette: np.ndarray, tolerance: float, rim: int
-) -> np.ndarray:
-    """``(H, W)`` bool: the pixels of ``within`` (``(H, W)`` bool) of ``rgb`` ``(H, W, 3)``
-    (uint8 sRGB) that show another colour than the ``palette``'s (:func:`colour_match`), a
-    pixel too dark or clipped to judge taking the verdict of the nearest judged pixel of
-    ``within`` (a face in shade beside the lit faces of the same object), in pieces wider
-    than ``2 rim + 1`` pixels: a rim narrower than that along a silhouette is the depth and
-    the colour disagreeing about the edge (a stereo camera's edges fatten, a registration is
-    a pixel off), not a neighbour. Nothing when no pixel of ``within`` is judged."""
-    judged, match = colour_match(rgb, palette, tolerance)
-    judged &= within
+def other_colour(judged: np.ndarray, match: np.ndarray, within: np.ndarray, rim: int):
+    """``(H, W)`` bool: the pixels of ``within`` (``(H, W)`` bool) that show another colour
+    than the model's (``judged`` and ``match``: :func:`colour_match` of the image), a pixel
+    too dark or clipped to judge taking the verdict of the nearest judged pixel of ``within``
+    (a face in shade beside the lit faces of the same object), in pieces wider than
+    ``2 rim + 1`` pixels: a rim narrower than that along a silhouette is the depth and the
+    colour disagreeing about the edge (a stereo camera's edges fatten, a registration is a
+    pixel off), not a neighbour. Nothing when no pixel of ``within`` is judged."""
+    judged = judged & within
     if not judged.any():
         return np.zeros(within.shape, bool)
     rows, cols = ndimage.distance_transform_edt(~judged, return_distances=False,

@@ -41,7 +41,7 @@ from jaxreg.pipeline._coarse import (
     _register_starts,
     _score_candidates,
 )
-from jaxreg.pipeline._colour import other_colour
+from jaxreg.pipeline._colour import colour_match, other_colour
 from jaxreg.pipeline._error_sources import _pixels, mismatch_sigma, pose_budget
 from jaxreg.pipeline._judge import (
     CONTESTED_WITHIN,
@@ -178,8 +178,8 @@ def coarse_search(
     region = segmented.mask
     if joined is not None:
         region = cluster_mask(segmented.clusters, joined, frame.depth.shape)
-        if segmented.colour is not None:
-            region = _painted(frame, region, *segmented.colour)
+        if segmented.palette is not None:
+            region = _painted(frame, region, segmented.palette, settings.segment.colour_tolerance)
     record = RegisterRecord(
         ms=0.0, starts=starts, candidates=candidates,
         coarse_kept_starts=int(poses.shape[0]),
@@ -197,9 +197,9 @@ def _painted(frame, region: np.ndarray, palette: np.ndarray, tolerance: float) -
     if not len(rows):
         return region
     box = np.s_[rows.min() : rows.max() + 1, cols.min() : cols.max() + 1]
+    judged, match = colour_match(np.asarray(frame.rgb)[box], palette, tolerance)
     painted = region.copy()
-    rgb = np.asarray(frame.rgb)[box]
-    painted[box] &= ~other_colour(rgb, region[box], palette, tolerance, rim=1)
+    painted[box] &= ~other_colour(judged, match, region[box], rim=1)
     return painted
 
 

@@ -110,13 +110,14 @@ def _table_route(frame, model, settings: SegmentSettings, key, pixel, box, palet
         for group in ((k,), tuple(sorted({k, *np.asarray(live)[near].tolist()}))):
             if group not in groups:
                 groups.append(group)
-    keep, other, colour = labels >= 0, set(), None
+    keep, other, used = labels >= 0, set(), None
     if palette is not None and frame.rgb is not None and pixel is None and box is None:
         rgb = np.asarray(frame.rgb)[:: s.stride, :: s.stride]
-        other_points = other_colour(rgb, labels >= 0, palette, s.colour_tolerance, rim=1)
-        other, stripped = _by_colour(rgb, other_points, labels, live, palette, s)
+        judged, match = colour_match(rgb, palette, s.colour_tolerance)
+        other_points = other_colour(judged, match, labels >= 0, rim=1)
+        other, stripped = _by_colour(judged, match, other_points, labels, live, s)
         keep &= ~other_points
-        colour = (palette, s.colour_tolerance)
+        used = palette
         record = dataclasses.replace(record, other_colour=other, stripped_by_colour=stripped)
     candidates, spans = [], []
     for group in groups:  # a partial view's centroid is off the object's: compare diameters
@@ -146,16 +147,16 @@ def _table_route(frame, model, settings: SegmentSettings, key, pixel, box, palet
     too_small = _units_hint(model, 2 * max(float(radii[k]) for k in live))
     if too_small:
         fail("every cluster is far smaller than the model (is it in view?)" + too_small)
-    return Segmented(seg.plane, candidates, seg, None, record.with_ms(start), colour)
+    return Segmented(seg.plane, candidates, seg, None, record.with_ms(start), used)
 
 
-def _by_colour(rgb, other_points, labels, live, palette, settings):
-    """The clusters (of ``live``, labels of the ``labels`` grid) whose judged grid pixels
-    (``rgb`` ``(h, w, 3)``) show the model's colours (``palette``) less often than
-    ``min_colour_share`` (a cluster with none judged is kept), and of the others those that
-    hold grid points of another colour (``other_points`` ``(h, w)``, a touching neighbour of
-    another paint), sorted lists both."""
-    judged, match = colour_match(rgb, palette, settings.colour_tolerance)
+def _by_colour(judged, match, other_points, labels, live, settings):
+    """The clusters (of ``live``, labels of the ``labels`` grid) whose ``judged`` grid pixels
+    show the model's colours (``match``; both ``(h, w)``,
+    :func:`~jaxreg.pipeline._colour.colour_match`) less often than ``min_colour_share`` (a
+    cluster with none judged is kept), and of the others those that hold grid points of
+    another colour (``other_points`` ``(h, w)``, a touching neighbour of another paint),
+    sorted lists both."""
     other, stripped = [], []
     for k in live:
         members = labels == k

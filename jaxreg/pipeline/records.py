@@ -248,9 +248,9 @@ class Segmented:
             points, footprints), or ``None`` with a mask.
         mask: the caller's mask ``(H, W)`` bool, or ``None`` on the table route.
         record: the stage's evidence.
-        colour: on the table route with the model's colours, ``(palette, tolerance)``: the
-            model's chromaticities and the tolerance (:mod:`jaxreg.pipeline._colour`); the
-            winner's region keeps only its pixels of the model's colours; else ``None``.
+        palette: on the table route with the model's colours, their chromaticities
+            ``(K, 2)`` (:func:`~jaxreg.pipeline._colour.model_palette`): the winner's region
+            keeps only its pixels of the model's colours; else ``None``.
     """
 
     plane: TablePlane | None
@@ -258,7 +258,7 @@ class Segmented:
     clusters: Segmentation | None
     mask: np.ndarray | None
     record: SegmentRecord
-    colour: tuple[np.ndarray, float] | None = None
+    palette: np.ndarray | None = None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
