@@ -303,6 +303,8 @@ def test_pose_on_a_ycbv_frame_refuses_an_object_not_in_it(ycbv_dir, capsys):
     assert "needs --object" in capsys.readouterr().err
     assert main(["pose", "--ycbv", prefix, "--object", "14", "--model", prefix]) == 2
     assert "--model cannot be given with --ycbv" in capsys.readouterr().err
+    assert main(["pose", "--ycbv", prefix, "--object", "14", "--model-colors"]) == 2
+    assert "YCB-Video's point models have none" in capsys.readouterr().err
     assert main(["pose", "--ycbv", str(ycbv_dir / "data" / "0000"), "--object", "14"]) == 2
     assert "names 5 frames" in capsys.readouterr().err
 

@@ -503,6 +503,11 @@ def run_pose(args) -> int:
     if args.ycbv is not None:
         from jaxreg.cli._ycbv import run_pose_ycbv
 
+        if args.model_colors:
+            raise ValueError(
+                "--model-colors reads the --model file's colours; YCB-Video's point models "
+                "have none (give one paint with --model-color R G B)"
+            )
         return run_pose_ycbv(args)
     for name in ("object", "no_mask"):
         if getattr(args, name):
