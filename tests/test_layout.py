@@ -146,7 +146,7 @@ def test_design_names_resolve():
         importlib.import_module(module)
 
 
-# Where README says each public name resolves: a library package's at the top level
+# Where docs/reference.md says each public name resolves: a library package's at the top level
 # (``jaxreg.icp``), a namespace package's through the package (``jaxreg.io.read_pcd``).
 LIBRARY = ("core", "geometry", "search", "registration", "camera", "uncertainty", "pipeline")
 NAMESPACES = ("io", "synth", "studies")
@@ -157,8 +157,8 @@ PUBLIC_MODULES = sorted(
     and p.relative_to(ROOT).parts[0] in LIBRARY + NAMESPACES
     and not any(part.startswith("_") for part in _module_name(p).split("."))
 )
-# ICP's building blocks (prepare, run, unpad, ...) are reached through their module, as README
-# says: top-level names as generic as ``jr.run`` would mislead.
+# ICP's building blocks (prepare, run, unpad, ...) are reached through their module, as the
+# reference says: top-level names as generic as ``jr.run`` would mislead.
 THROUGH_THEIR_MODULE = {"jaxreg.registration.solver"}
 
 
