@@ -160,15 +160,15 @@ def test_a_failed_final_registration_fails_the_register_stage(scene, monkeypatch
     from jaxreg.registration.icp import ICPStatus
 
     scene, model, symmetry = scene
-    refine = stage._register_starts
+    refine = stage._starts_in_pieces
 
     def ending(status, symmetric):
-        def starts(*args):
-            results = refine(*args)
+        def starts(*args, **options):
+            results = refine(*args, **options)
             code = np.full(results.status._value.shape, status._value, np.int32)
             return eqx.tree_at(lambda r: r.status._value, results, jax.numpy.asarray(code))
 
-        monkeypatch.setattr(stage, "_register_starts", starts)
+        monkeypatch.setattr(stage, "_starts_in_pieces", starts)
         return estimate_pose(scene.frame, model, symmetry=symmetry if symmetric else None)
 
     est = ending(ICPStatus.non_finite, True)

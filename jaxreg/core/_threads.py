@@ -52,14 +52,15 @@ def num_pieces(work: int, grain: int) -> int:
     return max(1, pieces - pieces % CORES if pieces > CORES else pieces)
 
 
-def lane_pieces(lanes: int) -> int:
+def lane_pieces(lanes: int, per_piece: int = _MIN_LANES) -> int:
     """How many pieces :func:`split_lanes` cuts ``lanes`` into: one per core when JAX runs on
-    a single local CPU device and each piece keeps at least ``_MIN_LANES`` lanes; else 1 (an
+    a single local CPU device and each piece keeps at least ``per_piece`` lanes (fewer light
+    lanes do not repay a second program run; a lane that is a whole search does); else 1 (an
     accelerator, or several devices, already run the lanes in parallel)."""
     devices = jax.local_devices()
     if len(devices) != 1 or devices[0].platform != "cpu":
         return 1
-    return max(1, min(CORES, lanes // _MIN_LANES))
+    return max(1, min(CORES, lanes // per_piece))
 
 
 def split_lanes(fn: Callable, lanes: np.ndarray, pieces: int):

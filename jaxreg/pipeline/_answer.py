@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxlie import SE3, SO3
@@ -20,7 +19,7 @@ from scipy.spatial.transform import Rotation
 from jaxreg.core._program_cache import persistent_jit
 from jaxreg.geometry.lie import geodesic_angle
 from jaxreg.geometry.metrics import Symmetry, canonicalise
-from jaxreg.pipeline._coarse import DISTINCT_ANGLE, DISTINCT_DISTANCE, _register_starts
+from jaxreg.pipeline._coarse import DISTINCT_ANGLE, DISTINCT_DISTANCE, _starts_in_pieces
 from jaxreg.pipeline._judge import (
     EQUAL_WITHIN,
     _confirmed_share,
@@ -117,10 +116,9 @@ def _probe(frame, plane, model, source, answer, trim, noise, distances, max_rmse
     and contradicted shares within the register settings') and the image's counts ``(P, 5)``
     (:func:`~jaxreg.pipeline._judge.visibility`). The probes are refined on every second
     point of ``source`` (half the cost)."""
-    starts = SE3(jax.device_put(probe_starts(model, answer)))
-    probed = _register_starts(
-        source[::2], model.points, model.normals, model.fine_grid, starts, distances, trim, 30,
-        eye,
+    probed = _starts_in_pieces(
+        source[::2], model.points, model.normals, model.fine_grid, probe_starts(model, answer),
+        distances, trim, 30, eye,
     )  # fmt: skip
     refined = np.asarray(probed.pose.wxyz_xyz)
     poses, _ = _onto_table(model, refined, plane, settings)
@@ -198,13 +196,16 @@ def _onto_table(model, answers, plane, settings: PipelineSettings):
     matrices = np.asarray(SE3(np.asarray(answers, np.float64)).inverse().as_matrix())
     points = model.points[np.all(np.isfinite(model.points), axis=1)].astype(np.float64)
     normal, offset = np.asarray(plane.normal, np.float64), float(plane.offset)
+    tolerance = settings.register.rest_tolerance
+    # each pose's lowest model point above the plane, all at once: only the poses within the
+    # tolerance (and a rounding margin) can rest, and only they are examined one by one
+    lowest = (points @ (matrices[:, :3, :3].transpose(0, 2, 1) @ normal).T).min(0)
+    lowest += matrices[:, :3, 3] @ normal + offset
     restings = [
-        resting_contact(
-            points, matrix, normal, offset, settings.register.rest_tolerance,
-            settings.voxel_size,
-        )
-        for matrix in matrices
-    ]
+        resting_contact(points, matrix, normal, offset, tolerance, settings.voxel_size)
+        if abs(low) <= tolerance + 1e-6 else None
+        for matrix, low in zip(matrices, lowest, strict=True)
+    ]  # fmt: skip
     rests = np.array([resting is not None for resting in restings])
     if rests.any():
         shifts = np.array([normal * (0.0 if r is None else r[1]) for r in restings])

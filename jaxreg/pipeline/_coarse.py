@@ -17,6 +17,7 @@ from jaxlie import SE3, SO3
 from jaxtyping import Array
 
 from jaxreg.core._program_cache import persistent_jit
+from jaxreg.core._threads import lane_pieces, split_lanes
 from jaxreg.pipeline._judge import _confirmed_share, _visibilities
 from jaxreg.pipeline._model import _Model
 from jaxreg.registration.icp import multistart_icp, pca_inits, rotation_inits
@@ -244,4 +245,21 @@ def _register_starts(
         source, points, inits, method="point_to_plane", target_normals=normals,
         max_correspondence_distance=distances, max_iterations=iterations, trim_fraction=trim,
         neighbors=grid, tolerance=1e-5, viewpoint=viewpoint,
+    )  # fmt: skip
+
+
+def _starts_in_pieces(
+    source, points, normals, grid, inits, distances, trim, iterations, viewpoint, per_piece=8
+):  # fmt: skip
+    """:func:`_register_starts` from every start of ``inits`` ``(S, 7)`` (object_T_base), run
+    as one concurrent call per core on a piece of at least ``per_piece`` starts
+    (:func:`jaxreg.core._threads.split_lanes`): on a CPU, XLA runs a registration's many
+    small steps on one core, so two pieces fill each other's gaps. Numpy results, the start
+    axis leading."""
+    lanes = np.asarray(inits, np.float32)
+    return split_lanes(
+        lambda part: _register_starts(
+            source, points, normals, grid, SE3(part), distances, trim, iterations, viewpoint
+        ),
+        lanes, lane_pieces(len(lanes), per_piece),
     )  # fmt: skip

@@ -33,6 +33,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from jaxreg.core._program_cache import persistent_jit
+from jaxreg.core._threads import lane_pieces, split_lanes
 from jaxreg.pipeline._answer import CONTACT_WEIGHT
 from jaxreg.pipeline._judge import PATCH
 from jaxreg.pipeline._lift_stage import lift_pixels, project_points
@@ -236,6 +237,12 @@ def _distances(mask: np.ndarray, margin: int) -> tuple[np.ndarray, np.ndarray]:
     return inside, outside
 
 
+# ICP iterations of a perturbed segment's fit (the last of the refinement's distances): it
+# starts at the answer, and a changed membership moves the optimum by a fraction of a
+# millimetre, within the last distances' reach.
+PERTURBED_ITERATIONS = 8
+
+
 def perturbed_segments(frame, mask, points, plane, min_height, size, rng, count=16, noise=None):
     """``(count, size, 3)`` float32 segments with their membership changed (NaN padding):
     a quarter with the mask's border eroded by 1-3 pixels, a quarter with the ring of 1-3
@@ -301,7 +308,8 @@ def _continuing(frame, mask, rows, cols, noise) -> np.ndarray:
 @persistent_jit
 def _perturbed_fits(sources, weights, points, normals, grid, init, distances, trim, eye, seen):
     """Point-to-plane ICP of every perturbed segment ``(P, N, 3)`` (rows weighted by
-    ``weights`` ``(N,)``, NaN rows ignored) from ``init`` (7,), with ``eye`` the viewpoint
+    ``weights`` ``(N,)``, NaN rows ignored) from ``init`` (7,), one iteration per
+    correspondence distance of ``distances``, with ``eye`` the viewpoint
     of the ``seen`` rows ``(N,)`` (``None``: no viewpoint): the poses ``(P, 7)``, their
     ICP statuses and whether their residuals are finite ``(P,)``."""
 
@@ -309,13 +317,33 @@ def _perturbed_fits(sources, weights, points, normals, grid, init, distances, tr
         usable = jax.numpy.all(jax.numpy.isfinite(source), axis=1)
         result = icp(
             source, points, SE3(init), method="point_to_plane", target_normals=normals,
-            max_correspondence_distance=distances, max_iterations=15, trim_fraction=trim,
-            source_weights=jax.numpy.where(usable, weights, 0.0), neighbors=grid,
-            tolerance=1e-5, viewpoint=eye, viewpoint_rows=None if eye is None else seen,
+            max_correspondence_distance=distances, max_iterations=distances.shape[0],
+            trim_fraction=trim, source_weights=jax.numpy.where(usable, weights, 0.0),
+            neighbors=grid, tolerance=1e-5, viewpoint=eye,
+            viewpoint_rows=None if eye is None else seen,
         )  # fmt: skip
         return result.pose.wxyz_xyz, result.status, jax.numpy.isfinite(result.inlier_rmse)
 
     return jax.vmap(one)(sources)
+
+
+def _fits_in_pieces(
+    sources, weights, model, object_T_base, distances, trim, eye, source_size, iterations
+):  # fmt: skip
+    """:func:`_perturbed_fits` of ``sources`` ``(P, N, 3)`` from ``object_T_base`` (7,) over
+    the last ``iterations`` of the refinement's ``distances``, the rows before
+    ``source_size`` seen from ``eye``; run as one concurrent call per core on a piece of the
+    sources (:func:`jaxreg.core._threads.split_lanes`): numpy poses ``(P, 7)``, statuses and
+    finite flags ``(P,)``."""
+    steps = np.asarray(distances, np.float32)[-iterations:]
+    seen = np.arange(len(weights)) < source_size
+    return split_lanes(
+        lambda part: _perturbed_fits(
+            part, weights, model.points, model.normals, model.fine_grid,
+            np.asarray(object_T_base, np.float32), steps, np.float32(trim), eye, seen,
+        ),
+        np.asarray(sources, np.float32), lane_pieces(len(sources)),
+    )  # fmt: skip
 
 
 def _scaled(segment: np.ndarray, frame, sigma: float) -> np.ndarray:
@@ -453,11 +481,9 @@ def pose_budget(
         kept = _subsample(points, source_size, rng)
         registered[0, : len(kept)] = kept
         registered = _with_contact(registered, contact)[0]
-        scaled_poses, scaled_status, scaled_finite = _perturbed_fits(
-            _scaled(registered, frame, calibration.depth_scale_sigma), weights, model.points,
-            model.normals, model.fine_grid, np.asarray(object_T_base, np.float32),
-            np.asarray(distances)[-15:], np.float32(trim), eye,
-            np.arange(len(weights)) < source_size,
+        scaled_poses, scaled_status, scaled_finite = _fits_in_pieces(
+            _scaled(registered, frame, calibration.depth_scale_sigma), weights, model,
+            object_T_base, distances, trim, eye, source_size, 15,
         )  # fmt: skip
         if _usable_fits(scaled_status, scaled_finite, usable).all():
             steps = _tangents(object_T_base, np.asarray(scaled_poses)) @ to_object.T
@@ -504,10 +530,9 @@ def _segmentation_term(
         frame, mask, points, plane, min_height, source_size, rng, noise=noise
     )
     segments = _with_contact(segments, contact)
-    poses, status, finite = _perturbed_fits(
-        segments, weights, model.points, model.normals, model.fine_grid,
-        np.asarray(object_T_base, np.float32), np.asarray(distances)[-15:], np.float32(trim),
-        eye, np.arange(len(weights)) < source_size,
+    poses, status, finite = _fits_in_pieces(
+        segments, weights, model, object_T_base, distances, trim, eye, source_size,
+        PERTURBED_ITERATIONS,
     )  # fmt: skip
     ok = _usable_fits(status, finite, usable)
     moved = (_tangents(object_T_base, np.asarray(poses)) @ to_object.T)[ok]

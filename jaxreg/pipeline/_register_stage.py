@@ -23,10 +23,10 @@ from __future__ import annotations
 import dataclasses
 import time
 
-import jax
 import numpy as np
 from jaxlie import SE3
 
+from jaxreg.core._threads import lane_pieces, split_lanes
 from jaxreg.pipeline._answer import (
     _alternatives,
     _carried,
@@ -38,8 +38,8 @@ from jaxreg.pipeline._answer import (
 from jaxreg.pipeline._coarse import (
     _Coarse,
     _coarse_problem,
-    _register_starts,
     _score_candidates,
+    _starts_in_pieces,
 )
 from jaxreg.pipeline._colour import colour_match, other_colour
 from jaxreg.pipeline._error_sources import _pixels, mismatch_sigma, pose_budget
@@ -341,11 +341,10 @@ def _refit(frame, model, plane, points, poses, explained, gates, settings, noise
     s = settings.register
     source = _padded(points, s.max_points, rng)
     picks = _distinct(poses, s.refined_starts)
-    inits = SE3(jax.device_put(poses[picks]))
     trim = np.float32(np.clip(explained, 0.6, 0.95))  # an argument: one program for all
-    results = _register_starts(
-        source, model.points, model.normals, model.fine_grid, inits, gates.distances, trim, 30,
-        eye,
+    results = _starts_in_pieces(
+        source, model.points, model.normals, model.fine_grid, poses[picks], gates.distances,
+        trim, 30, eye, per_piece=2,
     )  # fmt: skip
     fitted = np.asarray(results.pose.wxyz_xyz)
     scores, rmses, seen = judged_fits(frame, plane, fitted, model.points, results, noise)
@@ -376,15 +375,25 @@ def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, 
     problem, *rounds = _coarse_problem(
         model, s.coarse_points, settings.coarse_distances, (s.coarse_screen, s.coarse_first)
     )
-    coarse = jax.block_until_ready(
-        _score_candidates(
-            frame, plane, problem, tuple(rounds), model.fine_grid, padded, used, model.points,
-            model.screen, model.axes, TOLERANCE, noise.coefficients, gates.distances[-1],
-            s.num_starts, s.resting_yaws, s.coarse_survivors, s.coarse_keep,
-        )
+    # one concurrent call per core, each on every pieces-th slot (the used slots come first,
+    # so each call gets its share of them), the slots padded with unused ones to fill them
+    pieces = lane_pieces(len(clouds), per_piece=1)
+    slots = -(-len(used) // pieces) * pieces
+    padded = np.concatenate([padded, np.full((slots - len(used),) + padded.shape[1:], np.nan)])
+    used = np.concatenate([used, np.zeros(slots - len(used), bool)])
+    order = np.concatenate([np.arange(k, slots, pieces) for k in range(pieces)])
+    coarse = split_lanes(
+        lambda part: _score_candidates(
+            frame, plane, problem, tuple(rounds), model.fine_grid, padded[part], used[part],
+            model.points, model.screen, model.axes, TOLERANCE, noise.coefficients,
+            gates.distances[-1], s.num_starts, s.resting_yaws, s.coarse_survivors,
+            s.coarse_keep,
+        ),
+        order, pieces,
     )  # fmt: skip
+    back = np.argsort(order)
     poses, explained, seen = (
-        np.array(a) for a in (coarse.poses, coarse.explained, coarse.visibility)
+        np.array(a[back]) for a in (coarse.poses, coarse.explained, coarse.visibility)
     )
     scored = []
     for i, cloud in enumerate(clouds):
