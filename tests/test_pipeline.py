@@ -554,19 +554,34 @@ def test_identical_twins_on_the_table_are_refused_naming_both():
 
 
 
-def test_pieces_of_one_object_are_not_twins():
+def test_pieces_of_one_object_are_not_twins(monkeypatch):
     """Seed 9309 (a bench_silent development seed): the clustering splits the mug into three
     clusters, and the coarse search scores each alike. The winner's coarse pose explains the
     others, so they are pieces of it, not a second mug: the pose is found, right, with the
-    pieces joined."""
+    pieces joined. The coarse search runs one concurrent call per core, each on every second
+    candidate slot: in two pieces the candidates' scores and the answer are those of the
+    search in one call."""
+    from jaxreg.pipeline import _register_stage as stage
     from jaxreg.synth import StereoSensor, tabletop_scene
 
     scene = tabletop_scene(9309, object="mug", distractors=3)
     noise = StereoSensor.d435().depth_noise(scene.frame.intrinsics)
-    est = estimate_pose(scene.frame, scene.model_points, symmetry=scene.symmetry, depth_noise=noise)
+
+    def estimate(pieces):
+        monkeypatch.setattr(stage, "lane_pieces", lambda lanes, per_piece=8: min(pieces, lanes))
+        return estimate_pose(
+            scene.frame, scene.model_points, symmetry=scene.symmetry, depth_noise=noise
+        )
+
+    est, whole = estimate(2), estimate(1)
     assert est.success, est.reason
     assert float(add_s(scene.model_points, est.pose, scene.truth)) < 0.0127  # 10% of 127 mm
     assert len(est.stages["register"].chosen_clusters) >= 2
+    scored = [est.stages["register"].candidates, whole.stages["register"].candidates]
+    assert len(scored[0]) >= 3
+    assert [c.clusters for c in scored[0]] == [c.clusters for c in scored[1]]
+    np.testing.assert_allclose([c.score for c in scored[0]], [c.score for c in scored[1]])
+    np.testing.assert_allclose(est.pose.as_matrix(), whole.pose.as_matrix(), atol=1e-5)
 
 
 def _held_out(seed: int, name: str, model_points: int):
