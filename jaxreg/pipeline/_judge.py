@@ -20,6 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from jaxreg.camera.model import RGBDFrame
 from jaxreg.core._program_cache import persistent_jit
+from jaxreg.core._threads import lane_pieces, split_lanes
 from jaxreg.pipeline._model import _Model
 from jaxreg.pipeline.segment import TablePlane
 from jaxreg.registration.solver import apply_pose as _apply
@@ -184,8 +185,13 @@ def judged_fits(frame, plane, poses, model_points, results, noise):
     since) as the register stage weighs fits: scores ``(S,)``, the share of source points
     within the last correspondence distance times the confirmed share of the judged model
     (:func:`_confirmed_share`); residuals ``(S,)`` (metres, ``inf`` without pairs); the
-    image's counts ``(S, 5)`` (:func:`visibility`). ``noise``: the camera's ``DepthNoise``."""
-    seen = np.asarray(_judge(frame, plane, poses, model_points, TOLERANCE, noise.coefficients))
+    image's counts ``(S, 5)`` (:func:`visibility`; many poses are judged in one concurrent
+    call per core). ``noise``: the camera's ``DepthNoise``."""
+    poses = np.asarray(poses, np.float32)
+    seen = split_lanes(
+        lambda part: _judge(frame, plane, part, model_points, TOLERANCE, noise.coefficients),
+        poses, lane_pieces(len(poses)),
+    )  # fmt: skip
     scores = np.asarray(results.inlier_fraction) * _confirmed_share(seen)
     rmses = np.nan_to_num(np.asarray(results.inlier_rmse), nan=np.inf)
     return scores, rmses, seen
