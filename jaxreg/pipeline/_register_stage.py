@@ -379,7 +379,8 @@ def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, 
     # so each call gets its share of them), the slots padded with unused ones to fill them
     pieces = lane_pieces(len(clouds), per_piece=1)
     slots = -(-len(used) // pieces) * pieces
-    padded = np.concatenate([padded, np.full((slots - len(used),) + padded.shape[1:], np.nan)])
+    extra = np.full((slots - len(used),) + padded.shape[1:], np.nan, padded.dtype)
+    padded = np.concatenate([padded, extra])
     used = np.concatenate([used, np.zeros(slots - len(used), bool)])
     order = np.concatenate([np.arange(k, slots, pieces) for k in range(pieces)])
     coarse = split_lanes(
