@@ -313,7 +313,10 @@ def _flat(fn: Callable, arrays: list, static, in_tree):
         box.append(out_tree)
         return out_leaves
 
-    specs = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type) for a in arrays]
+    specs = [
+        jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=getattr(a, "weak_type", False))
+        for a in arrays
+    ]
     return flat, box, specs
 
 
@@ -402,7 +405,14 @@ def persistent_jit(fn: Callable) -> Callable:
             return jitted(*args)
         if any(len(a.sharding.device_set) > 1 for a in arrays if isinstance(a, jax.Array)):
             return jitted(*args)  # stored programs run on one device
-        arrays = [a if isinstance(a, jax.Array) else jax.device_put(a) for a in arrays]
+        # host arrays go to the program as they are: its call moves them in one step (a
+        # device_put each costs more than the transfer), in JAX's dtypes (float64 as float32
+        # unless x64 is on)
+        arrays = [
+            a if isinstance(a, jax.Array)
+            else np.asarray(a, jax.dtypes.canonicalize_dtype(np.result_type(a)))
+            for a in arrays
+        ]  # fmt: skip
         signature = _signature(arrays, static, in_tree)
         with _LOCK:
             known = signature is not None and signature in keys
