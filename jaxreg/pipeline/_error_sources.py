@@ -39,6 +39,7 @@ from jaxreg.pipeline._judge import PATCH
 from jaxreg.pipeline._lift_stage import lift_pixels, project_points
 from jaxreg.pipeline._surface import depth_step
 from jaxreg.registration.icp import ICPStatus, icp
+from jaxreg.search.neighbors import cell_codes
 from jaxreg.uncertainty.budget import combine
 
 __all__ = ["Calibration", "pose_budget"]
@@ -131,8 +132,7 @@ def _jacobian(points, normals, object_T_base) -> np.ndarray:
 
 def _blocks(points: np.ndarray, size: float) -> np.ndarray:
     """``(K,)`` int labels of the cubic cells of edge ``size`` holding ``points``."""
-    cells = np.floor(points / size).astype(np.int64)
-    return np.unique(cells, axis=0, return_inverse=True)[1].reshape(-1)
+    return np.unique(cell_codes(np.floor(points / size)), return_inverse=True)[1].reshape(-1)
 
 
 def _fit_term(jac, residual, blocks, inverse, depth_base) -> np.ndarray:

@@ -24,7 +24,7 @@ from jaxreg.core._threads import lane_pieces, split_lanes
 from jaxreg.pipeline._model import _Model
 from jaxreg.pipeline.segment import TablePlane
 from jaxreg.registration.solver import apply_pose as _apply
-from jaxreg.search.neighbors import query_nearest
+from jaxreg.search.neighbors import cell_codes, query_nearest
 
 __all__ = ["visibility"]
 
@@ -240,8 +240,7 @@ PATCH = 0.012
 
 def patch_count(points: np.ndarray) -> int:
     """The number of ``PATCH`` cubes that base-frame ``points`` ``(N, 3)`` occupy."""
-    cells = np.floor(np.asarray(points, np.float64) / PATCH).astype(np.int64)
-    return len(np.unique(cells, axis=0)) if len(cells) else 0
+    return len(np.unique(cell_codes(np.floor(np.asarray(points, np.float64) / PATCH))))
 
 
 # Two fits whose evidence differs by at most this many standard errors of the difference

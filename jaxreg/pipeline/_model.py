@@ -16,7 +16,13 @@ from scipy.spatial import ConvexHull, QhullError, cKDTree
 from scipy.spatial.transform import Rotation
 
 from jaxreg.geometry.metrics import Symmetry
-from jaxreg.search.neighbors import NeighborGrid, build_grid, pad_grid, voxel_downsample
+from jaxreg.search.neighbors import (
+    NeighborGrid,
+    build_grid,
+    cell_codes,
+    pad_grid,
+    voxel_downsample,
+)
 from jaxreg.search.normals import estimate_normals
 
 
@@ -95,8 +101,8 @@ def _padded_grid(grid: NeighborGrid, tables: dict) -> NeighborGrid:
 def _voxel_normals(points: np.ndarray, normals: np.ndarray, voxel: float):
     """Voxel centroids of ``points`` and the normalised mean normal of each voxel (zero
     where the normals cancel, as on the two faces of a thin wall)."""
-    key = np.floor((points - points.min(0)) / voxel).astype(np.int64)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    key = cell_codes(np.floor((points - points.min(0)) / voxel))
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
     sums = np.zeros((len(counts), 6))
     np.add.at(sums, inverse, np.concatenate([points, normals], axis=1))

@@ -339,6 +339,20 @@ def _grid_only(mask, block) -> None:
 # Host helpers.
 
 
+def cell_codes(cells: np.ndarray) -> np.ndarray:
+    """``(K,)`` int64 codes of the integer cells ``(K, 3)``, ordered as the cells are
+    (lexicographically, x-major): ``np.unique`` of the codes groups and orders the cells as
+    ``np.unique(cells, axis=0)`` does, an order of magnitude faster. Host-side numpy."""
+    cells = np.asarray(cells, np.int64)
+    if len(cells) == 0:
+        return np.zeros(0, np.int64)
+    key = cells - cells.min(0)
+    dims = key.max(0) + 1
+    if np.prod(dims.astype(np.float64)) >= 2.0**62:  # no room for one int64 per cell
+        return np.unique(cells, axis=0, return_inverse=True)[1].reshape(-1)
+    return (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
+
+
 def voxel_downsample(points: ArrayLike, voxel_size: float) -> np.ndarray:
     """Centroid of the points in each occupied voxel, like Open3D's ``voxel_down_sample``.
 
@@ -366,13 +380,8 @@ def voxel_downsample(points: ArrayLike, voxel_size: float) -> np.ndarray:
     if len(pts) == 0:
         return np.zeros((0, 3), dtype)
     origin = pts.min(0) - 0.5 * voxel_size
-    key = np.floor((pts - origin) / voxel_size).astype(np.int64)  # >= 0
-    dims = key.max(0) + 1
-    if np.prod(dims.astype(np.float64)) < 2.0**62:  # one int64 per voxel, x-major order
-        key = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
-        _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-    else:
-        _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    key = cell_codes(np.floor((pts - origin) / voxel_size))  # x-major voxel order
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
     sums = [np.bincount(inverse, pts[:, i], len(counts)) for i in range(3)]
     return (np.stack(sums, 1) / counts[:, None]).astype(dtype)
