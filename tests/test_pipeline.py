@@ -647,6 +647,37 @@ def test_sunk_and_underneath_measure_a_pose_against_the_table():
     assert underneath(prepared, None, object_T_base(0.02), segment) == 0.0
 
 
+def test_resting_contacts_find_a_face_on_the_table_not_an_edge_or_a_gap():
+    """A 80 x 50 x 120 mm box over the table z = 0, four poses in one batch: standing 1 mm
+    above the table rests on its bottom face (contact points on the plane, inside that face,
+    and the 1 mm it stood above); balanced on an edge (turned 45 degrees about x) it is
+    within the tolerance but has no face there; 20 mm above, beyond the tolerance; a
+    non-finite pose is never resting."""
+    from jaxlie import SE3, SO3
+
+    from jaxreg.pipeline._answer import CONTACT_POINTS, resting_contacts
+
+    box = trimesh.creation.box((0.08, 0.05, 0.12))
+    points = np.asarray(box.sample(3000, seed=1), np.float64)
+    edge = SE3.from_rotation(SO3.from_x_radians(np.pi / 4))
+    edge_height = 0.5 * (0.05 + 0.12) * np.sin(np.pi / 4) + 0.001
+    poses = [
+        SE3.from_translation(np.array([0.1, -0.2, 0.061])),
+        SE3.from_translation(np.array([0.1, -0.2, edge_height])) @ edge,
+        SE3.from_translation(np.array([0.1, -0.2, 0.08])),
+    ]
+    matrices = np.stack([np.asarray(p.as_matrix(), np.float64) for p in poses])
+    matrices = np.concatenate([matrices, np.full((1, 4, 4), np.nan)])
+    found = resting_contacts(points, matrices, np.array([0.0, 0, 1]), 0.0, 0.005, 0.004)
+    assert [f is None for f in found] == [False, True, True, True]
+    contact, lowest = found[0]
+    assert contact.shape == (CONTACT_POINTS, 3) and lowest == pytest.approx(0.001, abs=1e-6)
+    inside = contact[np.all(np.isfinite(contact), axis=1)]
+    assert len(inside) > 3 and np.all(inside[:, 2] == 0.0)
+    assert np.all(np.abs(inside[:, :2] - [0.1, -0.2]) <= [0.04 + 1e-6, 0.025 + 1e-6])
+    assert np.ptp(inside[:, 0]) > 0.06 and np.ptp(inside[:, 1]) > 0.035  # the whole face
+
+
 def test_a_target_whose_best_coarse_pose_spans_beyond_the_model_is_still_found():
     """Seed 11204 (bench_silent, looked at while this was written), a mug: its best coarse
     pose turned it about its axis, so its handle spanned 20 mm beyond the model; the mug was

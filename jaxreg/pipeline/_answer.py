@@ -40,36 +40,49 @@ CONTACT_POINTS = 128  # virtual contact points appended to the refined cloud (st
 CONTACT_WEIGHT = 8.0
 
 
-def resting_contact(points: np.ndarray, matrix: np.ndarray, normal, offset, tolerance, voxel):
-    """Virtual contact points of a model resting on the table, or ``None``.
+def resting_contacts(points: np.ndarray, matrices: np.ndarray, normal, offset, tolerance, voxel):
+    """Virtual contact points of a model resting on the table, at each of several poses.
 
-    At the refined pose (``matrix``: ``(4, 4)`` base_T_object), the model's lowest point
-    (of ``points`` ``(M, 3)``, float64, object frame, no padding rows) must lie within
+    At a pose (``matrices``: ``(K, 4, 4)`` base_T_object), the model's lowest point (of
+    ``points`` ``(M, 3)``, float64, object frame, no padding rows) must lie within
     ``tolerance`` (metres) of the plane ``normal . x + offset = 0``, and the model's points
-    within one ``voxel`` of that height must form a face (spanning a third of the model's
-    width, not a corner or an edge). The face's points, moved onto the plane along its
-    normal, are where the table says the model's bottom is: ``(CONTACT_POINTS, 3)``
-    base-frame points (subsampled, or NaN padded), and the height (metres) the model's
-    lowest point had above the plane.
+    within one ``voxel`` of that height must form a face: at least 3 points whose spread
+    along both of their principal directions in the plane is a third of the model's width
+    or more (not a corner or an edge). The face's points, moved onto the plane along its
+    normal, are where the table says the model's bottom is. Returns a list of ``K``: for a
+    pose that rests, its ``(CONTACT_POINTS, 3)`` base-frame contact points (subsampled, or
+    NaN padded) and the height (metres) its lowest point had above the plane; else
+    ``None``. Host numpy, every pose in one batch (coordinates along the middle axis, the
+    points along the last, where numpy's loops are long).
     """
-    placed = points @ matrix[:3, :3].T + matrix[:3, 3]  # host numpy
-    along = placed @ normal
+    placed = matrices[:, :3, :3] @ points.T + matrices[:, :3, 3:]  # (K, 3, M)
+    along = np.einsum("i,kim->km", normal, placed)
     height = along + offset
-    lowest = float(height.min())
-    if not np.isfinite(lowest) or abs(lowest) > tolerance:
-        return None
-    face = placed[height <= lowest + voxel]
-    flat = face - np.outer(face @ normal, normal)
-    spread = np.ptp(flat @ np.linalg.svd(flat - flat.mean(0), full_matrices=False)[2][:2].T, axis=0)
-    width = np.ptp(placed - np.outer(along, normal), axis=0).max()
-    if len(face) < 3 or spread.min() < width / 3:
-        return None
-    contact = face - np.outer(face @ normal + offset, normal)  # onto the plane
-    out = np.full((CONTACT_POINTS, 3), np.nan, np.float32)
-    step = max(1, int(np.ceil(len(contact) / CONTACT_POINTS)))
-    picked = contact[::step][:CONTACT_POINTS]
-    out[: len(picked)] = picked
-    return out, lowest
+    lowest = height.min(1)
+    flat = placed - normal[:, None] * along[:, None, :]  # along the normal onto n . x = 0
+    width = (flat.max(2) - flat.min(2)).max(1)
+    face = height <= lowest[:, None] + voxel  # (K, M)
+    count = face.sum(1)
+    mean = np.where(face[:, None], flat, 0.0).sum(2) / np.maximum(count, 1)[:, None]
+    centred = np.where(face[:, None], flat - mean[:, :, None], 0.0)
+    scatter = centred @ centred.transpose(0, 2, 1)
+    scatter[~np.isfinite(scatter).all((1, 2))] = np.eye(3)  # a non-finite pose: it fails below
+    principal = np.linalg.eigh(scatter)[1][:, :, 1:]  # (K, 3, 2)
+    spans = principal.transpose(0, 2, 1) @ flat  # (K, 2, M)
+    spread = (
+        np.where(face[:, None], spans, -np.inf).max(2)
+        - np.where(face[:, None], spans, np.inf).min(2)
+    ).min(1)
+    rests = (np.abs(lowest) <= tolerance) & (count >= 3) & (spread >= width / 3)
+    found = [None] * len(matrices)
+    for k in np.flatnonzero(rests):
+        contact = (flat[k][:, face[k]] - offset * normal[:, None]).T  # onto the plane
+        out = np.full((CONTACT_POINTS, 3), np.nan, np.float32)
+        step = max(1, int(np.ceil(len(contact) / CONTACT_POINTS)))
+        picked = contact[::step][:CONTACT_POINTS]
+        out[: len(picked)] = picked
+        found[k] = (out, float(lowest[k]))
+    return found
 
 
 @persistent_jit
@@ -187,7 +200,7 @@ def _good_arc(angles: np.ndarray, good: np.ndarray) -> float:
 
 def _onto_table(model, answers, plane, settings: PipelineSettings):
     """``answers`` ``(S, 7)`` (object_T_base wxyz_xyz) with each one that rests on the table
-    (:func:`resting_contact`) moved onto it, and each one's contact (points, lowest height)
+    (:func:`resting_contacts`) moved onto it, and each one's contact (points, lowest height)
     or ``None`` (a list of ``S``). The poses are composed in batches (a few dispatches for
     all ``S``)."""
     answers = np.array(answers, np.float32)
@@ -196,16 +209,9 @@ def _onto_table(model, answers, plane, settings: PipelineSettings):
     matrices = np.asarray(SE3(np.asarray(answers, np.float64)).inverse().as_matrix())
     points = model.points[np.all(np.isfinite(model.points), axis=1)].astype(np.float64)
     normal, offset = np.asarray(plane.normal, np.float64), float(plane.offset)
-    tolerance = settings.register.rest_tolerance
-    # each pose's lowest model point above the plane, all at once: only the poses within the
-    # tolerance (and a rounding margin) can rest, and only they are examined one by one
-    lowest = (points @ (matrices[:, :3, :3].transpose(0, 2, 1) @ normal).T).min(0)
-    lowest += matrices[:, :3, 3] @ normal + offset
-    restings = [
-        resting_contact(points, matrix, normal, offset, tolerance, settings.voxel_size)
-        if abs(low) <= tolerance + 1e-6 else None
-        for matrix, low in zip(matrices, lowest, strict=True)
-    ]  # fmt: skip
+    restings = resting_contacts(
+        points, matrices, normal, offset, settings.register.rest_tolerance, settings.voxel_size
+    )
     rests = np.array([resting is not None for resting in restings])
     if rests.any():
         shifts = np.array([normal * (0.0 if r is None else r[1]) for r in restings])
