@@ -71,13 +71,14 @@ def data_root() -> Path | None:
 # Files whose tests compile the same JAX programs, mapped to the file they run beside (with
 # ``--dist loadfile`` each file is a unit of work): the files that run ``estimate_pose`` or
 # ``track`` on 848x480 synthetic frames with models of the first size class (the demo command,
-# ``jaxreg bop``'s synthetic BOP frames) share one worker, which compiles the pipeline's
-# programs (~90 s of CPU) once.
+# ``jaxreg bop``'s synthetic BOP frames, test_colour's painted twins, test_facing's mug with
+# its mesh's normals) share one worker, which compiles the pipeline's programs (~90 s of CPU,
+# and more for the twins' refusal and the oriented model's ICP) once.
 _SAME_WORKER = {
     f"tests/{name}.py": "tests/test_pipeline.py"
     for name in (
         "test_cli", "test_bop_run", "test_pipeline_batch", "test_equivalent", "test_track",
-        "test_mask_surface",
+        "test_mask_surface", "test_colour", "test_facing",
     )
 }  # fmt: skip
 

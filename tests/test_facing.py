@@ -47,6 +47,17 @@ def corner():
     return source, target, normals, eye, outer
 
 
+# The registration of the corner's source from its sensor (point-to-plane, 1 cm pairs).
+OPTIONS = dict(method="point_to_plane", max_correspondence_distance=0.01, max_iterations=40)
+
+
+@pytest.fixture(scope="module")
+def facing(corner):
+    """The corner's source registered from its sensor's viewpoint, pairs found on the grid."""
+    source, target, normals, eye, _ = corner
+    return jr.icp(source, target, target_normals=normals, viewpoint=eye, **OPTIONS)
+
+
 def _shift_toward_eye(result, eye):
     """How far (metres) the registration moved the source away from the sensor along the
     corner's diagonal: the data placed deeper into the wall."""
@@ -54,14 +65,9 @@ def _shift_toward_eye(result, eye):
     return float(np.asarray(result.pose.translation()) @ direction)
 
 
-def test_a_viewpoint_removes_the_pull_of_a_thin_walls_back_face(corner):
+def test_a_viewpoint_removes_the_pull_of_a_thin_walls_back_face(corner, facing):
     source, target, normals, eye, _ = corner
-    options = dict(
-        method="point_to_plane", target_normals=normals, max_correspondence_distance=0.01,
-        max_iterations=40,
-    )  # fmt: skip
-    plain = jr.icp(source, target, **options)
-    facing = jr.icp(source, target, viewpoint=eye, **options)
+    plain = jr.icp(source, target, target_normals=normals, **OPTIONS)
     # the noise carries a share of the points nearer the inner face: matched to it, they
     # drag the data into the wall
     assert _shift_toward_eye(plain, eye) > 5e-4
@@ -87,14 +93,11 @@ def test_rows_outside_viewpoint_rows_may_match_any_face(corner):
     assert np.all(index < len(target)) and not np.any(outer[index])
 
 
-def test_brute_force_and_the_grid_pair_the_same_faces(corner):
+def test_brute_force_and_the_grid_pair_the_same_faces(corner, facing):
+    """Traced in the target, ICP pairs by blocked brute force: the same faces as the grid."""
     source, target, normals, eye, _ = corner
-    options = dict(
-        method="point_to_plane", max_correspondence_distance=0.01, max_iterations=5,
-        viewpoint=eye,
-    )  # fmt: skip
-    by_grid = jr.icp(source, target, target_normals=normals, **options)
-    traced = jax.jit(lambda t, n: jr.icp(source, t, target_normals=n, **options))
+    by_grid = facing
+    traced = jax.jit(lambda t, n: jr.icp(source, t, target_normals=n, viewpoint=eye, **OPTIONS))
     by_brute = traced(target, normals)
     same = np.asarray(by_grid.correspondences) == np.asarray(by_brute.correspondences)
     assert same.mean() > 0.99  # float32 ties may go either way

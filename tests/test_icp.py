@@ -118,12 +118,15 @@ def test_multistart_escapes_the_wrong_basin_and_keeps_per_start_status():
 
 
 def test_init_as_matrix_and_distance_schedule():
+    """A 4x4 start and a distance per iteration, tightening from 2 to 1 cm: 40 of them, so
+    the program compiled for the lesson cube (a scalar distance is a schedule of 40, its grid
+    sized by 2 cm) runs it."""
     model, scene, r = lesson_cube(15.0)
-    schedule = np.geomspace(0.05, 0.01, 30)
-    result = icp(model, scene, np.eye(4), max_correspondence_distance=schedule, max_iterations=30)
+    schedule = np.geomspace(0.02, 0.01, 40)
+    result = icp(model, scene, np.eye(4), max_correspondence_distance=schedule, max_iterations=40)
     assert rotation_error_deg(result.pose, r) < 0.5
     with pytest.raises(ValueError, match="one distance per iteration"):
-        icp(model, scene, max_correspondence_distance=schedule[:5], max_iterations=30)
+        icp(model, scene, max_correspondence_distance=schedule[:5], max_iterations=40)
 
 
 def test_partial_view_needs_trimming_or_a_robust_kernel():
@@ -190,8 +193,11 @@ def test_bad_input_gives_a_clear_error_or_status():
     assert not bool(degenerate.converged)  # the loop stopped, but the pose is not unique
     assert np.all(np.isfinite(degenerate.pose.wxyz_xyz))
 
-    bounded = icp(model, scene, max_correspondence_distance=0.02, max_iterations=2)
+    # No update falls below a zero tolerance: the loop runs out of iterations (the compiled
+    # loop of the calls above; a new max_iterations would compile another).
+    bounded = icp(model, scene, max_correspondence_distance=0.02, tolerance=0.0)
     assert bounded.status == ICPStatus.max_iterations and not bool(bounded.converged)
+    assert int(bounded.iterations) == 40
 
 
 def test_a_kernel_that_weighs_every_pair_zero_is_named_not_called_degenerate():
@@ -503,9 +509,13 @@ def test_point_to_point_step_is_align_of_the_pairs():
     Jacobi sweeps; on pairs as the loop forms them (weights, zero-weight rows, rows matched
     to nothing or to target padding) it gives align()'s pose and degeneracy flag, and in the
     degenerate and weightless cases (no unique minimiser) a pose of align()'s cost."""
+    import equinox as eqx
+
     from jaxreg.geometry.alignment import align
     from jaxreg.registration._icp_core import Pairs, _increment, fill_gather
     from jaxreg.registration.solver import ICPOptions, prepare
+
+    increment = eqx.filter_jit(_increment)  # one program (eagerly, each primitive compiles)
 
     rng = np.random.default_rng(3)
     source = rng.normal(size=(37, 3)).astype(np.float32) * [0.05, 0.03, 0.02]
@@ -532,7 +542,7 @@ def test_point_to_point_step_is_align_of_the_pairs():
     for name, (prob, w) in cases.items():
         index_ = jnp.asarray(index, jnp.int32)
         pairs = Pairs(index_, jnp.asarray(w), jnp.asarray(w > 0), 0, 0, 0.0, 0.0)
-        step, degenerate = _increment(prob, opts, moved, pairs)
+        step, degenerate = increment(prob, opts, moved, pairs)
         ref = align(moved, fill_gather(prob.target, index_), w)
         if name == "general":
             np.testing.assert_allclose(

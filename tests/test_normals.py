@@ -208,6 +208,7 @@ def test_closed_form_eigensolver_matches_eigh_and_differentiates(x64):
     np.testing.assert_allclose(a @ vecs, vecs * evals[:, None, :], atol=1e-12)
     assert np.all(np.isfinite(vecs))
 
+    @jax.jit  # one program per derivative (eagerly, every primitive compiles on its own)
     def loss(c):
         evals, normal = _smallest_eigenpair(c)
         return jnp.sum(evals**2) + jnp.sum(normal[..., 2] ** 2 + normal[..., 0] * normal[..., 1])

@@ -466,18 +466,19 @@ def test_singular_information_gives_inf_covariance_and_degenerate_status(general
     X, uv = jnp.asarray(general["objs"][b]), jnp.asarray(general["images"][b])
     K_ = jnp.asarray(K)
 
+    @jax.jit  # one program for both weightings (eagerly, every primitive compiles alone)
     def finish(w):
         fit = _reprojection(pose, X, uv, K_, None, w)
         ok = PnPStatus.success
-        return jax.device_get(_result(pose, fit, 3, jnp.array(True), ok, X, K_, None, w, 0.5))
+        return _result(pose, fit, 3, jnp.array(True), ok, X, K_, None, w, 0.5)
 
     w = jnp.zeros(N_POINTS).at[:2].set(1.0)
-    singular = finish(w)
+    singular = jax.device_get(finish(w))
     assert singular.status._value == PnPStatus.degenerate._value and not singular.converged
     assert np.isinf(singular.covariance).any() and not np.isnan(singular.covariance).any()
     assert np.isinf(singular.rotation_sigma_deg).any()
     assert not np.isnan(singular.translation_sigma).any()
-    full = finish(jnp.ones(N_POINTS))
+    full = jax.device_get(finish(jnp.ones(N_POINTS)))
     assert full.status._value == PnPStatus.success._value
     J = np.asarray(pose_jacobian(pose, X, K_)).reshape(-1, 6)
     np.testing.assert_allclose(full.covariance, 0.25 * np.linalg.inv(J.T @ J), rtol=1e-6)
@@ -602,12 +603,15 @@ def test_closed_form_covariance_equals_the_eigendecomposition(planar):
 
     c = planar["result"].candidates
     X, K_ = jnp.asarray(TAG_POINTS, jnp.float32), jnp.asarray(K, jnp.float32)
+    # One program each, for every pose and weighting (eagerly, every primitive compiles alone).
+    closed_form = jax.jit(_covariance_closed_form, static_argnums=3)
+    eigen = jax.jit(covariance, static_argnums=3)
     lanes = list(range(0, N_VIEWS, 8)) + [N_VIEWS + N_DRAWS + 1]  # tilted views, a fronto one
     for b in lanes:
         for i in (0, 1):
             pose = SE3(jnp.asarray(c.pose.wxyz_xyz[b, i]))
-            fast, decided = _covariance_closed_form(pose, X, K_, None, jnp.ones(4), 0.2)
-            exact = covariance(pose, X, K_, None, jnp.ones(4), 0.2)
+            fast, decided = closed_form(pose, X, K_, None, jnp.ones(4), 0.2)
+            exact = eigen(pose, X, K_, None, jnp.ones(4), 0.2)
             assert decided
             # float32 inverses: compare correlations and relative sigmas
             sd = np.sqrt(np.diagonal(exact[0]))
@@ -619,9 +623,9 @@ def test_closed_form_covariance_equals_the_eigendecomposition(planar):
             assert not fast[3] and not exact[3]
     pose = SE3(jnp.asarray(c.pose.wxyz_xyz[0, 0]))
     w = jnp.zeros(4).at[:2].set(1.0)  # two points: rank 4, near singular, undecided
-    assert not _covariance_closed_form(pose, X, K_, None, w, 0.2)[1]
-    none = _covariance_closed_form(pose, X, K_, None, jnp.zeros(4), 0.2)
-    exact = covariance(pose, X, K_, None, jnp.zeros(4), 0.2)
+    assert not closed_form(pose, X, K_, None, w, 0.2)[1]
+    none = closed_form(pose, X, K_, None, jnp.zeros(4), 0.2)
+    exact = eigen(pose, X, K_, None, jnp.zeros(4), 0.2)
     assert none[1] and none[0][3] and np.all(np.isinf(none[0][0]))
     for a, e in zip(none[0], exact, strict=True):
         np.testing.assert_array_equal(a, e)

@@ -55,9 +55,10 @@ def test_refuses_as_lost_when_the_object_is_not_where_it_was(scene):
     est = jr.track(scene.frame, scene.model_points, far)
     assert not est.success and est.pose is None
     assert est.reason.startswith("lost: ") and "re-detect with estimate_pose" in est.reason
-    # the object gone from the frame (its pixels without depth)
+    # the object gone from the frame (its pixels without depth, the colour image kept: the
+    # programs compiled for a frame with one serve it)
     depth = np.where(scene.mask, np.nan, np.asarray(scene.frame.depth))
-    gone = jr.RGBDFrame(depth, scene.frame.intrinsics, None, scene.frame.base_T_camera)
+    gone = jr.RGBDFrame(depth, scene.frame.intrinsics, scene.frame.rgb, scene.frame.base_T_camera)
     lost = jr.track(gone, scene.model_points, scene.truth)
     assert not lost.success and lost.reason.startswith("lost: ")
 
@@ -69,7 +70,7 @@ def test_bad_previous_poses_are_refused_clearly(scene):
         jr.track(scene.frame, scene.model_points, np.diag([2.0, 1.0, 1.0, 1.0]))
     blank = jr.camera.RGBDFrame(
         np.full_like(np.asarray(scene.frame.depth), np.nan), scene.frame.intrinsics,
-        base_T_camera=scene.frame.base_T_camera,
+        scene.frame.rgb, scene.frame.base_T_camera,
     )  # fmt: skip
     failed = jr.estimate_pose(blank, scene.model_points)
     assert not failed.success
