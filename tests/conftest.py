@@ -1,10 +1,13 @@
 """Shared fixtures: the real-data folder, float64 switching, and JAX test settings. Under
-pytest-xdist: the numba host loops compiled once before the workers start, and files that
-compile the same programs run on one worker."""
+pytest-xdist: the numba host loops compiled once before the workers start, files that
+compile the same programs run on one worker, and the workers share one XLA compilation cache
+for the run."""
 
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import jax
@@ -13,6 +16,8 @@ import pytest
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 REPO = Path(__file__).resolve().parents[1]
+# The environment variable that hands the workers the run's shared XLA cache folder.
+_SHARED_XLA_CACHE = "JAXREG_TESTS_XLA_CACHE"
 
 # Two halves of jaxreg's numba kernels (cache=True), compiled side by side in two processes:
 # the kNN pass behind estimate_normals, and the grid build (top level, split, float32 and
@@ -40,9 +45,16 @@ build_grid(points.astype(np.float32), 0.01)
 def pytest_configure(config):
     """With ``-n N`` (the controller, before it starts the workers): fills numba's cache, so
     the workers load the kernels instead of each compiling all of them at once (on an empty
-    cache, ~35 s of CPU per process). A failed warm-up is a warning; the tests still run."""
-    if hasattr(config, "workerinput") or not config.getoption("numprocesses", None):
+    cache, ~35 s of CPU per process), and makes a folder for XLA's persistent compilation
+    cache that the workers share for this run (a program one worker compiled, the other
+    loads). A failed warm-up is a warning; the tests still run."""
+    if hasattr(config, "workerinput"):
+        if os.environ.get(_SHARED_XLA_CACHE):
+            jax.config.update("jax_compilation_cache_dir", os.environ[_SHARED_XLA_CACHE])
         return
+    if not config.getoption("numprocesses", None):
+        return
+    os.environ[_SHARED_XLA_CACHE] = tempfile.mkdtemp(prefix="jaxreg-tests-xla-")
     runs = [
         subprocess.Popen(
             [sys.executable, "-c", code],
@@ -59,6 +71,12 @@ def pytest_configure(config):
             config.issue_config_time_warning(
                 pytest.PytestWarning(f"numba warm-up failed, workers compile: {err[-800:]}"), 2
             )
+
+
+def pytest_unconfigure(config):
+    """The controller removes the workers' shared XLA cache folder."""
+    if not hasattr(config, "workerinput") and os.environ.get(_SHARED_XLA_CACHE):
+        shutil.rmtree(os.environ.pop(_SHARED_XLA_CACHE), ignore_errors=True)
 
 
 def data_root() -> Path | None:
