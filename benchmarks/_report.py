@@ -5,10 +5,11 @@ Usage: python benchmarks/_report.py [LOG]      (LOG defaults to benchmarks/resul
 
 The log is what `make bench` tees: a header (date, machine, CPU, versions of jax and the peers),
 then for each `bench_*.py` a line `== bench_x.py (load average 1m 5m 15m, ...)` and the
-script's output. The page shows the header, each script's docstring (what it measures and how)
-and its output as printed; README.md's block between the `bench:summary` markers gets the table
-of goals, each value read from a table of the same log. Nothing here holds a measured number:
-a goal whose table is missing from the log reads "not in this log".
+script's output. The page shows the header, the table of goals (each value read from a table of
+the same log), then each script's docstring (what it measures and how) and its output as
+printed; README.md's block between the `bench:summary` markers says how many goals were met
+and links the table. Nothing here holds a measured number: a goal whose table is missing from
+the log reads "not in this log".
 """
 
 from __future__ import annotations
@@ -455,13 +456,15 @@ def page(run: Run, log: Path) -> str:
 
 
 def summary_block(run: Run) -> list[str]:
-    """README.md's lines from the start marker to the end marker."""
+    """README.md's lines from the start marker to the end marker: how many of the judged
+    goals this run met, and where the table of them is."""
+    judged = [row[3] for row in (goal.row(run) for goal in GOALS) if row[3] != "-"]
     return [
         START,
-        f"From `make bench` of {run.date[:10]} ({run.machine}, {run.cores} cores; "
-        "[benchmarks/README.md](benchmarks/README.md) has every table):",
-        "",
-        *summary(run),
+        f"From `make bench` of {run.date[:10]} ({run.machine}, {run.cores} cores): "
+        f"{judged.count('yes')} of {len(judged)} judged goals met. "
+        "[benchmarks/README.md](benchmarks/README.md#where-each-goal-stands) lists every goal "
+        "with this run's figure, then every table.",
         END,
     ]
 
