@@ -43,10 +43,12 @@ from jaxreg.pipeline._coarse import (
 )
 from jaxreg.pipeline._colour import colour_match, other_colour
 from jaxreg.pipeline._error_sources import _pixels, mismatch_sigma, pose_budget
+from jaxreg.pipeline._evidence import LOCAL_TERMS, continuing, height_tests, sigmas_at, z_score
 from jaxreg.pipeline._judge import (
     CONTESTED_WITHIN,
     EQUAL_WITHIN,
     NOISE_SIGMAS,
+    PATCH,
     TOLERANCE,
     _near_model,
     _support,
@@ -78,6 +80,13 @@ __all__ = ["coarse_search", "refine_stage"]
 # Final ICP statuses that leave a pose to judge (the iteration bound leaves the last step's
 # pose); degenerate geometry passes too when a symmetry is given (its free directions).
 _USABLE = (ICPStatus.success, ICPStatus.max_iterations)
+
+
+# Independent patches (PATCH cubes) that segment points carrying the model's surface on past
+# its edge must cover, and a patch's worth of voxels they must hold, before they say the object
+# is larger than the model: one patch can be a mask's border on a neighbour flush with the
+# object, or the model's own few millimetres; a few scattered points are flying pixels.
+RUNS_ON_PATCHES = 2
 
 
 # A fit's residual may be this many times the one the depth noise, the model's sampling and
@@ -178,8 +187,10 @@ def coarse_search(
     region = segmented.mask
     if joined is not None:
         region = cluster_mask(segmented.clusters, joined, frame.depth.shape)
+        if segmented.bounds is not None:
+            region = region & segmented.bounds
         if segmented.palette is not None:
-            region = _painted(frame, region, segmented.palette, settings.segment.colour_tolerance)
+            region = _painted(frame, region, segmented.palette, settings.segment.color_tolerance)
     record = RegisterRecord(
         ms=0.0, starts=starts, candidates=candidates,
         coarse_kept_starts=int(poses.shape[0]),
@@ -504,6 +515,7 @@ def refine_stage(
         underneath_mm=round(float(under) * 1e3, 1),
         resting_on_table=contact is not None,
         contact_shift_mm=None if lowest is None else round(-lowest * 1e3, 2),
+        hypothesis=np.asarray(SE3(found.pose).as_matrix(), np.float64).tolist(),
     )
 
     def fail(reason: str):
@@ -513,10 +525,20 @@ def refine_stage(
     if not any(bool(best.status == status) for status in usable):
         fail(f"the final registration failed: {best.status_message()}")
     problems = []
-    if fraction < s.min_inlier_fraction:
+    z = z_score(s.false_refusal)
+    allowed = z * np.hypot(sigmas_at(frame, noise, points), mismatch_sigma(model))
+    explained, runs_on = continuing(
+        model, answers[ranked[0]], points, float(fine_distances[-1]), allowed
+    )
+    share = explained.sum() / max(int((explained | runs_on).sum()), 1)
+    record = dataclasses.replace(
+        record, explained_away=int((~explained & ~runs_on).sum()), runs_on=int(runs_on.sum())
+    )
+    if share < s.min_inlier_fraction:
         problems.append(
-            f"the model explains only {fraction:.0%} of the segment (need "
-            f"{s.min_inlier_fraction:.0%})"
+            f"the model explains only {share:.0%} of the segment points it could (need "
+            f"{s.min_inlier_fraction:.0%}; {int((~explained & ~runs_on).sum())} more lie off "
+            "its surface: a neighbour, the background or an occluder)"
         )
     if not matched:
         problems.append(
@@ -542,28 +564,15 @@ def refine_stage(
             f"the camera sees through {contradicted:.0%} of the model's surface facing it (at "
             f"most {s.max_contradicted:.0%})"
         )
-    if np.isnan(reach).any():
+    if (
+        runs_on.sum() >= (PATCH / settings.voxel_size) ** 2
+        and patch_count(points[runs_on]) >= RUNS_ON_PATCHES
+    ):
         problems.append(
-            "the segment's span beyond the model could not be measured (NaN: a non-finite "
-            "pose or segment point)"
-        )
-    elif reach.max() > gates.max_overhang:
-        problems.append(
-            f"the segment spans {reach.max() * 1e3:.0f} mm beyond the model along its "
-            f"{('longest', 'middle', 'shortest')[int(reach.argmax())]} axis (at most "
-            f"{gates.max_overhang * 1e3:.1f}): a larger object of a similar shape, or the object "
-            "merged with a neighbour"
-        )
-    if low > gates.max_below:
-        problems.append(
-            f"the fitted model reaches {low * 1e3:.0f} mm into the table (at most "
-            f"{gates.max_below * 1e3:.1f}): a shorter object of a similar shape"
-        )
-    if under > gates.max_below:
-        problems.append(
-            f"the segment reaches {under * 1e3:.0f} mm below the fitted model (at most "
-            f"{gates.max_below * 1e3:.1f}): the model sits on a taller object of a similar "
-            "shape, or on a neighbour merged with the segment"
+            f"{int(runs_on.sum())} segment points carry the model's surface on past its edge "
+            f"(farther than {fine_distances[-1] * 1e3:.1f} mm from it, in its faces' planes "
+            f"within {z:.1f} sigma of the depth noise): a larger object of a similar shape, or "
+            "a neighbour flush with it; give a mask= that leaves the neighbour out"
         )
     if problems:
         fail("the model is not there: " + "; ".join(problems))
@@ -581,6 +590,27 @@ def refine_stage(
         segmentation=None if carried is None else
         (carried.segmentation, carried.segmentation_unknown),
     )  # fmt: skip
+    if plane is not None:
+        local = sum(budget.terms[name] for name in LOCAL_TERMS)
+        heights = height_tests(
+            model, plane, np.asarray(SE3(found.pose).as_matrix()), local, points,
+            gates.sigma_z, gates.sigma_z, z,
+        )  # fmt: skip
+        if heights.sunk > heights.sunk_allowed:
+            problems.append(
+                f"the fitted model reaches {heights.sunk * 1e3:.0f} mm into the table (at most "
+                f"{heights.sunk_allowed * 1e3:.1f}: {z:.1f} sigma of the pose's, the table's "
+                "and the model's uncertainty there): a shorter object of a similar shape"
+            )
+        if heights.under > heights.under_allowed:
+            problems.append(
+                f"the segment reaches {heights.under * 1e3:.0f} mm below the fitted model (at "
+                f"most {heights.under_allowed * 1e3:.1f}: {z:.1f} sigma of the pose's, the "
+                "points' and the model's uncertainty there): the model sits on a taller object "
+                "of a similar shape"
+            )
+        if problems:
+            fail("the model is not there: " + "; ".join(problems))
     pose = SE3(found.pose)
     view = carried or MeasuredView(
         model.key, pose, frame.base_T_camera.inverse() @ pose, len(points), found, *segmentation

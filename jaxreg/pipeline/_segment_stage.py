@@ -65,9 +65,12 @@ def _segment(frame: RGBDFrame, model, settings: SegmentSettings, key):
 
 
 def _table_route(frame, model, settings: SegmentSettings, key, pixel, box, palette) -> Segmented:
-    """Plane and clusters; every cluster (or the prompted one), alone and with the clusters
-    within 1.2 model radii of it, whose diameter is at most the model's plus
-    ``cluster_margin``; the ``max_candidates`` largest. Unprompted, with a ``palette`` and the
+    """Plane and clusters; every cluster (or the one a ``pixel`` prompt names), alone and with
+    the clusters within 1.2 model radii of it, whose diameter is at most the model's plus
+    ``cluster_margin``; the ``max_candidates`` largest. A ``box`` prompt's candidates are the
+    clusters it holds, most grid points inside first, each cut to the box whatever its size:
+    a detector's box holds the object and the neighbours it touches, which the model's fit
+    explains away (:mod:`jaxreg.pipeline._evidence`). Unprompted, with a ``palette`` and the
     frame's RGB, the clusters whose pixels do not show the model's colours are no candidates,
     and the grid points of another colour are left out of the others' (:func:`_by_colour`)."""
     s = settings
@@ -96,10 +99,18 @@ def _table_route(frame, model, settings: SegmentSettings, key, pixel, box, palet
     grid_points = np.asarray(seg.points)
     labels = np.asarray(seg.clusters.labels)
     live = [k for k in range(len(sizes)) if sizes[k] > 0]
-    if pixel is not None or box is not None:
-        chosen = choose_cluster(seg, pixel=pixel, box=box)
+    inside, bounds = labels >= 0, None
+    if box is not None:  # every cluster in the box, cut to it: the model's fit carves
+        bounds = _box_pixels(box, frame.depth.shape)
+        inside = bounds[:: s.stride, :: s.stride][: labels.shape[0], : labels.shape[1]]
+        counts = np.bincount(labels[inside & (labels >= 0)], minlength=len(sizes))
+        seeds = [int(k) for k in np.argsort(-counts, kind="stable") if counts[k] > 0]
+        if not seeds:
+            fail(f"the prompt {box} touches no cluster")
+    elif pixel is not None:
+        chosen = choose_cluster(seg, pixel=pixel)
         if chosen is None:
-            fail(f"the prompt {pixel or box} touches no cluster")
+            fail(f"the prompt {pixel} touches no cluster")
         seeds = [chosen]
     else:
         seeds = live
@@ -113,24 +124,24 @@ def _table_route(frame, model, settings: SegmentSettings, key, pixel, box, palet
     keep, other, used = labels >= 0, set(), None
     if palette is not None and frame.rgb is not None and pixel is None and box is None:
         rgb = np.asarray(frame.rgb)[:: s.stride, :: s.stride]
-        judged, match = colour_match(rgb, palette, s.colour_tolerance)
+        judged, match = colour_match(rgb, palette, s.color_tolerance)
         other_points = other_colour(judged, match, labels >= 0, rim=1)
         other, stripped = _by_colour(judged, match, other_points, labels, live, s)
         keep &= ~other_points
         used = palette
-        record = dataclasses.replace(record, other_colour=other, stripped_by_colour=stripped)
+        record = dataclasses.replace(record, other_color=other, stripped_by_color=stripped)
     candidates, spans = [], []
     for group in groups:  # a partial view's centroid is off the object's: compare diameters
         if set(group) & set(other):
             continue
-        cloud = grid_points[np.isin(labels, group) & keep]
+        cloud = grid_points[np.isin(labels, group) & keep & inside]
         spans.append(_diameter(cloud) if len(cloud) else np.inf)
-        if spans[-1] <= model.diameter + s.cluster_margin:
+        if len(cloud) and (box is not None or spans[-1] <= model.diameter + s.cluster_margin):
             candidates.append((group, cloud))
     if not candidates and other:
         fail(
             f"every cluster shows other colours than the model's (clusters {other} under "
-            f"{s.min_colour_share:.0%} of their pixels within the colour tolerance, the others "
+            f"{s.min_color_share:.0%} of their pixels within the colour tolerance, the others "
             "not of the model's size): check model_colors (sRGB) and the lighting, or name the "
             "object with pixel=, box= or mask="
         )
@@ -147,13 +158,22 @@ def _table_route(frame, model, settings: SegmentSettings, key, pixel, box, palet
     too_small = _units_hint(model, 2 * max(float(radii[k]) for k in live))
     if too_small:
         fail("every cluster is far smaller than the model (is it in view?)" + too_small)
-    return Segmented(seg.plane, candidates, seg, None, record.with_ms(start), used)
+    return Segmented(seg.plane, candidates, seg, None, record.with_ms(start), used, bounds)
+
+
+def _box_pixels(box, shape: tuple[int, int]) -> np.ndarray:
+    """``(H, W)`` bool: the pixels of ``box`` ``(u0, v0, u1, v1)`` (inclusive) in an image of
+    ``shape``."""
+    u0, v0, u1, v1 = (int(round(float(c))) for c in box)
+    pixels = np.zeros(shape, bool)
+    pixels[max(v0, 0) : max(v1 + 1, 0), max(u0, 0) : max(u1 + 1, 0)] = True
+    return pixels
 
 
 def _by_colour(judged, match, other_points, labels, live, settings):
     """The clusters (of ``live``, labels of the ``labels`` grid) whose ``judged`` grid pixels
     show the model's colours (``match``; both ``(h, w)``,
-    :func:`~jaxreg.pipeline._colour.colour_match`) less often than ``min_colour_share`` (a
+    :func:`~jaxreg.pipeline._colour.colour_match`) less often than ``min_color_share`` (a
     cluster with none judged is kept), and of the others those that hold grid points of
     another colour (``other_points`` ``(h, w)``, a touching neighbour of another paint),
     sorted lists both."""
@@ -161,7 +181,7 @@ def _by_colour(judged, match, other_points, labels, live, settings):
     for k in live:
         members = labels == k
         seen = int(judged[members].sum())
-        if seen and match[members].sum() / seen < settings.min_colour_share:
+        if seen and match[members].sum() / seen < settings.min_color_share:
             other.append(k)
         elif other_points[members].any():
             stripped.append(k)

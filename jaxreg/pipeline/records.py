@@ -84,9 +84,9 @@ class SegmentRecord(_Record):
         above_plane: grid points in the band above the plane (table route).
         cluster_sizes, cluster_radii_mm: grid points and radius of each cluster (table route).
         overflow: the clustering's capacity overflowed (table route).
-        other_colour: the clusters set aside as showing other colours than the model's
+        other_color: the clusters set aside as showing other colours than the model's
             (table route, given ``model_colors`` and a frame with RGB; else ``None``).
-        stripped_by_colour: the clusters whose grid points of another colour (a touching
+        stripped_by_color: the clusters whose grid points of another colour (a touching
             neighbour of another paint) were left out of their candidates (same condition).
         mask_pixels: pixels of the caller's mask (mask route).
         surface_pixels: of them, pixels on the object's surface (mask route: with depth, and
@@ -104,8 +104,8 @@ class SegmentRecord(_Record):
     cluster_sizes: list[int] | None = None
     cluster_radii_mm: list[float] | None = None
     overflow: bool | None = None
-    other_colour: list[int] | None = None
-    stripped_by_colour: list[int] | None = None
+    other_color: list[int] | None = None
+    stripped_by_color: list[int] | None = None
     mask_pixels: int | None = None
     surface_pixels: int | None = None
     mask_grid_points: int | None = None
@@ -166,6 +166,12 @@ class RegisterRecord(_Record):
             in the object's frame has turned since the view's terms were measured, when they
             were carried from the previous estimate (:class:`MeasuredView`); ``None`` when
             they were measured on this frame.
+        explained_away: segment points the answer's model does not explain and that do not
+            carry its surface on (a neighbour, the background, an occluder).
+        runs_on: segment points that carry the model's surface on past its edge.
+        hypothesis: base_T_object (4 x 4 nested list, metres) of the best fit the stage
+            judged, refused or not (``None`` before the refinement): what a refused estimate
+            tried, to draw or inspect.
     """
 
     ms: float
@@ -191,6 +197,9 @@ class RegisterRecord(_Record):
     resting_on_table: bool | None = None
     contact_shift_mm: float | None = None
     view_carried_deg: float | None = None
+    explained_away: int | None = None
+    runs_on: int | None = None
+    hypothesis: list[list[float]] | None = None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -251,6 +260,8 @@ class Segmented:
         palette: on the table route with the model's colours, their chromaticities
             ``(K, 2)`` (:func:`~jaxreg.pipeline._colour.model_palette`): the winner's region
             keeps only its pixels of the model's colours; else ``None``.
+        bounds: ``(H, W)`` bool, the pixels of a ``box`` prompt: the winner's region keeps
+            only those; else ``None``.
     """
 
     plane: TablePlane | None
@@ -259,6 +270,7 @@ class Segmented:
     mask: np.ndarray | None
     record: SegmentRecord
     palette: np.ndarray | None = None
+    bounds: np.ndarray | None = None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -33,13 +33,13 @@ class SegmentSettings:
         cluster_margin: a candidate's diameter may exceed the model's by this (metres): a
             partial view's points can lie farther from its centroid than the model's radius.
         max_candidates: the largest clusters (by grid points) scored by registration.
-        colour_tolerance: with the model's colours (``model_colors``) and the frame's RGB, a
+        color_tolerance: with the model's colours (``model_colors``) and the frame's RGB, a
             pixel shows a model colour when its chromaticity (red and green shares of the
             sRGB sum) lies within this of one of the model's (:mod:`jaxreg.pipeline._colour`):
             about three times the spread of an 8-bit camera pixel's chromaticity at mid
             brightness (two counts of noise per channel); raise it for a camera whose white
             balance or colour noise moves one paint's chromaticity more.
-        min_colour_share: a cluster whose judged pixels show the model's colours less often
+        min_color_share: a cluster whose judged pixels show the model's colours less often
             than this is another object, and no candidate (a look-alike of another paint).
     """
 
@@ -50,14 +50,14 @@ class SegmentSettings:
     cluster_distance: float = 0.015
     cluster_margin: float = 0.02
     max_candidates: int = 4
-    colour_tolerance: float = 0.03
-    min_colour_share: float = 0.3
+    color_tolerance: float = 0.03
+    min_color_share: float = 0.3
 
     def __post_init__(self):
-        if not 0.0 < self.colour_tolerance < 1.0 or not 0.0 <= self.min_colour_share <= 1.0:
+        if not 0.0 < self.color_tolerance < 1.0 or not 0.0 <= self.min_color_share <= 1.0:
             raise ValueError(
-                "colour_tolerance must lie in (0, 1) and min_colour_share in [0, 1], got "
-                f"{self.colour_tolerance!r} and {self.min_colour_share!r}"
+                "color_tolerance must lie in (0, 1) and min_color_share in [0, 1], got "
+                f"{self.color_tolerance!r} and {self.min_color_share!r}"
             )
 
 
@@ -111,7 +111,9 @@ class RegisterSettings:
             off.
         min_inlier_fraction: fewest segment points the model must explain (within the final
             correspondence distance, which follows the depth noise at the segment's depth
-            and the model's sampling), as a fraction.
+            and the model's sampling), as a fraction of those it explains or whose surface
+            carries the model's on past its edge; the others (a touching neighbour, the
+            background or an occluder a mask or box holds) are explained away.
         max_inlier_rmse: largest RMS distance (metres) of the explained segment points;
             ``None``: 1.5 times what the depth noise at the segment's depth, the model's
             sampling and the model-sensor mismatch explain
@@ -121,12 +123,18 @@ class RegisterSettings:
             hidden by an occluder. With no judged surface at all the pose is refused.
         max_contradicted: largest share of the model's judged surface the image may see
             through.
-        max_overhang: how far (metres) the segment may span beyond the model along one of
-            its principal axes at the fitted pose (2% to 98% quantiles, which hold the depth
-            noise's tails): a larger object of a similar shape fits well by every other
-            measure but reaches beyond the model. The model may reach this far into the
-            table, and the segment this far below the model, or 4 sigma_z of the depth noise
-            at the segment's depth where that is more.
+        max_overhang: how far (metres) a candidate's segment may span beyond the model along
+            one of its principal axes at a coarse or rival pose (2% to 98% quantiles, which
+            hold the depth noise's tails), in the coarse search's ranking and the contest
+            between separate segments: a larger object of a similar shape fits well by every
+            other measure but reaches beyond the model. There, the model may reach this far
+            into the table, and the segment this far below the model, or 4 sigma_z of the
+            depth noise at the segment's depth where that is more.
+        false_refusal: the chance (one-sided, per test) that a test of the answer against
+            the frame's physical evidence refuses a right pose when the depth noise model
+            holds (:mod:`jaxreg.pipeline._evidence`): the segment carrying the model's
+            surface on past its edge, the model sunk into the table, the segment below the
+            model, each allowed this tail of its standard deviation (0.001: 3.1 sigma).
     """
 
     num_starts: int = 24
@@ -144,8 +152,11 @@ class RegisterSettings:
     min_confirmed: float = 0.2
     max_contradicted: float = 0.25
     max_overhang: float = 0.003
+    false_refusal: float = 0.001
 
     def __post_init__(self):
+        if not 0.0 < self.false_refusal < 0.5:
+            raise ValueError(f"false_refusal must lie in (0, 0.5), got {self.false_refusal!r}")
         count = self.refined_starts
         if not (isinstance(count, int) and 1 <= count <= self.coarse_keep):
             raise ValueError(
