@@ -25,7 +25,7 @@ def problem(key, fraction):
     k1, k2, k3, k4 = jax.random.split(key, 4)
     source = jax.random.uniform(k1, (N, 3), minval=-0.1, maxval=0.1)
     truth = jr.SE3.from_rotation_and_translation(
-        jr.random_rotations(k2), jax.random.normal(k3, (3,)) * 0.05
+        jr.geometry.random_rotations(k2), jax.random.normal(k3, (3,)) * 0.05
     )
     target = truth @ source + 0.002 * jax.random.normal(k4, (N, 3))
     wrong = jnp.arange(N) < jnp.round(fraction * N)

@@ -66,7 +66,7 @@ def main():
         plain = jr.multistart_icp(model, scan, inits, **opts)
         fraction = np.float32(seen.mean())
         trim = jr.multistart_icp(model, scan, inits, trim_fraction=fraction, **opts)
-        best = int(jr.best_index(plain))
+        best = int(jr.registration.best_index(plain))
         for name, pose in [("PCA start", jr.SE3(inits.wxyz_xyz[best])),
                            ("ICP", jr.select_best(plain).pose),
                            ("trimmed ICP", jr.select_best(trim).pose)]:  # fmt: skip

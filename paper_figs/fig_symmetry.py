@@ -53,10 +53,10 @@ def main():
         """Errors (deg) and fits (m) of the naive and canonicalised means, in one program."""
         quarter = jr.SE3.from_rotation(jr.SO3.from_z_radians(yaw))
         estimates = truth @ jr.se3_exp(noise) @ quarter
-        naive = jr.chordal_mean(estimates.rotation())
+        naive = jr.geometry.chordal_mean(estimates.rotation())
         mean = jr.pose_statistics(estimates, symmetry=symmetry).mean
         return dict(
-            naive_err=jnp.rad2deg(jr.geodesic_angle(naive, truth.rotation())),
+            naive_err=jnp.rad2deg(jr.geometry.geodesic_angle(naive, truth.rotation())),
             canon_err=jnp.rad2deg(jr.rotation_error(mean, truth, symmetry)),
             raw_err=jnp.rad2deg(jr.rotation_error(estimates, truth)),
             aware_err=jnp.rad2deg(jr.rotation_error(estimates, truth, symmetry)),

@@ -27,7 +27,7 @@ def draws(tilt_deg, key):
         jr.SO3.from_rpy_radians(np.deg2rad(tilt_deg), np.deg2rad(tilt_deg / 2), 0.3),
         jnp.array([0.02, -0.01, DEPTH]),
     )
-    pixels = jr.project(truth @ corners, K)
+    pixels = jr.camera.project(truth @ corners, K)
     noisy = pixels + SIGMA_PX * jax.random.normal(key, (DRAWS, 4, 2))
     result = jr.solve_pnp_planar(jnp.broadcast_to(corners, (DRAWS, 4, 3)), noisy, K)
     return truth, result

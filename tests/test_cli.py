@@ -203,7 +203,7 @@ def test_pose_sets_aside_clusters_of_another_colour_given_model_color(tmp_path, 
     for colours in (["--model-color", *paint], ["--model-colors"]):
         assert main([*common, *colours]) == 0
         report = json.loads(capsys.readouterr().out)
-        assert len(report["stages"]["segment"]["other_colour"]) == 2  # both distractors
+        assert len(report["stages"]["segment"]["other_color"]) == 2  # both distractors
         pose = SE3.from_matrix(jnp.asarray(report["pose"], jnp.float32))
         assert float(add_s(scene.model_points, pose, scene.truth)) < 0.005
     assert main([*common, "--model-color", "300", "0", "0"]) == 2

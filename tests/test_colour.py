@@ -59,7 +59,7 @@ def test_a_twin_of_another_paint_is_no_rival(painted_twins, paint, which):
         assert est.success, est.reason
         found = np.asarray(est.pose.translation())
         assert np.linalg.norm(found[:2] - centres[which][:2]) < 0.01
-        assert len(est.stages["segment"].other_colour) == 1
+        assert len(est.stages["segment"].other_color) == 1
 
 
 def test_twins_of_one_paint_stay_refused(painted_twins):
@@ -67,7 +67,7 @@ def test_twins_of_one_paint_stay_refused(painted_twins):
     (_, one_paint), model, symmetry, _ = painted_twins
     est = estimate_pose(one_paint, model, symmetry=symmetry, model_colors=display_color(RED))
     assert not est.success and "two separate segments fit the model equally well" in est.reason
-    assert est.stages["segment"].other_colour == []
+    assert est.stages["segment"].other_color == []
 
 
 def test_no_cluster_of_the_model_paint_is_refused(painted_twins):
@@ -113,13 +113,13 @@ def test_bad_model_colors_are_refused(colors, message):
 def test_a_touching_neighbour_of_another_paint_is_split_off(painted_twins):
     """The red box with a blue one 5 mm beside it: one cluster, too wide for the model, and
     from depth alone refused. With the model's paint its red pixels are the candidate
-    (``stripped_by_colour``) and the lift keeps only them: the red box is posed."""
+    (``stripped_by_color``) and the lift keeps only them: the red box is posed."""
     _, model, symmetry, _ = painted_twins
     frame, centres, _ = _painted_pair(0.005, [RED, BLUE])
     plain = estimate_pose(frame, model, symmetry=symmetry)
     assert not plain.success
     est = estimate_pose(frame, model, symmetry=symmetry, model_colors=display_color(RED))
     assert est.success, est.reason
-    assert est.stages["segment"].stripped_by_colour == [0]
+    assert est.stages["segment"].stripped_by_color == [0]
     found = np.asarray(est.pose.translation())
     assert np.linalg.norm(found[:2] - centres[0][:2]) < 0.01

@@ -71,7 +71,7 @@ def test_intrinsics_project_and_lift_are_inverse_with_distortion():
     # the same as the free function PnP uses
     np.testing.assert_allclose(
         intrinsics.project(rays),
-        jr.project(rays.reshape(-1, 3), intrinsics.K, dist).reshape(pixels.shape),
+        jr.camera.project(rays.reshape(-1, 3), intrinsics.K, dist).reshape(pixels.shape),
         atol=1e-4,
     )
 

@@ -17,6 +17,15 @@ from jaxreg.camera.model import (
     reprojection_error as reprojection_error,
     undistort_points as undistort_points,
 )
-from jaxreg.core._lazy import submodules
+from jaxreg.core._lazy import exports
 
-__getattr__ = submodules(__name__)  # jaxreg.camera.<module> without importing it first
+# PnP's and the tags' names, each module imported on first use; jaxreg.camera.<module> too.
+__getattr__, __dir__ = exports(
+    __name__,
+    {
+        "jaxreg.camera.pnp": (
+            "PlanarPnPResult", "PnPResult", "PnPStatus", "solve_pnp", "solve_pnp_planar",
+        ),
+        "jaxreg.camera.tags": ("detect_tags", "tag_object_points"),
+    },
+)  # fmt: skip

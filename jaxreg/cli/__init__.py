@@ -3,6 +3,7 @@ import every other package.
 """
 
 from jaxreg.cli.commands import main as main
-from jaxreg.core._lazy import submodules
+from jaxreg.core._lazy import exports
 
-__getattr__ = submodules(__name__)  # jaxreg.cli.<module> without importing it first
+# jaxreg.cli.<module> without importing it first; dir() lists the public names
+__getattr__, __dir__ = exports(__name__, {})

@@ -7,6 +7,9 @@ compiled programs between processes.
 Imports nothing from the rest of jaxreg.
 """
 
-from jaxreg.core._lazy import submodules
+from jaxreg.core._lazy import exports
 
-__getattr__ = submodules(__name__)  # jaxreg.core.<module> without importing it first
+# The public names, each module imported on first use; jaxreg.core.<module> resolves too.
+__getattr__, __dir__ = exports(
+    __name__, {"jaxreg.core.compilation": ("default_cache_folder", "enable_compilation_cache")}
+)

@@ -7,7 +7,7 @@ Readers return metres and raise ``ValueError`` naming the file and what is wrong
 import :mod:`jaxreg.core`, :mod:`jaxreg.geometry` and :mod:`jaxreg.camera`.
 """
 
-from jaxreg.core._lazy import submodules
+from jaxreg.core._lazy import exports
 from jaxreg.io._ycbv_bop import ycbv_to_bop as ycbv_to_bop
 from jaxreg.io.bop import (
     BopModel as BopModel,
@@ -39,4 +39,5 @@ from jaxreg.io.ycbv import (
     read_ycbv_models as read_ycbv_models,
 )
 
-__getattr__ = submodules(__name__)  # jaxreg.io.<module> without importing it first
+# jaxreg.io.<module> without importing it first; dir() lists the public names
+__getattr__, __dir__ = exports(__name__, {})

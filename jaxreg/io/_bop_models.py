@@ -49,7 +49,7 @@ class BopModel:
         symmetry_transforms: `(S, 4, 4)` float64 BOP's own discretised set (metres), the
             identity first: the listed discrete transforms as the file gives them, each
             composed with each of the 315 turns about the continuous axis through its offset
-            (`jaxreg.bop_symmetry_transforms`, the toolkit's
+            (`jaxreg.geometry.bop_symmetry_transforms`, the toolkit's
             `get_symmetry_transformations(info, max_sym_disc_step=0.01)`).
     """
 

@@ -227,10 +227,10 @@ def estimate_pose(
         model_colors: the model's sRGB colours, ``(M, 3)`` (a textured model's vertex
             colours, one per model point) or ``(3,)`` (one paint), floats in [0, 1] or uint8.
             With a frame that has ``rgb``, the table route sets aside the clusters whose
-            pixels do not show them (``SegmentRecord.other_colour``): a neighbour of the
+            pixels do not show them (``SegmentRecord.other_color``): a neighbour of the
             model's shape but another colour is then no rival (see
-            :mod:`jaxreg.pipeline._colour` and the segment settings' ``colour_tolerance``,
-            ``min_colour_share``).
+            :mod:`jaxreg.pipeline._colour` and the segment settings' ``color_tolerance``,
+            ``min_color_share``).
         symmetry: the model's :class:`~jaxreg.Symmetry`, if any.
         depth_noise: the camera's noise as a :class:`~jaxreg.uncertainty.DepthNoise` in the
             camera frame (its ``base_T_camera`` is replaced by the frame's); default a

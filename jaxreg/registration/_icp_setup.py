@@ -1,10 +1,10 @@
 """Host-side set-up of an ICP problem, shared by every entry point that runs ICP
 (:func:`jaxreg.icp`, :func:`jaxreg.multistart_icp`, :func:`jaxreg.icp_covariance`,
-:func:`jaxreg.init_spread`, :func:`jaxreg.studies.basin_sweep`, the pipeline): ICP's options
-(:class:`ICPOptions`, the one place they and their defaults are written) and the keyword form
-of them (:func:`resolve_options`), argument checks that raise ``ValueError``, masking and
-padding of the clouds, the neighbour grid (built, or a given one validated), and the batched
-run over starts. Public through :mod:`jaxreg.registration.solver`.
+:func:`jaxreg.registration.init_spread`, :func:`jaxreg.studies.basin_sweep`, the pipeline): ICP's
+options (:class:`ICPOptions`, the one place they and their defaults are written) and the keyword
+form of them (:func:`resolve_options`), argument checks that raise ``ValueError``, masking and
+padding of the clouds, the neighbour grid (built, or a given one validated), and the batched run
+over starts. Public through :mod:`jaxreg.registration.solver`.
 """
 
 from __future__ import annotations
@@ -45,8 +45,9 @@ _MAX_CHECKED = 64
 
 class ICPOptions(eqx.Module):
     """ICP's options, taken by every entry point that runs ICP: :func:`jaxreg.icp`,
-    :func:`jaxreg.multistart_icp`, :func:`jaxreg.icp_covariance`, :func:`jaxreg.init_spread`
-    and :func:`jaxreg.studies.basin_sweep` (as ``options=``, or field by field as keywords:
+    :func:`jaxreg.multistart_icp`, :func:`jaxreg.icp_covariance`,
+    :func:`jaxreg.registration.init_spread` and :func:`jaxreg.studies.basin_sweep` (as ``options=``,
+    or field by field as keywords:
     ``jr.icp(s, t, method="point_to_plane", target_normals=n)`` is
     ``jr.icp(s, t, options=jr.ICPOptions(method="point_to_plane", target_normals=n))``; given
     both, the keywords replace those fields of ``options``). Frozen: derive a variant with

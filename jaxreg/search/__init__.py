@@ -6,6 +6,19 @@ Capacities are chosen on the host and overflow is reported, never silently dropp
 :mod:`jaxreg.core` and :mod:`jaxreg.geometry`.
 """
 
-from jaxreg.core._lazy import submodules
+from jaxreg.core._lazy import exports
 
-__getattr__ = submodules(__name__)  # jaxreg.search.<module> without importing it first
+# The public names, each module imported on first use; jaxreg.search.<module> resolves too.
+__getattr__, __dir__ = exports(
+    __name__,
+    {
+        "jaxreg.search.features": ("FPFH", "FeatureMatches", "fpfh", "match_features"),
+        "jaxreg.search.neighbors": (
+            "NeighborGrid", "build_grid", "knn", "pad_grid", "query_nearest", "radius_search",
+            "validate_grid", "voxel_downsample",
+        ),
+        "jaxreg.search.normals": (
+            "NormalEstimate", "NormalStatus", "estimate_normals", "estimate_normals_with_curvature",
+        ),
+    },
+)  # fmt: skip

@@ -7,7 +7,7 @@ by BOP's metrics.
 May import every package but :mod:`jaxreg.cli`.
 """
 
-from jaxreg.core._lazy import submodules
+from jaxreg.core._lazy import exports
 from jaxreg.studies._hand_eye import (
     HandEyeCorrection as HandEyeCorrection,
     estimate_hand_eye_correction as estimate_hand_eye_correction,
@@ -38,4 +38,5 @@ from jaxreg.studies.calibration import (
     calibration_study as calibration_study,
 )
 
-__getattr__ = submodules(__name__)  # jaxreg.studies.<module> without importing it first
+# jaxreg.studies.<module> without importing it first; dir() lists the public names
+__getattr__, __dir__ = exports(__name__, {})

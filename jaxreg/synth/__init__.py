@@ -6,7 +6,7 @@ Needs the ray caster (trimesh + Embree), so ``import jaxreg`` loads it on first 
 core, geometry, uncertainty and camera.
 """
 
-from jaxreg.core._lazy import submodules
+from jaxreg.core._lazy import exports
 from jaxreg.synth._depth_noise import StereoSensor as StereoSensor
 from jaxreg.synth._meshes import (
     MODEL_SAMPLES as MODEL_SAMPLES,
@@ -33,4 +33,5 @@ from jaxreg.synth.sequences import (
     tracking_sequence as tracking_sequence,
 )
 
-__getattr__ = submodules(__name__)  # jaxreg.synth.<module> without importing it first
+# jaxreg.synth.<module> without importing it first; dir() lists the public names
+__getattr__, __dir__ = exports(__name__, {})

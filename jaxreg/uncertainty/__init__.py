@@ -6,7 +6,7 @@ Covariances are of the right perturbation ``T_true = T_est @ exp(delta)``, tange
 ``(v, w)``. May import :mod:`jaxreg.core` and :mod:`jaxreg.geometry`.
 """
 
-from jaxreg.core._lazy import submodules
+from jaxreg.core._lazy import exports
 from jaxreg.uncertainty._pose_statistics import (
     GroupStatistics as GroupStatistics,
     PoseStatistics as PoseStatistics,
@@ -28,4 +28,15 @@ from jaxreg.uncertainty.noise import (
     error_budget as error_budget,
 )
 
-__getattr__ = submodules(__name__)  # jaxreg.uncertainty.<module> without importing it first
+# The budget's names, its module imported on first use; jaxreg.uncertainty.<module> too.
+__getattr__, __dir__ = exports(
+    __name__,
+    {
+        "jaxreg.uncertainty.budget": (
+            "PoseBudget",
+            "lateral_sigma",
+            "mahalanobis",
+            "region_contains",
+        ),
+    },
+)

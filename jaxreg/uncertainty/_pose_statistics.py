@@ -261,11 +261,11 @@ def pose_statistics(
        (or the first pose), then twice the Karcher mean of the canonical set. Without this,
        estimates that hop between equally good branches average to an invalid pose and
        their sigma is fiction.
-    2. **Mean and spread.** ``mean`` is the Karcher mean on SE(3) (:func:`jaxreg.karcher_mean`).
-       Per-axis statistics are taken in the base frame: positions ``t_k`` (about their
-       weighted mean) and rotation vectors ``log(R_k R_mean^-1)`` (the log map, never
-       differenced Euler angles, which wrap and couple axes); sigmas use the unbiased
-       ``1 / (1 - sum w^2)`` correction (``1 / (K - 1)`` for equal weights).
+    2. **Mean and spread.** ``mean`` is the Karcher mean on SE(3)
+       (:func:`jaxreg.geometry.karcher_mean`). Per-axis statistics are taken in the base frame:
+       positions ``t_k`` (about their weighted mean) and rotation vectors ``log(R_k R_mean^-1)``
+       (the log map, never differenced Euler angles, which wrap and couple axes); sigmas use the
+       unbiased ``1 / (1 - sum w^2)`` correction (``1 / (K - 1)`` for equal weights).
     3. **Bias.** Against ``reference`` (the true pose, or a fiducial's): mean position minus
        reference position, and the rotation vector from reference to mean, after moving the
        reference to its symmetric equivalent nearest the mean.
