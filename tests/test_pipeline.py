@@ -202,7 +202,7 @@ def test_no_judged_surface_and_too_little_confirmed_surface_refuse(scene, monkey
     strict = estimate_pose(scene.frame, model, symmetry=symmetry, min_confirmed=0.99)
     assert strict.failed_stage == "register" and strict.pose is None
     assert "the image confirms only" in strict.reason and "(need 99%)" in strict.reason
-    assert 0.2 < strict.stages["register"].model_confirmed < 0.99
+    assert 0.2 < strict.stages["register"].model_confirmed <= 0.99  # rounded to 3 places
 
     judge = judging._judge
 

@@ -47,6 +47,7 @@ from jaxreg.pipeline._evidence import LOCAL_TERMS, continuing, height_tests, sig
 from jaxreg.pipeline._judge import (
     CONTESTED_WITHIN,
     EQUAL_WITHIN,
+    LATERAL_PIXELS,
     NOISE_SIGMAS,
     PATCH,
     TOLERANCE,
@@ -478,7 +479,6 @@ def refine_stage(
     best = results[int(ranked[0])]
     fraction, rmse = float(fractions[ranked[0]]), float(rmses[ranked[0]])
     confirmed, contradicted, judged = _support(seen[ranked[0]])
-    reach = overhang(model, np.asarray(results.pose.wxyz_xyz[ranked[0]]), points)
     answers, contact, lowest = _rest(
         source, model, results, ranked[0], plane, trim, fine_distances, settings, eye,
     )  # fmt: skip
@@ -510,7 +510,6 @@ def refine_stage(
         start_agreement_deg=round(spread_deg, 3),
         model_confirmed=round(confirmed, 3) if judged else None,
         model_contradicted=round(contradicted, 3) if judged else None,
-        overhang_mm=[round(float(r) * 1e3, 1) for r in reach],
         sunk_mm=round(float(low) * 1e3, 1),
         underneath_mm=round(float(under) * 1e3, 1),
         resting_on_table=contact is not None,
@@ -563,6 +562,26 @@ def refine_stage(
         problems.append(
             f"the camera sees through {contradicted:.0%} of the model's surface facing it (at "
             f"most {s.max_contradicted:.0%})"
+        )
+    own = explained | runs_on  # the points not explained away
+    reach = overhang(model, np.asarray(results.pose.wxyz_xyz[ranked[0]]), points[own])
+    reach_allowed = z * float(np.sqrt(
+        gates.sigma_z**2 + mismatch_sigma(model) ** 2
+        + (_camera_depth(frame, points) * LATERAL_PIXELS / float(frame.intrinsics.fx)) ** 2
+    ))  # fmt: skip
+    record = dataclasses.replace(record, overhang_mm=[round(float(r) * 1e3, 1) for r in reach])
+    if not np.isfinite(reach).all():
+        problems.append(
+            "the segment's span beyond the model could not be measured (NaN: a non-finite "
+            "pose or segment point)"
+        )
+    elif reach.max() > reach_allowed:
+        problems.append(
+            f"the segment's points on the model's surface span {reach.max() * 1e3:.0f} mm "
+            f"beyond the model along its "
+            f"{('longest', 'middle', 'shortest')[int(reach.argmax())]} axis (at most "
+            f"{reach_allowed * 1e3:.1f}: {z:.1f} sigma of the depth noise, the lateral noise "
+            "and the model's mismatch): a larger object of a similar shape"
         )
     if (
         runs_on.sum() >= (PATCH / settings.voxel_size) ** 2

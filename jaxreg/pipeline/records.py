@@ -155,7 +155,8 @@ class RegisterRecord(_Record):
         start_agreement_mm, start_agreement_deg: their largest offset and angle to it.
         model_confirmed, model_contradicted: shares of the model's judged surface the image
             confirms and sees through (``None`` when the image judges none of it).
-        overhang_mm: the segment's span beyond the model along its three principal axes.
+        overhang_mm: the span beyond the model, along its three principal axes, of the
+            segment's points not explained away (on the model or carrying its surface on).
         sunk_mm: how far the answer puts the model's lowest point below the table (0 above).
         underneath_mm: how far the segment reaches below the answer's lowest point.
         equally_good_probes: the answer turned about the model's axes and refined again, as
