@@ -29,15 +29,9 @@ from collections import Counter
 import numpy as np
 from _timing import print_table
 
-from jaxreg.geometry.metrics import add_s
+from jaxreg.geometry.metrics import add_s, diameter
 from jaxreg.pipeline import estimate_pose
 from jaxreg.synth import OBJECTS, StereoSensor, tabletop_scene
-
-
-def _diameter(mesh) -> float:
-    """The largest distance between two of a mesh's hull vertices (metres)."""
-    hull = np.asarray(mesh.convex_hull.vertices)
-    return float(np.max(np.linalg.norm(hull[:, None] - hull[None], axis=-1)))
 
 
 def main():
@@ -71,10 +65,10 @@ def main():
                     refused.append((mode, seed, name, est.failed_stage, est.reason))
                 else:
                     error = float(add_s(scene.model_points, est.pose, scene.truth))
-                    diameter = _diameter(scene.model)
-                    outcome = "wrong" if error > 0.1 * diameter else "right"
+                    size = diameter(scene.model.vertices)
+                    outcome = "wrong" if error > 0.1 * size else "right"
                     if outcome == "wrong":
-                        wrong.append((mode, seed, name, error, diameter))
+                        wrong.append((mode, seed, name, error, size))
                 counts[mode, name][outcome] += 1
     totals = {mode: Counter() for mode in modes}
     rows = []

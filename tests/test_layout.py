@@ -38,13 +38,11 @@ def _module_name(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def _imports(path: Path, top_level_only: bool) -> set[str]:
-    """jaxreg modules that ``path`` imports (``from a import b`` counts ``a.b`` when that is a
-    module); with ``top_level_only``, the imports run when the module loads."""
-    tree = ast.parse(path.read_text())
-    nodes = tree.body if top_level_only else list(ast.walk(tree))
+def _imports(path: Path) -> set[str]:
+    """jaxreg modules that ``path`` imports anywhere: when it loads, inside its functions and
+    under ``TYPE_CHECKING`` (``from a import b`` counts ``a.b`` when that is a module)."""
     found = set()
-    for node in nodes:
+    for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("jaxreg"):
             found.add(node.module)
             for alias in node.names:
@@ -83,7 +81,7 @@ def test_packages_import_only_those_below_them(path):
     if len(parts) == 1:  # jaxreg/__init__.py and __main__.py see everything
         return
     package = parts[0]
-    for module in _imports(path, top_level_only=False):
+    for module in _imports(path):
         other = module.split(".")[1] if module.count(".") else None
         if other is None or other == package or other not in ALLOWED:
             continue
@@ -94,7 +92,7 @@ def test_packages_import_only_those_below_them(path):
 def test_no_private_module_of_another_package(path):
     """A package uses another's public modules; ``core``'s private modules serve everyone."""
     package = path.relative_to(ROOT).parts[0]
-    for module in _imports(path, top_level_only=False):
+    for module in _imports(path):
         parts = module.split(".")
         if len(parts) > 2 and parts[1] not in (package, "core"):
             assert not any(p.startswith("_") for p in parts[2:]), (
@@ -103,7 +101,9 @@ def test_no_private_module_of_another_package(path):
 
 
 def test_no_import_cycles():
-    graph = {_module_name(p): _imports(p, top_level_only=True) for p in SOURCES}
+    """No module imports itself back through others, counting every import: one inside a
+    function hides a circle from the loader until that function runs, not from the reader."""
+    graph = {_module_name(p): _imports(p) for p in SOURCES}
     graph = {m: {t for t in targets if t in graph and t != m} for m, targets in graph.items()}
     # a package's __init__ importing its own modules is the package loading, not a cycle
     for module, targets in graph.items():

@@ -28,15 +28,15 @@ def _wall_and_box(shape=(120, 160)):
 
 def test_the_surface_drops_the_background_behind_and_keeps_slanted_faces():
     depth, truth = _wall_and_box()
-    sigma = np.array([0.0, 0.0, 2.5e-3])
+    noise = jr.DepthNoise([0.0, 0.0, 2.5e-3])
     grown = ndimage.binary_dilation(truth, iterations=4)  # 4 pixels of wall in the mask
-    surface = mask_surface(depth, grown, sigma, 500.0)
+    surface = mask_surface(depth, grown, noise, 500.0)
     assert np.array_equal(surface, truth)
     holes = depth.copy()
     holes[60, :] = np.nan  # a row without depth cuts the face in two pieces: both kept
-    cut = mask_surface(holes, grown, sigma, 500.0)
+    cut = mask_surface(holes, grown, noise, 500.0)
     assert np.array_equal(cut, truth & np.isfinite(holes))
-    assert not mask_surface(depth, np.zeros_like(truth), sigma, 500.0).any()
+    assert not mask_surface(depth, np.zeros_like(truth), noise, 500.0).any()
 
 
 def test_the_depth_step_follows_the_noise_and_the_pixel_size():
@@ -77,13 +77,12 @@ def test_on_real_frames_the_surface_drops_what_lies_off_the_object(ycbv_dir):
     frame = frames[0]
     depth = np.asarray(frame.frame.depth)
     noise = jr.DepthNoise.structured_light((frame.frame.intrinsics.fx, frame.frame.intrinsics.fy))
-    sigma = np.asarray(noise.coefficients)
     dropped_off, kept_off = 0, 0
     for instance in frame.instances:
         cam = np.asarray(instance.truth @ instance.model_points)  # base = camera here
         near, far = cam[:, 2].min() - 0.02, cam[:, 2].max() + 0.02
         for mask in (instance.mask, ndimage.binary_dilation(instance.mask, iterations=4)):
-            surface = mask_surface(depth, mask, sigma, float(frame.frame.intrinsics.fx))
+            surface = mask_surface(depth, mask, noise, float(frame.frame.intrinsics.fx))
             off = mask & np.isfinite(depth) & ((depth < near) | (depth > far))
             assert surface.sum() > 0.9 * (mask & np.isfinite(depth) & ~off).sum() - 200
             kept_off += int((surface & off).sum())

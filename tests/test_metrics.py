@@ -5,7 +5,15 @@ import pytest
 from jaxlie import SE3, SO3
 
 from jaxreg.geometry.lie import geodesic_angle
-from jaxreg.geometry.metrics import Symmetry, add, add_s, canonicalise, pose_error, rotation_error
+from jaxreg.geometry.metrics import (
+    Symmetry,
+    add,
+    add_s,
+    canonicalise,
+    diameter,
+    pose_error,
+    rotation_error,
+)
 
 HALF_X = np.diag([1.0, -1.0, -1.0])
 HALF_Y = np.diag([-1.0, 1.0, -1.0])
@@ -146,3 +154,14 @@ def test_symmetry_discretises_on_request_and_rejects_bad_descriptions():
         Symmetry(np.eye(3)[None], axis=np.array([0.0, 0.0, 2.0]))
     with pytest.raises(ValueError, match="model_points"):
         add(np.zeros((5, 2)), TRUTH, TRUTH)
+
+
+def test_diameter_is_the_largest_pairwise_distance():
+    """Over the hull, over every point when the hull is flat (in blocks past 512 rows), 0 for
+    fewer than two points: brute force's answer on a box's faces and random clouds."""
+    rng = np.random.default_rng(0)
+    flat = np.c_[rng.normal(size=(700, 2)), np.zeros(700)]
+    for cloud in (box_points(), rng.normal(size=(300, 3)), flat):
+        brute = np.sqrt(((cloud[:, None] - cloud[None]) ** 2).sum(-1).max())
+        assert diameter(cloud) == pytest.approx(brute, rel=1e-12)
+    assert diameter(np.zeros((1, 3))) == 0.0 and diameter(np.zeros((0, 3))) == 0.0

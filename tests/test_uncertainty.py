@@ -76,6 +76,35 @@ def test_depth_noise_of_host_values_compiles_no_program():
         DepthNoise((0.001,), pixel_sigma=0.5)
 
 
+def test_axial_sigma_is_one_polynomial_on_the_host_and_under_jit():
+    """``sigma_z = 1.2 mm + 2.5e-3 z^2``: numpy depths give float64 on the host without a
+    program; JAX depths, jit and grad give the same values of the depth's dtype."""
+    noise = DepthNoise((0.0012, 0.0, 0.0025))
+    depth = np.array([[0.5, 1.0], [2.0, 0.0]])
+    expected = 0.0012 + 0.0025 * depth**2
+    compiled = []
+
+    def listen(event, duration, **kwargs):
+        if event.endswith("backend_compile_duration"):
+            compiled.append(kwargs.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        host = noise.axial_sigma(depth)
+        scalar = noise.axial_sigma(1.0)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert compiled == []
+    assert isinstance(host, np.ndarray) and host.dtype == np.float64 and host.shape == (2, 2)
+    np.testing.assert_allclose(host, expected, rtol=1e-6)
+    assert float(scalar) == pytest.approx(0.0037, rel=1e-6)
+    traced = jax.jit(lambda n, z: n.axial_sigma(z))(noise, jnp.asarray(depth, jnp.float32))
+    assert isinstance(traced, jax.Array) and traced.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(traced), expected, rtol=1e-6)
+    slope = jax.grad(lambda z: noise.axial_sigma(z))(jnp.float32(2.0))
+    assert float(slope) == pytest.approx(2 * 0.0025 * 2.0, rel=1e-5)
+
+
 @jax.jit
 def _draws(noise, keys, points):
     """One draw of ``noise`` on ``points`` per key, as one compiled program (vmapped eagerly,

@@ -24,7 +24,7 @@ from scipy.stats import chi2
 
 from jaxreg.camera.model import RGBDFrame
 from jaxreg.cli import _view
-from jaxreg.cli.commands import build_report
+from jaxreg.cli._report import build_report
 from jaxreg.pipeline.estimate import PoseEstimate
 from jaxreg.pipeline.segment import TablePlane
 from jaxreg.synth.scenes import tabletop_scene

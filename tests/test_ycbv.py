@@ -7,7 +7,7 @@ import shutil
 import numpy as np
 import pytest
 from scipy.io import loadmat, savemat
-from scipy.spatial import ConvexHull, cKDTree
+from scipy.spatial import cKDTree
 
 import jaxreg as jr
 
@@ -172,12 +172,6 @@ def test_malformed_input_names_the_file(ycbv_dir, tmp_path):
         jr.io.read_ycbv(folder, models=tmp_path)
 
 
-def _diameter(points: np.ndarray) -> float:
-    """The largest distance between two of ``points`` ``(M, 3)`` (between hull vertices)."""
-    hull = points[ConvexHull(points).vertices]
-    return float(np.sqrt(((hull[:, None] - hull[None]) ** 2).sum(-1).max()))
-
-
 # Instances for the pipeline check: a box and a mug of one frame, whose segments share compiled
 # programs (the first call compiles estimate_pose's programs, as test_pipeline's do; each new
 # segment size compiles more).
@@ -196,7 +190,7 @@ def test_estimate_pose_on_real_instances(frames, name, model_name):
     assert isinstance(est.reason, str) and len(est.reason.split()) >= 4, est.reason
     if est.success:
         adds = float(jr.add_s(points, est.pose, instance.truth))
-        assert adds < 0.1 * _diameter(points), (name, model_name, adds, est.reason)
+        assert adds < 0.1 * jr.geometry.diameter(points), (name, model_name, adds, est.reason)
         assert np.isfinite(est.inlier_rmse) and not np.isnan(est.covariance).any()
     else:
         assert est.pose is None and est.failed_stage in ("segment", "lift", "register")
@@ -255,7 +249,7 @@ def test_a_boxs_half_turn_is_reported_where_the_models_faces_differ(frames):
     answers = [est.pose, *(turn.pose for turn in est.equivalent_poses)]
     adds = [float(jr.add(points, p, instance.truth)) for p in answers]
     best = int(np.argmin(adds))
-    assert adds[best] < 0.1 * _diameter(points), adds
+    assert adds[best] < 0.1 * jr.geometry.diameter(points), adds
     if best > 0:
         assert est.equivalent_poses[best - 1].weight == 1.0
     assert np.degrees(np.sqrt(np.diag(est.covariance)[3:])).max() > 45
@@ -268,7 +262,7 @@ def test_track_follows_the_mug_through_consecutive_real_frames(frames):
     sequence = [f for f in frames if f.name.startswith("0000/")]
     first = next(i for i in sequence[0].instances if i.model_name == "025_mug")
     points = first.model_points
-    diameter = _diameter(points)
+    diameter = jr.geometry.diameter(points)
     K = sequence[0].frame.intrinsics
     noise = jr.DepthNoise.structured_light((float(K.fx), float(K.fy)))
     previous = first.truth

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from jaxreg.cli.commands import _truth_errors
+from jaxreg.cli._report import truth_errors
 
 
 def run_demo_track(args) -> int:
@@ -63,7 +63,7 @@ def run_demo_track(args) -> int:
             "view_terms": None,
         }
         if estimate.pose is not None:
-            add_s = _truth_errors(estimate.pose, scene.truth, scene.model_points, first.symmetry)[3]
+            add_s = truth_errors(estimate.pose, scene.truth, scene.model_points, first.symmetry)[3]
             row["add_s_mm"] = round(float(add_s) * 1e3, 2)
             sigma = np.sqrt(np.trace(np.asarray(estimate.covariance)[:3, :3]))
             row["sigma_mm"] = round(float(sigma) * 1e3, 2)

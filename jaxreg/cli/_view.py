@@ -166,7 +166,7 @@ def view_scene(
         estimate: its :class:`jaxreg.PoseEstimate` (``mask``, ``table``, ``pose``,
             ``covariance``).
         model_points: ``(M, 3)`` model points (object frame, metres).
-        report: the command's report (``jaxreg.cli.commands.build_report``): its ``grasp``
+        report: the command's report (``jaxreg.cli._report.build_report``): its ``grasp``
             places the jaws, its numbers go in the notes.
         truth: ``SE3`` ``base_T_object`` of the true pose, or ``None``.
         stride: every ``stride``-th pixel of every ``stride``-th row is drawn.

@@ -12,12 +12,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from jaxreg.cli.commands import (
-    _emit,
-    _pose_options,
-    _progress,
+from jaxreg.cli._report import (
     add_truth_errors,
     build_report,
+    emit,
+    pose_options,
+    stage_progress,
     truth_offset,
 )
 from jaxreg.io.ycbv import read_ycbv
@@ -65,14 +65,14 @@ def run_pose_ycbv(args) -> int:
         )
     ycbv, instance = _ycbv_instance(args.ycbv, args.object)
     frame, model = ycbv.frame, instance.model_points
-    options = _pose_options(args, frame)
+    options = pose_options(args, frame)
     if args.no_mask:
         segment = "the table route"
     elif any(option in options for option in ("mask", "pixel", "box")):
         segment = "your --mask, --pixel or --box"
     else:
         options["mask"], segment = instance.mask, "the label's mask"
-    progress = _progress(args.json)
+    progress = stage_progress(args.json)
     estimate = estimate_pose(frame, model, progress=progress, **options)
     progress(None)
     report = build_report(
@@ -88,4 +88,4 @@ def run_pose_ycbv(args) -> int:
         "model_points": len(model),
     }
     title = f"jaxreg pose: {instance.model_name} in YCB-Video frame {ycbv.name}"
-    return _emit(args, report, title, frame, estimate, model, truth=instance.truth)
+    return emit(args, report, title, frame, estimate, model, truth=instance.truth)

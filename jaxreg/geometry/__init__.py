@@ -32,7 +32,8 @@ __getattr__, __dir__ = exports(
         ),
         "jaxreg.geometry.means": ("chordal_mean", "karcher_mean"),
         "jaxreg.geometry.metrics": (
-            "Symmetry", "add", "add_s", "canonicalise", "pose_error", "rotation_error",
+            "Symmetry", "add", "add_s", "canonicalise", "diameter", "pose_error",
+            "rotation_error",
         ),
     },
 )  # fmt: skip

@@ -13,7 +13,9 @@ describes such symmetries once (:class:`Symmetry`) and measures pose error with 
 * :func:`add`: ADD, the mean distance between model points moved by the estimate and by the
   truth (forgives nothing unless a symmetry is given);
 * :func:`add_s`: ADD-S, the mean distance from each model point moved by the estimate to the
-  nearest model point moved by the truth (forgives any pose that puts the surface in place).
+  nearest model point moved by the truth (forgives any pose that puts the surface in place);
+* :func:`diameter`: the model's largest extent, the scale those errors are judged against
+  (ADD(-S) within 10% of it, BOP's thresholds as fractions of it).
 
 Conventions: poses are ``jaxlie.SE3`` mapping object (model) coordinates into the scene
 (``base_T_object`` or ``camera_T_object``); a symmetry ``S`` rotates the object frame about
@@ -34,9 +36,12 @@ from jaxtyping import Array, ArrayLike, Float
 from jaxreg.core._brute import knn
 from jaxreg.geometry.lie import rotation_angle, so3_from_matrix
 
-__all__ = ["Symmetry", "add", "add_s", "canonicalise", "pose_error", "rotation_error"]
+__all__ = [
+    "Symmetry", "add", "add_s", "canonicalise", "diameter", "pose_error", "rotation_error",
+]  # fmt: skip
 
 _TOLERANCE = 1e-6  # on orthonormality, the leading identity and the axis norm
+_DIAMETER_BLOCK = 512  # rows of pairwise distances computed at once by diameter
 
 
 class Symmetry(eqx.Module):
@@ -296,3 +301,23 @@ def add_s(model_points: Float[ArrayLike, "N 3"], est: SE3, truth: SE3) -> Float[
     flat = moved.reshape(-1, *points.shape)
     sq = jax.vmap(lambda q: knn(q, points, 1)[1][:, 0])(flat)
     return jnp.mean(_sqrt(sq), axis=-1).reshape(moved.shape[:-2])
+
+
+def diameter(points: Float[ArrayLike, "N 3"]) -> float:
+    """The largest distance between two of ``points`` ``(N, 3)`` (in their unit), exact: over
+    the vertices of their convex hull, or over every point, in blocks of rows, when the hull
+    is flat or degenerate. 0 for fewer than two points. Host numpy (float64), not under
+    ``jit``: a model's size, measured once."""
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(points) > 8:
+        from scipy.spatial import ConvexHull, QhullError  # loaded when first used
+
+        try:
+            points = points[ConvexHull(points).vertices]
+        except QhullError:  # flat or degenerate: every point is a candidate
+            pass
+    largest = 0.0
+    for start in range(0, len(points), _DIAMETER_BLOCK):
+        gaps = points[start : start + _DIAMETER_BLOCK, None] - points[None]
+        largest = max(largest, float(np.einsum("ijk,ijk->ij", gaps, gaps).max()))
+    return float(np.sqrt(largest))

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from jaxreg.geometry.metrics import diameter
 from jaxreg.io.clouds import write_ply
 from jaxreg.io.ycbv import YcbvFrame, read_ycbv
 
@@ -41,19 +42,9 @@ _MM = 1000.0  # millimetres per metre
 _UINT16_MAX = np.iinfo(np.uint16).max
 
 
-def _diameter(points: np.ndarray, block: int = 512) -> float:
-    """The largest distance between two of `points (N, 3)` (exact, in blocks of rows)."""
-    largest = 0.0
-    for start in range(0, len(points), block):
-        rows = points[start : start + block]
-        gaps = np.linalg.norm(rows[:, None] - points[None], axis=-1)
-        largest = max(largest, float(gaps.max()))
-    return largest
-
-
 def _model_info(points_mm: np.ndarray) -> dict:
     low, high = points_mm.min(0), points_mm.max(0)
-    info = {"diameter": _diameter(points_mm)}
+    info = {"diameter": diameter(points_mm)}
     info |= {f"min_{axis}": float(v) for axis, v in zip("xyz", low, strict=True)}
     info |= {f"size_{axis}": float(v) for axis, v in zip("xyz", high - low, strict=True)}
     return info

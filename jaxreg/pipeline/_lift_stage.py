@@ -122,9 +122,7 @@ def below_band(frame: RGBDFrame, region: np.ndarray, plane: TablePlane, noise, s
     depth = np.asarray(frame.depth)
     rows, cols = np.nonzero(np.asarray(region, bool) & np.isfinite(depth))
     height = lift_pixels(frame, rows, cols) @ np.asarray(plane.normal) + float(plane.offset)
-    sigma = np.polynomial.polynomial.polyval(
-        depth[rows, cols], np.asarray(noise.coefficients, np.float64)
-    )
+    sigma = noise.axial_sigma(depth[rows, cols])
     low = height <= _band_floor(sigma, settings.min_height, settings.band_sigmas)
     out = np.zeros(depth.shape, bool)
     out[rows[low], cols[low]] = True
@@ -208,9 +206,7 @@ def lift_stage(
             record.with_ms(start),
             mask=region,
         )
-    sigma = np.polynomial.polynomial.polyval(
-        depth[rows, cols], np.asarray(noise.coefficients, np.float64)
-    )
+    sigma = noise.axial_sigma(depth[rows, cols])
     normal, offset = (None, None) if plane is None else (np.asarray(plane.normal), plane.offset)
     mask, points, counts = lift_region(
         frame, rows, cols, sigma, normal, None if offset is None else float(offset),

@@ -12,10 +12,10 @@ import hashlib
 import math
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError, cKDTree
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from jaxreg.geometry.metrics import Symmetry
+from jaxreg.geometry.metrics import Symmetry, diameter
 from jaxreg.search.neighbors import (
     NeighborGrid,
     build_grid,
@@ -112,18 +112,6 @@ def _voxel_normals(points: np.ndarray, normals: np.ndarray, voxel: float):
     return sums[:, :3] / counts[:, None], unit
 
 
-def _diameter(points: np.ndarray) -> float:
-    """Largest distance between two of ``points`` ``(N, 3)`` (over their convex hull)."""
-    points = np.asarray(points, np.float64)
-    if len(points) > 8:
-        try:
-            points = points[ConvexHull(points).vertices]
-        except QhullError:  # flat or degenerate: every point is a candidate
-            pass
-    gaps = points[:, None, :] - points[None, :, :]
-    return float(np.sqrt(np.einsum("ijk,ijk->ij", gaps, gaps).max())) if len(points) else 0.0
-
-
 def _prepare_model(
     model_points, model_normals, voxel_size: float, grid_distance: float, fine_distance: float
 ):
@@ -168,7 +156,7 @@ def _prepare_model(
         grid=grid,
         fine_grid=fine_grid,
         radius=float(np.linalg.norm(points - centroid, axis=1).max()),
-        diameter=_diameter(points),
+        diameter=diameter(points),
         centroid=centroid,
         axes=axes,
         bounds=np.stack([given.min(0), given.max(0)]),

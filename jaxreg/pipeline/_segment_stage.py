@@ -16,9 +16,9 @@ import jax
 import numpy as np
 
 from jaxreg.camera.model import RGBDFrame
+from jaxreg.geometry.metrics import diameter
 from jaxreg.pipeline._colour import colour_match, other_colour
 from jaxreg.pipeline._lift_stage import below_band, lift_pixels
-from jaxreg.pipeline._model import _diameter
 from jaxreg.pipeline._stages import _Failed
 from jaxreg.pipeline._surface import mask_surface
 from jaxreg.pipeline.records import Segmented, SegmentRecord
@@ -135,7 +135,7 @@ def _table_route(frame, model, settings: SegmentSettings, key, pixel, box, palet
         if set(group) & set(other):
             continue
         cloud = grid_points[np.isin(labels, group) & keep & inside]
-        spans.append(_diameter(cloud) if len(cloud) else np.inf)
+        spans.append(diameter(cloud) if len(cloud) else np.inf)
         if len(cloud) and (box is not None or spans[-1] <= model.diameter + s.cluster_margin):
             candidates.append((group, cloud))
     if not candidates and other:
@@ -217,8 +217,7 @@ def _mask_route(
     seg = _segment(outside, model, s, key)
     grid = np.zeros_like(mask)
     grid[:: s.stride, :: s.stride] = True
-    sigma_z = np.asarray(noise.coefficients)
-    surface = mask_surface(depth, mask, sigma_z, float(frame.intrinsics.fx))
+    surface = mask_surface(depth, mask, noise, float(frame.intrinsics.fx))
     rows, cols = np.nonzero(surface & grid)
     cloud = lift_pixels(frame, rows, cols)
     plane = None
@@ -228,7 +227,7 @@ def _mask_route(
         if low < 0.02 and lowest > -s.plane_distance:
             plane = seg.plane
             table = below_band(frame, mask, plane, noise, lift)
-            surface = mask_surface(depth, mask & ~table, sigma_z, float(frame.intrinsics.fx))
+            surface = mask_surface(depth, mask & ~table, noise, float(frame.intrinsics.fx))
             rows, cols = np.nonzero(surface & grid)
             cloud = lift_pixels(frame, rows, cols)
             height = cloud @ np.asarray(plane.normal) + float(plane.offset)
@@ -253,7 +252,7 @@ def _mask_route(
             + f" on the {s.stride}-pixel grid (need 15): a mask on a hole in the depth, "
             "or on the table, or an object too small to register at this distance"
         )
-    span = _diameter(cloud)
+    span = diameter(cloud)
     if span > 3 * model.diameter:
         fail(
             f"the masked segment spans {span * 1e3:.0f} mm, more than 3 times the model's "

@@ -18,6 +18,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from jaxreg.uncertainty import DepthNoise
+
 __all__ = ["depth_step", "mask_surface"]
 
 # The steepest surface (degrees between its normal and the ray) whose depth step between
@@ -40,13 +42,13 @@ def depth_step(depth: np.ndarray, sigma_z: np.ndarray, focal: float) -> np.ndarr
 
 
 def mask_surface(
-    depth: np.ndarray, mask: np.ndarray, sigma_coefficients: np.ndarray, focal: float
+    depth: np.ndarray, mask: np.ndarray, noise: DepthNoise, focal: float
 ) -> np.ndarray:
     """``(H, W)`` bool: the pixels of ``mask`` ``(H, W)`` with depth that lie on the object's
     surface (see the module docstring). ``depth`` ``(H, W)`` metres with NaN holes;
-    ``sigma_coefficients``: the depth noise's ``sigma_z`` polynomial in the depth (ascending,
-    metres); ``focal``: the focal length (pixels). Holes and pixels off the surface are
-    False; an empty mask gives an empty surface."""
+    ``noise``: the camera's depth noise (its ``axial_sigma``); ``focal``: the focal length
+    (pixels). Holes and pixels off the surface are False; an empty mask gives an empty
+    surface."""
     valid = np.asarray(mask, bool) & np.isfinite(depth)
     out = np.zeros(valid.shape, bool)
     rows, cols = np.flatnonzero(valid.any(1)), np.flatnonzero(valid.any(0))
@@ -55,7 +57,7 @@ def mask_surface(
     box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
     valid = valid[box]
     z = np.where(valid, np.asarray(depth, np.float64)[box], 0.0)
-    sigma = np.polynomial.polynomial.polyval(z, np.asarray(sigma_coefficients, np.float64))
+    sigma = noise.axial_sigma(z)
     limit = depth_step(z, sigma, focal)
     # pixels at even rows and columns of a grid twice the size, the links between 4-neighbours
     # on one surface between them: its 4-connected components are the surfaces, labelled in

@@ -241,7 +241,7 @@ def _around(frame, projected, reach: float, noise, table, low):
         height = lifted @ np.asarray(table.normal, np.float64)
         near[rows, cols] = height + float(table.offset) >= low
     looked = np.zeros_like(footprint)
-    looked[box] = mask_surface(depth, near, np.asarray(noise.coefficients), fx)
+    looked[box] = mask_surface(depth, near, noise, fx)
     return looked, box, points
 
 
@@ -257,9 +257,7 @@ def _on_model(frame, model, base_T_object: SE3, noise) -> np.ndarray:
     box = _box(pixels[inside], nearest.shape, 2)  # the model's pixels and the erosion's reach
     nearest = ndimage.grey_erosion(nearest[box], size=5)
     depth = np.asarray(frame.depth)[box]
-    sigma = np.polynomial.polynomial.polyval(
-        np.where(np.isfinite(nearest), nearest, 0.0), np.asarray(noise.coefficients)
-    )
+    sigma = noise.axial_sigma(np.where(np.isfinite(nearest), nearest, 0.0))
     limit = np.maximum(float(TOLERANCE), NOISE_SIGMAS * sigma)
     agree[box] = np.isfinite(nearest) & np.isfinite(depth) & (np.abs(depth - nearest) <= limit)
     return agree

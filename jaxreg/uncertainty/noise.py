@@ -167,11 +167,20 @@ class DepthNoise(AbstractPointNoise):
         coefficients = (0.0012 + 0.0019 * 0.16, -0.0019 * 0.8, 0.0019)
         return cls(coefficients, base_T_camera, 0.8, focal_length)
 
-    def axial_sigma(self, depth: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
-        """``sigma_z`` (metres) at camera depth ``depth`` (metres)."""
-        depth = jnp.asarray(depth)
-        powers = depth[..., None] ** jnp.arange(self.coefficients.shape[0], dtype=depth.dtype)
-        return jnp.sum(self.coefficients.astype(depth.dtype) * powers, axis=-1)
+    def axial_sigma(self, depth: Float[ArrayLike, "..."]) -> Float[ArrayLike, "..."]:
+        """``sigma_z`` (metres) at camera depth ``depth`` (metres, any shape):
+        ``c0 + c1 z + c2 z^2 + ...``, the one evaluation of the polynomial everything that
+        weighs depth against its noise uses. A JAX array or a tracer (or traced coefficients)
+        gives a JAX array of the depth's dtype, under ``jit`` and ``grad``; a number or a numpy
+        array gives a float64 numpy array, computed on the host without a device program (the
+        pipeline's host stages call it per pixel)."""
+        traced = isinstance(self.coefficients, jax.core.Tracer)
+        if traced or isinstance(depth, jax.Array | jax.core.Tracer):
+            depth = jnp.asarray(depth)
+            powers = depth[..., None] ** jnp.arange(self.coefficients.shape[0], dtype=depth.dtype)
+            return jnp.sum(self.coefficients.astype(depth.dtype) * powers, axis=-1)
+        coefficients = np.asarray(self.coefficients, np.float64)
+        return np.polynomial.polynomial.polyval(np.asarray(depth, np.float64), coefficients)
 
     def _camera(self, points: Array) -> tuple[Array, Array, Array, Array, Array]:
         """Rotation and translation of ``base_T_camera``, camera-frame rays scaled to unit
