@@ -7,8 +7,9 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
+DOCS_STAMP := $(VENV)/.installed-docs
 
-.PHONY: demo test test-slow bench bench-report figs lint clean system-libs
+.PHONY: demo test test-slow bench bench-report figs docs lint clean system-libs
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -62,8 +63,18 @@ figs: $(STAMP)
 	cd paper_figs && for f in fig_*.py; do echo "== $$f"; MPLBACKEND=Agg ../$(PY) $$f || exit 1; done
 	@ls paper_figs/out/*.png
 
+# The API reference as HTML in site/ (open site/index.html): the README as its first page,
+# docs/reference.md, a page per package from the docstrings. --strict: a broken link or
+# cross-reference fails the build.
+$(DOCS_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet -e '.[docs]'
+	@touch $@
+
+docs: $(DOCS_STAMP)
+	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict
+
 lint: $(STAMP)
 	$(PY) -m ruff check jaxreg tests benchmarks examples paper_figs
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis
+	rm -rf $(VENV) build site *.egg-info .pytest_cache .hypothesis

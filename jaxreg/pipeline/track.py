@@ -103,8 +103,9 @@ def track(
             an answer farther from ``previous`` is refused as lost.
         max_turn_deg: the largest turn (degrees) between the frames; a larger one is
             refused as lost.
-        model_normals, symmetry, depth_noise, hand_eye_covariance, intrinsics_sigma,
-        depth_scale_sigma, settings, **keywords: as for :func:`jaxreg.estimate_pose`.
+        model_normals: as for :func:`jaxreg.estimate_pose`, and so are ``symmetry``,
+            ``depth_noise``, ``hand_eye_covariance``, ``intrinsics_sigma``,
+            ``depth_scale_sigma``, ``settings`` and ``**keywords`` (the settings' fields).
 
     Returns:
         A :class:`PoseEstimate`; its ``stages`` are ``segment`` (the projected footprint:
