@@ -6,9 +6,11 @@ import numpy as np
 import pytest
 from jaxlie import SE3, SO3
 from PIL import Image
+from scipy import ndimage
 
 import jaxreg as jr
 from jaxreg.cli import main
+from jaxreg.cli._overlay import ESTIMATE, REFUSED, TRUTH, model_overlay
 
 KEYS = (
     "pose",
@@ -224,7 +226,7 @@ def test_pose_draws_its_pictures_on_the_colour_image_given_by_rgb(tmp_path, caps
     write_frame(tmp_path / "scene.png", depth_only)
     write_pcd(tmp_path / "model.pcd", np.asarray(scene.model_points, np.float32))
     Image.fromarray((255 * scene.mask).astype(np.uint8)).save(tmp_path / "mask.png")
-    # values below 200: the overlay's red (255, 40, 40) cannot come from the colour image
+    # values below 200: the overlay's outline (255, 140, 0) cannot come from the colour image
     colour = np.random.default_rng(0).integers(0, 200, (*scene.mask.shape, 3), dtype=np.uint8)
     Image.fromarray(colour).save(tmp_path / "colour.png")
     out = tmp_path / "out"
@@ -234,9 +236,16 @@ def test_pose_draws_its_pictures_on_the_colour_image_given_by_rgb(tmp_path, caps
     assert main([*common, "--rgb", str(tmp_path / "colour.png"), "--out", str(out)]) == 0
     assert json.loads(capsys.readouterr().out)["failed_stage"] is None
     overlay = np.asarray(Image.open(out / "model_overlay.png"))
-    drawn = (overlay == (255, 40, 40)).all(-1)
-    assert drawn.sum() > 50 and scene.mask[drawn].mean() > 0.9  # the model lands on the box
-    np.testing.assert_array_equal(overlay[~drawn], colour[~drawn])
+    changed = (overlay != colour).any(-1)
+    # the box is filled (single pixels at a quarter of the model points would change at most
+    # that many) and outlined along its edge; below the legend little else changes
+    assert changed[scene.mask].mean() > 0.8
+    assert changed[scene.mask].sum() > len(scene.model_points) // 4
+    outline = (overlay == ESTIMATE).all(-1)
+    outline[:40] = False  # the legend's orange line
+    near_box = ndimage.binary_dilation(scene.mask, iterations=5)
+    assert outline.sum() > 200 and near_box[outline].mean() > 0.95
+    assert changed[40:][~near_box[40:]].mean() < 0.01
     segmentation = np.asarray(Image.open(out / "segmentation.png"))
     painted = (segmentation != colour).any(-1)
     assert painted.sum() > 100 and scene.mask[painted].mean() > 0.9  # green over the segment
@@ -283,9 +292,9 @@ def test_pose_on_a_ycbv_frame_reports_errors_against_its_truth(ycbv_dir, capsys,
     # the pictures are drawn on the frame's colour image
     overlay = np.asarray(Image.open(tmp_path / "model_overlay.png"))
     colour = np.asarray(ycbv.frame.rgb)
-    untouched = (overlay != (255, 40, 40)).any(-1)
-    assert untouched.mean() > 0.9
-    np.testing.assert_array_equal(overlay[untouched], colour[untouched])
+    untouched = (overlay == colour).all(-1)
+    assert untouched.mean() > 0.8
+    assert (~untouched[instance.mask]).mean() > 0.8  # the mug is filled
     # the model's name names the same instance
     assert main(["pose", "--ycbv", prefix, "--object", model_name, "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["pose"] == report["pose"]
@@ -307,6 +316,155 @@ def test_pose_on_a_ycbv_frame_refuses_an_object_not_in_it(ycbv_dir, capsys):
     assert "YCB-Video's point models have none" in capsys.readouterr().err
     assert main(["pose", "--ycbv", str(ycbv_dir / "data" / "0000"), "--object", "14"]) == 2
     assert "names 5 frames" in capsys.readouterr().err
+
+
+def _estimate(pose=None, reason="found", hypothesis=None, failed_stage=None):
+    """What the overlay reads of a PoseEstimate: the pose, or the failed stage, its reason
+    and the register record's hypothesis."""
+    from types import SimpleNamespace
+
+    stages = {} if hypothesis is None else {"register": SimpleNamespace(hypothesis=hypothesis)}
+    return SimpleNamespace(pose=pose, failed_stage=failed_stage, reason=reason, stages=stages)
+
+
+@pytest.fixture(scope="module")
+def mug_frame(ycbv_dir):
+    """YCB-Video frame 0000/000001 and its mug, partly hidden behind the foam brick."""
+    (ycbv,) = jr.io.read_ycbv(ycbv_dir / "data" / "0000" / "000001")
+    (mug,) = [i for i in ycbv.instances if i.model_name == "025_mug"]
+    (brick,) = [i for i in ycbv.instances if i.model_name == "061_foam_brick"]
+    return ycbv.frame, mug, brick
+
+
+def test_the_overlay_fills_and_outlines_the_visible_model_with_its_axes(mug_frame):
+    """At the true pose the mug's silhouette covers its label mask, the part the brick hides
+    is not drawn, the outline and the axes are drawn, and the truth's outline is magenta."""
+    frame, mug, brick = mug_frame
+    colour = np.asarray(frame.rgb)
+    drawn = model_overlay(colour, frame, _estimate(mug.truth), mug.model_points, truth=mug.truth)
+    changed = (drawn.image != colour).any(-1)
+    filled = drawn.filled["estimate"]
+    assert changed[mug.mask].mean() > 0.9
+    # single red pixels at every fourth model point could change at most this many
+    assert changed[mug.mask].sum() > 5 * len(mug.model_points) // 4
+    assert ndimage.binary_dilation(mug.mask, iterations=6)[filled].mean() > 0.95
+    assert filled[brick.mask].mean() < 0.02  # the brick stands in front of the mug
+    assert (drawn.image == TRUTH).all(-1).sum() > 200  # the truth's outline, drawn last
+    for axis in ((235, 35, 35), (40, 215, 40), (50, 110, 255)):
+        assert (drawn.image == axis).all(-1).sum() > 20
+    assert drawn.legend[0] == "orange: the estimate"
+    assert "magenta outline: the truth" in drawn.legend
+    # without the truth, the estimate's outline is orange (below the legend's orange line;
+    # two of the photo's own pixels have that colour)
+    alone = model_overlay(colour, frame, _estimate(mug.truth), mug.model_points).image
+    outline = (alone == ESTIMATE).all(-1) & (colour != ESTIMATE).any(-1)
+    outline[:40] = False
+    assert outline.sum() > 200 and filled[outline].all()
+
+
+def test_a_refused_estimate_draws_its_hypothesis_in_grey_with_its_reason(mug_frame):
+    frame, mug, _ = mug_frame
+    colour = np.asarray(frame.rgb)
+    reason = "the model is not there: the image sees through it"
+    hypothesis = np.asarray(mug.truth.as_matrix(), np.float64).tolist()
+    refused = _estimate(None, reason, hypothesis, failed_stage="register")
+    drawn = model_overlay(colour, frame, refused, mug.model_points)
+    grey = drawn.filled["hypothesis"] & mug.mask
+    assert grey.sum() > 0.9 * mug.mask.sum()
+    # the fill is the grey blended into the image (but on the outline and the axes)
+    blended = 0.55 * colour[grey].astype(float) + 0.45 * np.asarray(REFUSED)
+    assert (np.abs(drawn.image[grey] - blended).max(-1) <= 1.0).mean() > 0.85
+    assert (drawn.image == REFUSED).all(-1).sum() > 200  # its outline
+    assert drawn.legend[0] == f"REFUSED at register: {reason}"
+    assert drawn.legend[1] == "grey: the best hypothesis, refused"
+    top = (drawn.image[:40] != colour[:40]).any(-1)
+    assert top[:, :200].mean() > 0.5  # the legend's band and its text
+    # a hypothesis sunk behind the measured surface (20% farther along the line of sight) is
+    # drawn whole, and one behind the camera is said to be outside the image
+    refused_line = "grey: the best hypothesis, refused, "
+    for scale, where in ((1.2, "drawn whole: it lies behind the measured surface"),
+                         (-1.0, "outside the image")):  # fmt: skip
+        moved = np.array(hypothesis)
+        moved[:3, 3] *= scale
+        drawn = model_overlay(colour, frame, _estimate(None, reason, moved.tolist(), "register"),
+                              mug.model_points)  # fmt: skip
+        assert drawn.legend[-2] == refused_line + where
+        area = drawn.filled["hypothesis"].sum()
+        assert area > 0.5 * mug.mask.sum() if scale > 0 else area == 0
+    # a stage that failed before the refinement has no hypothesis: the reason alone
+    lift = _estimate(None, "too few pixels with depth", failed_stage="lift")
+    drawn = model_overlay(colour, frame, lift, mug.model_points)
+    assert drawn.filled == {} and drawn.legend[0].startswith("REFUSED at lift: too few")
+    assert (drawn.image[100:] == colour[100:]).all()
+
+
+@pytest.fixture(scope="module")
+def bop_ycbv(ycbv_dir, tmp_path_factory):
+    """Sequence 0000 of the shipped YCB-Video frames as a BOP split (jaxreg convert-ycbv):
+    scene 0, images 1-5, objects 8, 14 and 21 (the gelatin box, the mug, the foam brick)."""
+    root = tmp_path_factory.mktemp("bop_ycbv")
+    assert main(["convert-ycbv", str(ycbv_dir / "data" / "0000"), str(root)]) == 0
+    return root
+
+
+@pytest.mark.slow
+def test_pose_on_a_bop_image_reports_errors_against_its_truth(bop_ycbv, capsys, tmp_path):
+    """``--bop DATASET --scene S --image I --object O``: the split's frame, model and
+    mask_visib; the truth is scene_gt's, and the overlay is drawn on the image (the frame and
+    the mug of the --ycbv test)."""
+    args = ["pose", "--bop", str(bop_ycbv), "--scene", "0", "--image", "1", "--object", "14"]
+    assert main([*args, "--json", "--out", str(tmp_path)]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["bop"] == {
+        "dataset": str(bop_ycbv), "split": "test", "scene_id": 0, "im_id": 1, "obj_id": 14,
+        "gt_index": 1, "instances": 1, "visib_fract": 1.0, "segment": "mask_visib",
+        "model_points": 2621,
+    }  # fmt: skip
+    split = jr.io.read_bop(bop_ycbv, scenes=[0])
+    (target,) = [t for t in split.targets(0, 1) if t.obj_id == 14]
+    np.testing.assert_allclose(report["truth"], target.camera_T_object, atol=1e-5)
+    pose, model = np.array(report["pose"]), split.models[14].points
+    at_pose = model @ pose[:3, :3].T + pose[:3, 3]
+    at_truth = model @ target.camera_T_object[:3, :3].T + target.camera_T_object[:3, 3]
+    add_mm = 1e3 * np.linalg.norm(at_pose - at_truth, axis=1).mean()
+    assert report["add_mm"] == pytest.approx(add_mm, abs=0.01)
+    assert report["add_s_mm"] < 0.1 * split.models[14].diameter * 1e3
+    overlay = np.asarray(Image.open(tmp_path / "model_overlay.png"))
+    changed = (overlay != np.asarray(split.frame(0, 1).rgb)).any(-1)
+    assert changed[split.mask(target)].mean() > 0.8
+    assert main(args) == 0  # the printed report says the errors too
+    out = capsys.readouterr().out
+    assert f"error vs truth: translation {report['translation_error_mm']:.2f} mm" in out
+    assert f"ADD-S {report['add_s_mm']:.2f} mm" in out
+
+
+def test_pose_on_a_bop_image_names_what_exists_when_asked_for_what_does_not(bop_ycbv, capsys):
+    bop = ["pose", "--bop", str(bop_ycbv)]
+    cases = [
+        (["--scene", "7", "--image", "1", "--object", "14"],
+         "no scene folders for [7] (it has [0])"),
+        (["--scene", "0", "--image", "9", "--object", "14"],
+         "--image 9 is not in scene 0 of " + str(bop_ycbv / "test") + ": its images with "
+         "targets are 1-5"),
+        (["--scene", "0", "--image", "1", "--object", "2"],
+         "--object 2 is not in image 1 of scene 0: it holds objects 8, 14, 21"),
+        (["--scene", "0", "--image", "1"], "--bop DATASET needs --object"),
+        (["--scene", "zero", "--image", "1", "--object", "14"], "integer id, got 'zero'"),
+        (["--scene", "0", "--image", "1", "--object", "14", "--split", "val"],
+         "no such split folder"),
+        (["--scene", "0", "--image", "1", "--object", "14", "--symmetry", "box"],
+         "--symmetry cannot be given with --bop"),
+        (["--scene", "0", "--image", "1", "--object", "14", "--model", "m.ply"],
+         "--model cannot be given with --bop"),
+    ]  # fmt: skip
+    for extra, message in cases:
+        assert main([*bop, *extra]) == 2, extra
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and message in err, (extra, err)
+    assert main(["pose", "--image", "1"]) == 2
+    assert "--image is for --bop datasets" in capsys.readouterr().err
+    assert main(["pose", "--json"]) == 2
+    assert "give --scene FILE, --ycbv PREFIX or --bop DATASET" in capsys.readouterr().err
 
 
 def test_an_internal_error_is_not_reported_as_bad_input(monkeypatch, capsys):

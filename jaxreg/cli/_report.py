@@ -127,12 +127,13 @@ def build_report(estimate, model_points: np.ndarray, opening: float, offset=None
     return _clean(report)
 
 
-def print_report(report: dict, stages: dict, title: str, out=sys.stdout) -> None:
+def print_report(report: dict, stages: dict, title: str, out=None) -> None:
     """A readable stage-by-stage report of ``report`` (:func:`build_report`) and the
-    estimate's typed stage records ``stages``."""
+    estimate's typed stage records ``stages``, to ``out`` (default: ``sys.stdout`` at the
+    call, so a redirected stdout receives it)."""
 
     def line(text=""):
-        print(text, file=out)
+        print(text, file=sys.stdout if out is None else out)
 
     line(title)
     seg = stages.get("segment")
@@ -252,12 +253,17 @@ def _colormap(values: np.ndarray) -> np.ndarray:
     return ((1 - t) * anchors[i] + t * anchors[i + 1]).astype(np.uint8)
 
 
-def write_pictures(folder: Path, frame, estimate, model_points: np.ndarray) -> list[str]:
+def write_pictures(
+    folder: Path, frame, estimate, model_points: np.ndarray, truth=None, report=None
+) -> list[str]:
     """depth.png (false colour), segmentation.png (the lifted segment in green) and
-    model_overlay.png (every fourth model point at the estimated pose in red) in ``folder``;
-    the last two are drawn on the frame's colour image when it has one, else on grey depth.
-    Returns the names."""
+    model_overlay.png (:func:`jaxreg.cli._overlay.model_overlay`: the model's visible surface
+    at the estimate, or a refused estimate's hypothesis in grey with its reason, and at the
+    ``truth`` where it is known) in ``folder``; the last two are drawn on the frame's colour
+    image when it has one, else on grey depth. Returns the names."""
     from PIL import Image
+
+    from jaxreg.cli._overlay import model_overlay
 
     depth = np.asarray(frame.depth)
     valid = np.isfinite(depth)
@@ -272,18 +278,8 @@ def write_pictures(folder: Path, frame, estimate, model_points: np.ndarray) -> l
     overlay = base.copy()
     overlay[estimate.mask] = 0.45 * overlay[estimate.mask] + 0.55 * np.array([40, 220, 60])
     Image.fromarray(overlay.astype(np.uint8)).save(folder / "segmentation.png")
-    drawn = base.copy()
-    if estimate.pose is not None:
-        import jax.numpy as jnp
-
-        camera_T_object = frame.base_T_camera.inverse() @ estimate.pose
-        cam = np.asarray(camera_T_object @ jnp.asarray(model_points[::4]))
-        pix = np.asarray(frame.intrinsics.project(jnp.asarray(cam)))
-        u, v = np.round(pix[:, 0]).astype(int), np.round(pix[:, 1]).astype(int)
-        h, w = depth.shape
-        keep = (cam[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        drawn[v[keep], u[keep]] = (255, 40, 40)
-    Image.fromarray(drawn.astype(np.uint8)).save(folder / "model_overlay.png")
+    drawn = model_overlay(base, frame, estimate, model_points, truth=truth, report=report)
+    Image.fromarray(drawn.image).save(folder / "model_overlay.png")
     return ["depth.png", "segmentation.png", "model_overlay.png"]
 
 
@@ -309,7 +305,9 @@ def stage_progress(quiet: bool):
 def emit(args, report: dict, title: str, frame, estimate, model_points, truth=None) -> int:
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
-        report["pictures"] = write_pictures(args.out, frame, estimate, model_points)
+        report["pictures"] = write_pictures(
+            args.out, frame, estimate, model_points, truth=truth, report=report
+        )
         (args.out / "report.json").write_text(json.dumps(report, indent=2))
     if args.json:
         print(json.dumps(report))

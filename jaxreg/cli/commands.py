@@ -16,12 +16,16 @@ the same).
   ``--symmetry`` and ``--depth-noise`` describe the model and the camera (see ``--help``).
 * ``jaxreg pose --ycbv PREFIX --object NAME_OR_INDEX`` does it on a YCB-Video frame, with the
   dataset's model and label mask, and reports the errors against its truth
-  (:mod:`jaxreg.cli._ycbv`).
+  (:mod:`jaxreg.cli._ycbv`); ``jaxreg pose --bop DATASET --scene S --image I --object O`` on
+  one image of a BOP dataset split (``--split``, default test), with the object's model,
+  symmetries and visible mask (:mod:`jaxreg.cli._bop_pose`).
 
 With ``--json`` stdout is one JSON object (the fields of the design's command line section);
 ``--out DIR`` also writes ``report.json`` and the pictures ``depth.png``,
-``segmentation.png`` (the lifted segment over the image) and ``model_overlay.png`` (the model
-drawn at the estimated pose) to DIR, over the colour image when the frame has one.
+``segmentation.png`` (the lifted segment over the image) and ``model_overlay.png`` (the
+model's visible surface at the estimate, outlined, with its axes, and at the truth where it is
+known; a refused estimate's best hypothesis in grey with its reason: :mod:`jaxreg.cli._overlay`)
+to DIR, over the colour image when the frame has one.
 ``--view`` then serves the scene in 3D to a browser (:mod:`jaxreg.cli._view`) at
 ``--view-port`` until Ctrl-C.
 
@@ -122,6 +126,17 @@ def run_pose(args) -> int:
     from jaxreg.io import load_points, read_frame
     from jaxreg.pipeline.estimate import estimate_pose
 
+    if args.bop is not None:
+        from jaxreg.cli._bop_pose import run_pose_bop
+
+        return run_pose_bop(args)
+    for name in ("image", "split"):
+        if getattr(args, name) is not None:
+            raise ValueError(f"--{name} is for --bop datasets")
+    if args.scene is None and args.ycbv is None:
+        raise ValueError(
+            "give --scene FILE, --ycbv PREFIX or --bop DATASET --scene S --image I --object O"
+        )
     if args.ycbv is not None:
         from jaxreg.cli._ycbv import run_pose_ycbv
 
@@ -133,7 +148,7 @@ def run_pose(args) -> int:
         return run_pose_ycbv(args)
     for name in ("object", "no_mask"):
         if getattr(args, name):
-            raise ValueError(f"--{name.replace('_', '-')} is for --ycbv frames")
+            raise ValueError(f"--{name.replace('_', '-')} is for --ycbv and --bop frames")
     if args.model is None:
         raise ValueError("--scene needs --model FILE (the object's points or mesh)")
     frame = read_frame(args.scene, args.intrinsics, rgb=args.rgb)
@@ -186,8 +201,10 @@ def _add_demo(sub) -> None:
 
 def _add_pose(sub) -> None:
     pose = sub.add_parser("pose", help="estimate a model's pose in your depth frame")
-    frame = pose.add_mutually_exclusive_group(required=True)
-    frame.add_argument("--scene", type=Path, help="organized PCD or depth PNG")
+    frame = pose.add_mutually_exclusive_group()
+    frame.add_argument(
+        "--scene", type=Path, help="organized PCD or depth PNG; with --bop, the scene id"
+    )
     frame.add_argument(
         "--ycbv", type=Path, metavar="PREFIX",
         help="a YCB-Video frame (e.g. data/0000/000001): its depth, colour, the model of "
@@ -195,8 +212,16 @@ def _add_pose(sub) -> None:
     )  # fmt: skip
     pose.add_argument(
         "--object", metavar="NAME_OR_INDEX",
-        help="with --ycbv: the object, by model name (025_mug) or class index (14)",
+        help="with --ycbv: the object, by model name (025_mug) or class index (14); with "
+        "--bop: its object id",
     )  # fmt: skip
+    pose.add_argument(
+        "--bop", type=Path, metavar="DATASET",
+        help="a BOP dataset's folder: with --scene S --image I --object O, one image of it, "
+        "the object's model and visible mask, and the errors against its truth",
+    )  # fmt: skip
+    pose.add_argument("--image", type=int, metavar="I", help="with --bop: the image id")
+    pose.add_argument("--split", help="with --bop: the split folder (default test)")
     pose.add_argument("--model", type=Path, help="model points or mesh (with --scene)")
     pose.add_argument(
         "--model-units", choices=tuple(UNITS), default="m",
@@ -226,7 +251,7 @@ def _add_pose(sub) -> None:
     )
     which.add_argument(
         "--no-mask", action="store_true",
-        help="with --ycbv: find the object by the table route, not the label's mask",
+        help="with --ycbv or --bop: find the object by the table route, not the dataset's mask",
     )  # fmt: skip
     pose.add_argument(
         "--symmetry", default="none",
