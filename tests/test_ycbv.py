@@ -1,6 +1,6 @@
 """jaxreg.io.read_ycbv on the shipped YCB-Video frames (../shared/data/ycbv): counts, camera,
-depth units, masks, the annotated truth checked against the measured depth, and malformed input;
-then estimate_pose on a few real instances."""
+depth units, masks, boxes, the annotated truth checked against the measured depth, and malformed
+input; then estimate_pose on a few real instances."""
 
 import shutil
 
@@ -116,6 +116,19 @@ def test_frame_prefix_sequence_and_root_agree(ycbv_dir, frames):
                                np.asarray(expected.instances[2].truth.as_matrix()))  # fmt: skip
 
 
+def test_boxes_from_the_box_files(frames):
+    """Each instance's box is its line of the frame's ``-box.txt`` (x = column, y = row); the
+    annotation's boxes hold the whole mask (within a pixel)."""
+    mug = next(i for i in frames[0].instances if i.model_name == "025_mug")
+    assert mug.box == (334.73, 105.36, 503.28, 297.91)  # 0000/000001-box.txt's mug line
+    for f in frames:
+        for instance in f.instances:
+            u0, v0, u1, v1 = instance.box
+            rows, cols = np.nonzero(instance.mask)
+            assert u0 - 1 < cols.min() and cols.max() < u1 + 1, (f.name, instance.model_name)
+            assert v0 - 1 < rows.min() and rows.max() < v1 + 1, (f.name, instance.model_name)
+
+
 def test_models_listing(ycbv_dir):
     models = jr.io.read_ycbv_models(ycbv_dir / "models")
     assert len(models) == 21
@@ -139,6 +152,23 @@ def test_without_models_the_names_remain(ycbv_dir, tmp_path):
         "009_gelatin_box", "025_mug", "061_foam_brick"
     ]  # fmt: skip
     assert all(i.model_points is None for i in frame.instances)
+
+
+def test_boxes_absent_or_malformed(ycbv_dir, tmp_path):
+    """No box file: no boxes; a box file's bad line raises, naming the file and the line."""
+    folder = _copy_frame(ycbv_dir, tmp_path)
+    (frame,) = jr.io.read_ycbv(folder)
+    assert all(i.box is None for i in frame.instances)
+    box = folder / "000001-box.txt"
+    box.write_text("009_gelatin_box 185.27 131.89 324.51 322.94\n")
+    (frame,) = jr.io.read_ycbv(folder)
+    assert [i.box for i in frame.instances] == [(185.27, 131.89, 324.51, 322.94), None, None]
+    box.write_text("009_gelatin_box 185.27 131.89 324.51 322.94\n025_mug 334.73 105.36\n")
+    with pytest.raises(ValueError, match=r"000001-box\.txt: line 2 is not '<model name> x1"):
+        jr.io.read_ycbv(folder)
+    box.write_text("009_gelatin_box 324.51 131.89 185.27 322.94\n")
+    with pytest.raises(ValueError, match=r"000001-box\.txt: line 1's box is not finite"):
+        jr.io.read_ycbv(folder)
 
 
 def test_malformed_input_names_the_file(ycbv_dir, tmp_path):

@@ -13,13 +13,17 @@ The layout read here (the dataset's own)::
     ROOT/data/<sequence>/<frame>-meta.mat    MATLAB v5: intrinsic_matrix (3, 3) pixels,
                                              factor_depth (counts per metre), cls_indexes
                                              (N, 1), poses (3, 4, N) [R | t] model -> camera
+    ROOT/data/<sequence>/<frame>-box.txt     optional: "<model name> x1 y1 x2 y2" per line, each
+                                             object's 2D box (pixels, x = column, y = row)
     ROOT/models/models.txt                   one line per class (line c = class index c), the
                                              model's folder name as the path's parent folder
     ROOT/models/<name>/points.xyz            surface points "x y z" per line, metres
 
 `<frame>` is the frame id (digits, ``000001``). The instances of a frame are those of its
 ``cls_indexes``; an instance's mask is ``label == class_index``: the annotation's mask, which
-like any segmenter's holds a few background and occluder pixels at its edges.
+like any segmenter's holds a few background and occluder pixels at its edges. An instance's
+box is its model's line of the box file: the annotation's box, which holds the whole mask and,
+where an occluder hides part of the object, may reach past it.
 """
 
 from __future__ import annotations
@@ -63,6 +67,9 @@ class YcbvInstance:
             camera), model frame -> camera frame, metres.
         model_points: ``(M, 3)`` float32 model surface points (metres, object frame), or
             ``None`` when no models folder was found.
+        box: ``(u0, v0, u1, v1)`` the object's 2D box from the frame's ``-box.txt`` (pixels:
+            ``u`` columns, ``v`` rows, ``u0 <= u1``, ``v0 <= v1``), or ``None`` when the frame
+            has no box file or the file does not list the object.
     """
 
     class_index: int
@@ -70,6 +77,7 @@ class YcbvInstance:
     mask: np.ndarray
     truth: SE3
     model_points: np.ndarray | None
+    box: tuple[float, float, float, float] | None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -146,6 +154,28 @@ def _read_label(path: Path) -> np.ndarray:
         return np.asarray(image, dtype=np.uint8)
 
 
+def _read_boxes(path: Path) -> dict[str, tuple[float, float, float, float]]:
+    """``{model name: (u0, v0, u1, v1)}`` (pixels) of a box file, ``{}`` when there is none."""
+    if not path.is_file():
+        return {}
+    boxes = {}
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        name, *corners = line.split()
+        try:
+            u0, v0, u1, v1 = (float(value) for value in corners)
+        except ValueError:
+            raise ValueError(
+                f"{path}: line {number} is not '<model name> x1 y1 x2 y2' (pixels): {line!r}"
+            ) from None
+        if not (np.isfinite([u0, v0, u1, v1]).all() and u0 <= u1 and v0 <= v1):
+            raise ValueError(f"{path}: line {number}'s box is not finite corners with x1 <= x2 "
+                             f"and y1 <= y2: {line!r}")  # fmt: skip
+        boxes[name] = (u0, v0, u1, v1)
+    return boxes
+
+
 def _meta_array(path: Path, meta: dict, key: str, shape: tuple | None) -> np.ndarray:
     if key not in meta:
         raise ValueError(f"{path}: no {key!r} (a YCB-Video meta file holds "
@@ -214,6 +244,7 @@ def _read_frame(prefix: Path, name: str, models: dict[str, np.ndarray] | None) -
                          "models are listed (models.txt)")  # fmt: skip
     intrinsics = Intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height)
     depth = np.where(counts > 0, counts / factor, np.nan).astype(np.float32)
+    boxes = _read_boxes(Path(f"{prefix}-box.txt"))
     instances = tuple(
         YcbvInstance(
             class_index=int(c),
@@ -221,6 +252,7 @@ def _read_frame(prefix: Path, name: str, models: dict[str, np.ndarray] | None) -
             mask=label == c,
             truth=SE3.from_matrix(pose),
             model_points=None if models is None else models[names[c - 1]],
+            box=boxes.get(names[c - 1]),
         )
         for c, pose in zip(classes, poses, strict=True)
     )
