@@ -33,15 +33,14 @@ __all__ = ["continuing", "height_tests", "sigmas_at"]
 # The pose's error-budget terms that move the model against the table and the segment (the
 # calibration moves both together; the ambiguity term is the alternatives', judged apart).
 LOCAL_TERMS = ("depth", "fit", "mismatch", "segmentation")
-# A segment point continues the model's surface where its own surface normal lies within this
-# angle (degrees) of the model's at the nearest model point: a points-only model's normal at
-# an edge leans up to ~45 / 2 degrees; a face meeting the model at a crease leans 45 or more.
-CONTINUING_ANGLE_DEG = 30.0
 # Neighbours (segment points) of each point whose principal axes give its surface normal.
 NORMAL_NEIGHBOURS = 10
 # Model points nearest a segment point that must all lie on one side of it, in its tangent
 # plane, for it to lie past the model's edge rather than in a gap between the model's samples.
 EDGE_NEIGHBOURS = 12
+# Of those, how many must lie in the point's tangent plane for the model to have a face there
+# (a face's edge holds a row of them; a crease's line between two faces holds fewer).
+IN_PLANE = 4
 # The 2% quantile of the segment's heights (underneath) lies this many depth-noise standard
 # deviations below its points' true lowest height (a Gaussian's 2% quantile).
 LOW_QUANTILE, LOW_QUANTILE_SIGMAS = 0.02, 2.054
@@ -68,14 +67,12 @@ def continuing(
     """Which of the segment's ``points`` ``(N, 3)`` (base frame) the model explains at the
     pose ``object_T_base`` ``(7,)`` (within ``gate`` metres, the fit's final correspondence
     distance), and which carry the model's surface on past its edge (``(N,)`` bool each):
-    farther than
-    ``gate`` (metres, the fit's final correspondence distance) from every model point, with
-    the nearest model point within ``allowed`` ``(N,)`` (metres) of the point's own tangent
-    plane (its normal from its ``NORMAL_NEIGHBOURS`` segment neighbours), and the two
-    normals within ``CONTINUING_ANGLE_DEG``. A real object's own surface stays within the
-    gate of its model; a larger object's face runs on in the model's face's plane; a touching
-    neighbour's face meets the model at a crease, and the background or an occluder lies off
-    the model's planes."""
+    farther than ``gate`` from every model point, in the plane of a face of the model that
+    ends short of them (:func:`_past_edge`; the point's tangent plane from its
+    ``NORMAL_NEIGHBOURS`` segment neighbours, ``allowed`` ``(N,)`` metres off it). A real
+    object's own surface stays within the gate of its model; a larger object's face runs on
+    in the model's face's plane; a touching neighbour's face meets the model at a crease, and
+    the background or an occluder lies off the model's planes."""
     points = np.asarray(points, np.float64)
     if len(points) < 3:
         return np.zeros(len(points), bool), np.zeros(len(points), bool)
@@ -83,34 +80,34 @@ def continuing(
     moved = rotation.apply(points) + np.asarray(object_T_base[4:], np.float64)
     rows = np.flatnonzero(np.all(np.isfinite(model.points), axis=1))
     tree = cKDTree(model.points[rows])
-    distance, nearest = tree.query(moved)
+    distance, _ = tree.query(moved)
     far = distance > gate
     if not far.any():
         return ~far, far
     normals = np.asarray(estimate_normals(moved, min(NORMAL_NEIGHBOURS, len(moved))), np.float64)
-    offset = np.abs(np.sum(normals * (moved - model.points[rows][nearest]), axis=1))
-    theirs = np.asarray(model.normals, np.float64)[rows][nearest]
-    cosine = np.abs(np.sum(normals * theirs, axis=1)) / np.maximum(
-        np.linalg.norm(theirs, axis=1), 1e-12
+    runs_on = far.copy()
+    runs_on[far] = _past_edge(
+        tree, model.points[rows], moved[far], normals[far], np.broadcast_to(allowed, far.shape)[far]
     )
-    runs_on = far & (offset <= allowed) & (cosine >= np.cos(np.radians(CONTINUING_ANGLE_DEG)))
-    if runs_on.any():
-        runs_on[runs_on] = _past_edge(tree, model.points[rows], moved[runs_on], normals[runs_on])
     return ~far, runs_on
 
 
-def _past_edge(tree, model_points, points, normals) -> np.ndarray:
-    """``(N,)`` bool: whether each of ``points`` ``(N, 3)`` (object frame) lies past the
-    model's edge, not in a gap between its samples: its ``EDGE_NEIGHBOURS`` nearest model
-    points, seen in the point's tangent plane (``normals`` ``(N, 3)``), all lie on one side
-    of it (each within 90 degrees of their mean direction)."""
+def _past_edge(tree, model_points, points, normals, allowed) -> np.ndarray:
+    """``(N,)`` bool: whether each of ``points`` ``(N, 3)`` (object frame) carries a face of
+    the model on past its edge: of its ``EDGE_NEIGHBOURS`` nearest model points,
+    ``IN_PLANE`` or more lie within ``allowed`` ``(N,)`` (metres) of the point's tangent
+    plane (``normals`` ``(N, 3)``: the model has a face there), and all of them, seen in that
+    plane, lie on one side of the point (each within 90 degrees of their mean direction: past
+    the edge, not in a gap between the model's samples)."""
     _, near = tree.query(points, EDGE_NEIGHBOURS)
     offsets = model_points[near] - points[:, None]
-    offsets -= np.sum(offsets * normals[:, None], axis=2, keepdims=True) * normals[:, None]
+    across = np.sum(offsets * normals[:, None], axis=2)
+    in_plane = (np.abs(across) <= allowed[:, None]).sum(1) >= IN_PLANE
+    offsets -= across[..., None] * normals[:, None]
     unit = offsets / np.maximum(np.linalg.norm(offsets, axis=2, keepdims=True), 1e-12)
     mean = unit.sum(1)
     mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
-    return np.all(np.sum(unit * mean[:, None], axis=2) > 0.0, axis=1)
+    return in_plane & np.all(np.sum(unit * mean[:, None], axis=2) > 0.0, axis=1)
 
 
 @dataclasses.dataclass(frozen=True)
