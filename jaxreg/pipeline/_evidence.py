@@ -28,7 +28,7 @@ from scipy.stats import norm
 from jaxreg.pipeline._model import _Model
 from jaxreg.search.normals import estimate_normals
 
-__all__ = ["continuing", "height_tests", "sigmas_at"]
+__all__ = ["continuing", "height_tests", "near_model", "sigmas_at"]
 
 # The pose's error-budget terms that move the model against the table and the segment (the
 # calibration moves both together; the ambiguity term is the alternatives', judged apart).
@@ -38,9 +38,10 @@ NORMAL_NEIGHBOURS = 10
 # Model points nearest a segment point that must all lie on one side of it, in its tangent
 # plane, for it to lie past the model's edge rather than in a gap between the model's samples.
 EDGE_NEIGHBOURS = 12
-# Of those, how many must lie in the point's tangent plane for the model to have a face there
-# (a face's edge holds a row of them; a crease's line between two faces holds fewer).
-IN_PLANE = 4
+# A point runs the model's surface on when the segment's points within GROW_RADIUS gates of it
+# that the model explains (or that run it on) lie in its tangent plane, IN_PLANE of them at
+# least; GROW_STEPS such steps reach out from the model's edge.
+IN_PLANE, GROW_RADIUS, GROW_STEPS = 4, 2.0, 4
 # The 2% quantile of the segment's heights (underneath) lies this many depth-noise standard
 # deviations below its points' true lowest height (a Gaussian's 2% quantile).
 LOW_QUANTILE, LOW_QUANTILE_SIGMAS = 0.02, 2.054
@@ -60,6 +61,21 @@ def sigmas_at(frame, noise, points: np.ndarray) -> np.ndarray:
     return np.asarray(noise.axial_sigma(depth), np.float64)
 
 
+def near_model(model: _Model, object_T_base: np.ndarray, points: np.ndarray, distance: float):
+    """The rows of ``points`` ``(N, 3)`` (base frame) within ``distance`` (metres) of a model
+    point at the pose ``object_T_base`` ``(7,)``: the segment's points the model may explain,
+    whose extent says how large the object is (a touching neighbour's far side says
+    nothing)."""
+    points = np.asarray(points, np.float64)
+    if not len(points) or not np.all(np.isfinite(object_T_base)):
+        return points
+    rotation = Rotation.from_quat(np.asarray(object_T_base[:4], np.float64), scalar_first=True)
+    moved = rotation.apply(points) + np.asarray(object_T_base[4:], np.float64)
+    rows = np.all(np.isfinite(model.points), axis=1)
+    distances, _ = cKDTree(model.points[rows]).query(moved, distance_upper_bound=distance)
+    return points[distances <= distance]
+
+
 def continuing(
     model: _Model, object_T_base: np.ndarray, points: np.ndarray, gate: float,
     allowed: np.ndarray,
@@ -67,12 +83,14 @@ def continuing(
     """Which of the segment's ``points`` ``(N, 3)`` (base frame) the model explains at the
     pose ``object_T_base`` ``(7,)`` (within ``gate`` metres, the fit's final correspondence
     distance), and which carry the model's surface on past its edge (``(N,)`` bool each):
-    farther than ``gate`` from every model point, in the plane of a face of the model that
-    ends short of them (:func:`_past_edge`; the point's tangent plane from its
-    ``NORMAL_NEIGHBOURS`` segment neighbours, ``allowed`` ``(N,)`` metres off it). A real
-    object's own surface stays within the gate of its model; a larger object's face runs on
-    in the model's face's plane; a touching neighbour's face meets the model at a crease, and
-    the background or an occluder lies off the model's planes."""
+    farther than ``gate`` from every model point and past the model's edge
+    (:func:`_past_edge`), with half or more of the segment's explained or running-on points
+    within ``GROW_RADIUS`` gates of it (``IN_PLANE`` at least) in its tangent plane (its
+    normal from its ``NORMAL_NEIGHBOURS`` segment neighbours; ``allowed`` ``(N,)`` metres off
+    it), grown from the explained points outward for up to ``GROW_STEPS`` steps: the measured
+    surface runs on flat across the model's edge. A real object's own surface stays within the
+    gate of its model; a larger object's face runs on past it; a touching neighbour's face
+    meets the model's at a crease, and the background or an occluder lies off it."""
     points = np.asarray(points, np.float64)
     if len(points) < 3:
         return np.zeros(len(points), bool), np.zeros(len(points), bool)
@@ -85,29 +103,40 @@ def continuing(
     if not far.any():
         return ~far, far
     normals = np.asarray(estimate_normals(moved, min(NORMAL_NEIGHBOURS, len(moved))), np.float64)
-    runs_on = far.copy()
-    runs_on[far] = _past_edge(
-        tree, model.points[rows], moved[far], normals[far], np.broadcast_to(allowed, far.shape)[far]
-    )
+    allowed = np.broadcast_to(np.asarray(allowed, np.float64), far.shape)
+    past = np.flatnonzero(far)[_past_edge(tree, model.points[rows], moved[far], normals[far])]
+    runs_on = np.zeros(len(points), bool)
+    if not len(past):
+        return ~far, runs_on
+    nearby = cKDTree(moved).query_ball_point(moved[past], GROW_RADIUS * gate)
+    for _ in range(GROW_STEPS):  # from the explained points outward, one radius a step
+        grown = False
+        for k, i in enumerate(past):
+            if runs_on[i]:
+                continue
+            others = [j for j in nearby[k] if (~far[j] or runs_on[j]) and j != i]
+            if len(others) < IN_PLANE:
+                continue
+            across = np.abs((moved[others] - moved[i]) @ normals[i])
+            if np.mean(across <= allowed[i]) >= 0.5:
+                runs_on[i] = grown = True
+        if not grown:
+            break
     return ~far, runs_on
 
 
-def _past_edge(tree, model_points, points, normals, allowed) -> np.ndarray:
-    """``(N,)`` bool: whether each of ``points`` ``(N, 3)`` (object frame) carries a face of
-    the model on past its edge: of its ``EDGE_NEIGHBOURS`` nearest model points,
-    ``IN_PLANE`` or more lie within ``allowed`` ``(N,)`` (metres) of the point's tangent
-    plane (``normals`` ``(N, 3)``: the model has a face there), and all of them, seen in that
-    plane, lie on one side of the point (each within 90 degrees of their mean direction: past
-    the edge, not in a gap between the model's samples)."""
+def _past_edge(tree, model_points, points, normals) -> np.ndarray:
+    """``(N,)`` bool: whether each of ``points`` ``(N, 3)`` (object frame) lies past the
+    model's edge, not in a gap between its samples: its ``EDGE_NEIGHBOURS`` nearest model
+    points, seen in the point's tangent plane (``normals`` ``(N, 3)``), all lie on one side
+    of it (each within 90 degrees of their mean direction)."""
     _, near = tree.query(points, EDGE_NEIGHBOURS)
     offsets = model_points[near] - points[:, None]
-    across = np.sum(offsets * normals[:, None], axis=2)
-    in_plane = (np.abs(across) <= allowed[:, None]).sum(1) >= IN_PLANE
-    offsets -= across[..., None] * normals[:, None]
+    offsets -= np.sum(offsets * normals[:, None], axis=2, keepdims=True) * normals[:, None]
     unit = offsets / np.maximum(np.linalg.norm(offsets, axis=2, keepdims=True), 1e-12)
     mean = unit.sum(1)
     mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
-    return in_plane & np.all(np.sum(unit * mean[:, None], axis=2) > 0.0, axis=1)
+    return np.all(np.sum(unit * mean[:, None], axis=2) > 0.0, axis=1)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -43,7 +43,14 @@ from jaxreg.pipeline._coarse import (
 )
 from jaxreg.pipeline._colour import colour_match, other_colour
 from jaxreg.pipeline._error_sources import _pixels, mismatch_sigma, pose_budget
-from jaxreg.pipeline._evidence import LOCAL_TERMS, continuing, height_tests, sigmas_at, z_score
+from jaxreg.pipeline._evidence import (
+    LOCAL_TERMS,
+    continuing,
+    height_tests,
+    near_model,
+    sigmas_at,
+    z_score,
+)
 from jaxreg.pipeline._judge import (
     CONTESTED_WITHIN,
     EQUAL_WITHIN,
@@ -103,6 +110,8 @@ class Tolerances:
     Attributes:
         distances: ``(30,)`` float32 the refinement's correspondence distances (metres, 15 mm
             down to the final one).
+        near: the coarse search's last correspondence distance (metres): a segment's points
+            farther than this from the model at a coarse pose are another object's.
         max_rmse: the largest inlier RMSE of a fit (metres).
         max_overhang: how far the segment may span beyond the model (metres).
         sigma_z: the depth noise's standard deviation at the segment's depth (metres).
@@ -113,6 +122,7 @@ class Tolerances:
     """
 
     distances: np.ndarray
+    near: float
     max_rmse: float
     max_overhang: float
     sigma_z: float
@@ -142,7 +152,8 @@ def tolerances(model, noise, depth: float, settings: PipelineSettings) -> Tolera
     expected = float(np.sqrt(rms**2 + sigma**2 + mismatch_sigma(model) ** 2))
     max_rmse = RESIDUAL_FACTOR * expected if r.max_inlier_rmse is None else r.max_inlier_rmse
     max_below = max(r.max_overhang, NOISE_SIGMAS * sigma)
-    return Tolerances(distances, max_rmse, r.max_overhang, sigma, max_below)
+    near = float(settings.coarse_distances[-1])
+    return Tolerances(distances, near, max_rmse, r.max_overhang, sigma, max_below)
 
 
 def _camera_depth(frame, points: np.ndarray) -> float:
@@ -240,10 +251,11 @@ def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, set
     Rivals are the candidates that share no cluster with the winner nor with the pieces its pose
     explains (``joined``, :func:`_joined`: parts of one object are no rivals) and whose coarse
     score is within ``CONTESTED_WITHIN`` standard errors of the winner's (or above it;
-    :func:`evidence_gap` over the winner's ``PATCH`` cubes), in the order of ``scored``. One
-    within ``EQUAL_WITHIN`` whose coarse pose keeps within ``max_overhang`` of the model's span
-    is a twin. For the others, both are refined and probed (:func:`_rival_fit`), and the rival
-    is a twin unless the winner's fit keeps to it and is better by more than ``EQUAL_WITHIN``
+    :func:`evidence_gap` over the winner's ``PATCH`` cubes), in the order of ``scored``. Both
+    are refined and probed (:func:`_rival_fit`); a rival that no fit of the model passes the
+    answer's gates on is no twin (a coarse score on 128 points says little: a mug's coarse
+    pose fits a brick's corner), and one that does is a twin unless the winner's fit keeps to
+    it and is better by more than ``EQUAL_WITHIN``
     both in score and in how well the model fits what the segment shows
     (:func:`_clearly_better`), or the rival's fits all go beyond it where its coarse span did
     too. A coarse pose a few degrees off (a mug's handle where the image sees through it) can
@@ -272,10 +284,8 @@ def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, set
         if group & set(candidates[slot][0]) or not gap <= CONTESTED_WITHIN:
             continue
         within = bounds[0] <= gates.max_overhang
-        if within and gap <= EQUAL_WITHIN:
-            return slot
         ours, theirs = fit(chosen), fit(slot)
-        if not (within or theirs[2]):
+        if not theirs[3] or not (within or theirs[2]):
             continue
         if not (ours[2] and _clearly_better(ours[:2], theirs[:2], patches)):
             return slot
@@ -296,7 +306,7 @@ def _clearly_better(fit, other, patches: int) -> bool:
 
 
 def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, noise, rng, eye):
-    """A candidate's best fit ``(score, shown, within)``: its coarse poses refined
+    """A candidate's best fit ``(score, shown, within, fits)``: its coarse poses refined
     (:func:`_refit`), and the best of them probed as an answer is
     (:func:`~jaxreg.pipeline._answer._probe`: a mug whose coarse poses all put the handle where
     the image sees through it may find it); the best one's score, ``shown``, the share of the
@@ -304,26 +314,39 @@ def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, n
     aside), and whether that fit keeps to what the frame allows (:func:`_bounds`,
     :func:`_within`, placed on the table where it rests on it). The best is among the fits that
     keep to it where there are any: a mug turned about its axis spans its handle beyond the
-    model."""
+    model. ``fits``: whether any of its refined or probed fits passes the gates an answer must
+    pass (residual, explained, confirmed and contradicted shares): a segment that no fit of the
+    model passes is no rival, however its coarse score compares."""
     fit = _refit(frame, model, plane, points, poses, explained, gates, settings, noise, rng,
                  eye)  # fmt: skip
     first = fit.ranked[:1]
     best = np.asarray(fit.results.pose.wxyz_xyz[first[0]])
-    poses, scores, rmses, _, seen = _probe(
+    poses, scores, rmses, passes, seen = _probe(
         frame, plane, model, fit.source, best, fit.trim, noise, gates.distances, gates.max_rmse,
         eye, settings,
     )  # fmt: skip
+    s = settings.register
+    judged = fit.seen[first, :3].sum(1).clip(min=1)
+    first_passes = (
+        (fit.rmses[first] <= gates.max_rmse)
+        & (np.asarray(fit.results.inlier_fraction)[first] >= s.min_inlier_fraction)
+        & (fit.seen[first, 0] / judged >= s.min_confirmed)
+        & (fit.seen[first, 1] / judged <= s.max_contradicted)
+    )
     poses = np.concatenate([_onto_table(model, best[None], plane, settings)[0], poses])
     seen = np.concatenate([fit.seen[first], seen]).astype(np.float64)
     scores = np.concatenate([fit.scores[first], scores])
     rmses = np.concatenate([fit.rmses[first], rmses])
-    within = np.array([_within(_bounds(model, plane, pose, points), gates) for pose in poses])
+    passes = np.concatenate([first_passes, passes])
+    within = np.array(
+        [_within(_bounds(model, plane, pose, points, gates.near), gates) for pose in poses]
+    )
     kept = np.flatnonzero(within) if within.any() else np.arange(len(poses))
     top = kept[fit_order(scores[kept], rmses[kept])[0]]
     # score = explained * confirmed / judged, so explained * confirmed / (confirmed +
     # contradicted) = score * judged / (confirmed + contradicted)
     shown = scores[top] * seen[top, :3].sum() / max(seen[top, :2].sum(), 1.0)
-    return float(scores[top]), float(shown), bool(within[top])
+    return float(scores[top]), float(shown), bool(within[top]), bool(passes.any())
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -363,7 +386,9 @@ def _refit(frame, model, plane, points, poses, explained, gates, settings, noise
     ranked = fit_order(scores, rmses)
     if len(ranked) > 1:  # (one fit ranks first whatever it keeps to)
         placed, _ = _onto_table(model, fitted, plane, settings)  # as answers are placed
-        within = np.array([_within(_bounds(model, plane, p, points), gates) for p in placed])
+        within = np.array(
+            [_within(_bounds(model, plane, p, points, gates.near), gates) for p in placed]
+        )
         ranked = np.concatenate([ranked[within[ranked]], ranked[~within[ranked]]])
     return _Refit(source, trim, len(picks), results, scores, rmses, seen, ranked)
 
@@ -410,27 +435,30 @@ def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, 
     )
     scored = []
     for i, cloud in enumerate(clouds):
-        spans = [overhang(model, pose, cloud).max() for pose in poses[i]]
+        spans = [overhang(model, pose, near_model(model, pose, cloud, gates.near)).max()
+                 for pose in poses[i]]  # fmt: skip
         first = next((k for k, span in enumerate(spans) if span <= gates.max_overhang), 0)
         order = [first, *(k for k in range(len(spans)) if k != first)]
         poses[i], explained[i], seen[i] = poses[i, order], explained[i, order], seen[i, order]
         confirmed, contradicted, _ = _support(seen[i, 0])
         score = float(explained[i, 0]) * confirmed
-        bounds = _bounds(model, plane, poses[i, 0], cloud)
+        bounds = _bounds(model, plane, poses[i, 0], cloud, gates.near)
         scored.append((score, float(explained[i, 0]), contradicted, bounds, i))
     # larger objects (or an unmeasurable span) last
     scored.sort(key=lambda item: (not item[3][0] <= gates.max_overhang, -item[0]))
     return _Coarse(poses, explained, seen), scored
 
 
-def _bounds(model, plane, object_T_base: np.ndarray, points: np.ndarray) -> np.ndarray:
+def _bounds(model, plane, object_T_base: np.ndarray, points: np.ndarray, near) -> np.ndarray:
     """How far the pose ``object_T_base`` ``(7,)`` goes beyond what the frame allows (metres,
-    ``(3,)``): the segment ``points``' largest span beyond the model
-    (:func:`~jaxreg.pipeline._judge.overhang`; NaN where it cannot be measured), the model's
+    ``(3,)``): the largest span beyond the model of the segment ``points`` within ``near``
+    (metres) of it (:func:`~jaxreg.pipeline._evidence.near_model`: a touching neighbour's far
+    side is no evidence; :func:`~jaxreg.pipeline._judge.overhang`; NaN where it cannot be
+    measured), the model's
     depth in the table (:func:`~jaxreg.pipeline._judge.sunk`) and the segment's reach below
     the model (:func:`~jaxreg.pipeline._judge.underneath`)."""
     return np.array([
-        overhang(model, object_T_base, points).max(),
+        overhang(model, object_T_base, near_model(model, object_T_base, points, near)).max(),
         sunk(model, plane, object_T_base),
         underneath(model, plane, object_T_base, points),
     ])  # fmt: skip

@@ -67,12 +67,14 @@ def _segment(frame: RGBDFrame, model, settings: SegmentSettings, key):
 def _table_route(frame, model, settings: SegmentSettings, key, pixel, box, palette) -> Segmented:
     """Plane and clusters; every cluster (or the one a ``pixel`` prompt names), alone and with
     the clusters within 1.2 model radii of it, whose diameter is at most the model's plus
-    ``cluster_margin``; the ``max_candidates`` largest. A ``box`` prompt's candidates are the
-    clusters it holds, most grid points inside first, each cut to the box whatever its size:
-    a detector's box holds the object and the neighbours it touches, which the model's fit
-    explains away (:mod:`jaxreg.pipeline._evidence`). Unprompted, with a ``palette`` and the
-    frame's RGB, the clusters whose pixels do not show the model's colours are no candidates,
-    and the grid points of another colour are left out of the others' (:func:`_by_colour`)."""
+    ``cluster_margin``, the largest first, then those larger than the model (an object
+    touching its neighbours), nearest the model's size first; ``max_candidates`` in all. A
+    ``box`` prompt's candidates are the clusters it holds, most grid points inside first, each
+    cut to the box whatever its size: a detector's box holds the object and the neighbours it
+    touches, which the model's fit explains away (:mod:`jaxreg.pipeline._evidence`).
+    Unprompted, with a ``palette`` and the frame's RGB, the clusters whose pixels do not show
+    the model's colours are no candidates, and the grid points of another colour are left out
+    of the others' (:func:`_by_colour`)."""
     s = settings
     start = time.perf_counter()
     seg = _segment(frame, model, s, key)
@@ -130,7 +132,7 @@ def _table_route(frame, model, settings: SegmentSettings, key, pixel, box, palet
         keep &= ~other_points
         used = palette
         record = dataclasses.replace(record, other_color=other, stripped_by_color=stripped)
-    candidates, spans = [], []
+    candidates, larger, spans = [], [], []
     for group in groups:  # a partial view's centroid is off the object's: compare diameters
         if set(group) & set(other):
             continue
@@ -138,6 +140,8 @@ def _table_route(frame, model, settings: SegmentSettings, key, pixel, box, palet
         spans.append(diameter(cloud) if len(cloud) else np.inf)
         if len(cloud) and (box is not None or spans[-1] <= model.diameter + s.cluster_margin):
             candidates.append((group, cloud))
+        elif np.isfinite(spans[-1]):
+            larger.append((spans[-1], group, cloud))
     if not candidates and other:
         fail(
             f"every cluster shows other colours than the model's (clusters {other} under "
@@ -146,7 +150,10 @@ def _table_route(frame, model, settings: SegmentSettings, key, pixel, box, palet
             "object with pixel=, box= or mask="
         )
     candidates.sort(key=lambda item: -len(item[1]))
-    candidates = candidates[: s.max_candidates]
+    # clusters larger than the model (the object and the neighbours it touches) fill the
+    # slots left, nearest the model's size first: the model's fit carves the object out
+    larger.sort(key=lambda item: item[0])
+    candidates = (candidates + [(group, cloud) for _, group, cloud in larger])[: s.max_candidates]
     if not candidates:
         fail(
             f"no cluster of the model's size: cluster radii {record.cluster_radii_mm} mm, "

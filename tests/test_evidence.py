@@ -1,0 +1,132 @@
+"""The register stage's evidence tests (jaxreg.pipeline._evidence) on hand-made geometry: a
+surface that runs on past the model's edge against a neighbour's face meeting it at a crease,
+and heights against the table judged by the pose's uncertainty."""
+
+import numpy as np
+import pytest
+
+from jaxreg.pipeline._evidence import continuing, height_tests, near_model, z_score
+from jaxreg.pipeline._model import _prepare_model
+from jaxreg.pipeline.segment import TablePlane
+
+IDENTITY = np.array([1.0, 0, 0, 0, 0, 0, 0])
+HALF = np.array([0.04, 0.025, 0.06])  # an 80 x 50 x 120 mm box, centred at the origin
+
+
+def _face_grid(u_range, v_range, step, place):
+    """Points ``place(u, v) -> (3,)`` on a ``step`` grid over the two ranges (metres)."""
+    u, v = np.meshgrid(np.arange(*u_range, step), np.arange(*v_range, step), indexing="ij")
+    return np.stack([place(a, b) for a, b in zip(u.ravel(), v.ravel(), strict=True)])
+
+
+def _box_surface(step=0.004):
+    """Points on the box's six faces (metres)."""
+    faces = []
+    for axis in range(3):
+        others = [k for k in range(3) if k != axis]
+        for sign in (-1.0, 1.0):
+
+            def place(a, b, axis=axis, others=others, sign=sign):
+                p = np.zeros(3)
+                p[axis] = sign * HALF[axis]
+                p[others[0]], p[others[1]] = a, b
+                return p
+
+            faces.append(
+                _face_grid(
+                    (-HALF[others[0]], HALF[others[0]] + 1e-9),
+                    (-HALF[others[1]], HALF[others[1]] + 1e-9),
+                    step,
+                    place,
+                )
+            )
+    return np.concatenate(faces).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def box():
+    return _prepare_model(_box_surface(), None, 0.004, 0.04, 0.015)
+
+
+def _top(x_range, step=0.004):
+    """Points on the plane of the box's top face (z = +60 mm) over ``x_range``, y across it."""
+    return _face_grid(
+        x_range, (-HALF[1], HALF[1] + 1e-9), step, lambda a, b: np.array([a, b, HALF[2]])
+    )
+
+
+def test_a_face_running_on_past_the_edge_is_counted_and_its_own_points_are_explained(box):
+    """The box's top face carried on 30 mm past its +x edge (a longer box): the points beyond
+    the 6 mm gate run on; those on the face are explained; none of the face's own points
+    runs on."""
+    points = _top((-HALF[0], HALF[0] + 0.03))
+    allowed = np.full(len(points), 0.003)
+    explained, runs_on = continuing(box, IDENTITY, points, 0.006, allowed)
+    beyond = points[:, 0] > HALF[0] + 0.006 + 1e-6
+    assert not runs_on[points[:, 0] <= HALF[0]].any()
+    assert explained[points[:, 0] <= HALF[0]].all()
+    assert runs_on[beyond].mean() > 0.8
+    assert not explained[beyond].any()
+
+
+def _wall(x: float):
+    """A face in the plane ``x`` (metres) rising from 8 to 50 mm above the box's top."""
+    return _face_grid(
+        (HALF[2] + 0.008, HALF[2] + 0.05),
+        (-HALF[1], HALF[1] + 1e-9),
+        0.004,
+        lambda a, b: np.array([x, b, a]),
+    )
+
+
+def test_a_neighbour_meeting_the_model_at_a_crease_is_explained_away(box):
+    """A face standing on the middle of the box's top (an object on it, the plane x = 0: a
+    crease along the top face), and a neighbour's top 30 mm above the box's: neither is the
+    model's surface running on, so neither counts against it. A face flush with the box's
+    side (x = +40 mm) rising above its top is: depth cannot tell it from a taller box."""
+    higher = _top((HALF[0] + 0.002, HALF[0] + 0.04)) + np.array([0.0, 0.0, 0.03])
+    for points in (_wall(0.0), higher):
+        explained, runs_on = continuing(
+            box, IDENTITY, points, 0.006, np.full(len(points), 0.003)
+        )
+        assert not runs_on.any()
+        assert not explained.any()
+    side = _face_grid(
+        (0.0, HALF[2] + 1e-9), (-HALF[1], HALF[1] + 1e-9), 0.004,
+        lambda a, b: np.array([HALF[0], b, a]),
+    )  # fmt: skip
+    flush = np.concatenate([side, _wall(HALF[0])])
+    _, runs_on = continuing(box, IDENTITY, flush, 0.006, np.full(len(flush), 0.003))
+    assert not runs_on[: len(side)].any() and runs_on[len(side) :].mean() > 0.8
+
+
+def test_near_model_keeps_the_points_the_model_may_explain(box):
+    points = np.array([[0.0, 0.0, HALF[2] + 0.002], [0.0, 0.0, HALF[2] + 0.05]])
+    assert np.array_equal(near_model(box, IDENTITY, points, 0.01), points[:1])
+
+
+def test_heights_are_judged_against_the_poses_uncertainty(box):
+    """The box resting on the table z = 0 (its centre 60 mm up) sinks nothing; lowered 20 mm
+    it sinks 20 mm, refused with a millimetre's uncertainty, allowed when the pose's height
+    is uncertain by 10 mm (3.1 sigma = 31 mm); the points below the model likewise."""
+    plane = TablePlane(np.array([0.0, 0.0, 1.0]), np.float32(0.0), np.int32(1000), np.float32(1.0))
+    z = z_score(0.001)
+    assert z == pytest.approx(3.09, abs=0.01)
+    pose = np.eye(4)
+    pose[2, 3] = HALF[2]
+    tight = np.eye(6) * 1e-6  # 1 mm, 1 mrad
+    face = _top((-HALF[0], HALF[0])) - np.array([0, 0, 2 * HALF[2]])  # its bottom, on z = 0
+    resting = height_tests(box, plane, pose, tight, face + pose[:3, 3], 0.001, 0.001, z)
+    assert abs(resting.sunk) < 1e-3 and resting.sunk <= resting.sunk_allowed
+    assert resting.under <= resting.under_allowed
+    lowered = pose.copy()
+    lowered[2, 3] -= 0.02
+    sunk = height_tests(box, plane, lowered, tight, face + pose[:3, 3], 0.001, 0.001, z)
+    assert sunk.sunk == pytest.approx(0.02, abs=1e-3) and sunk.sunk > sunk.sunk_allowed
+    loose = np.diag([1e-4, 1e-4, 1e-4, 0, 0, 0])  # 10 mm per axis
+    allowed = height_tests(box, plane, lowered, loose, face + pose[:3, 3], 0.001, 0.001, z)
+    assert allowed.sunk <= allowed.sunk_allowed
+    raised = pose.copy()
+    raised[2, 3] += 0.02  # the segment's points now reach 20 mm below the model
+    under = height_tests(box, plane, raised, tight, face + pose[:3, 3], 0.001, 0.001, z)
+    assert under.under == pytest.approx(0.02, abs=1e-3) and under.under > under.under_allowed
