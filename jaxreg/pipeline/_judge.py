@@ -146,7 +146,9 @@ def overhang(model: _Model, object_T_base: np.ndarray, points: np.ndarray) -> np
     full span. An object's own points stay within its extent up to the depth noise, whatever
     part of it is visible (a partial view spans less: negative), so a positive overhang of
     several millimetres says the segment is a larger object of a similar shape, or the object
-    merged with a neighbour."""
+    merged with a neighbour. NaN without points."""
+    if not len(points):
+        return np.full(3, np.nan)
     rotation = Rotation.from_quat(np.asarray(object_T_base[:4], np.float64), scalar_first=True)
     moved = rotation.apply(np.asarray(points, np.float64)) + object_T_base[4:]
     along = (moved - model.centroid) @ model.axes

@@ -400,7 +400,8 @@ def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, 
     points within ``max_overhang`` of the model's span (a mug turned about its axis spans its
     handle beyond the model), or of its best pose when none does; that pose leads the
     candidate's poses of the returned ``_Coarse``. A candidate with no such pose (a larger
-    object of a similar shape, or a span that cannot be measured) ranks after those with one.
+    object of a similar shape, or a span that cannot be measured) ranks after those with one;
+    among the others the higher lower bound of the score ranks first (:func:`_lower_bound`).
     The heights are not judged here: a coarse pose may sit several millimetres off the table (an
     open tray's). ``noise``: the camera's ``DepthNoise`` (the image's judgement allows 4 sigma_z
     at each depth)."""
@@ -445,8 +446,21 @@ def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, 
         bounds = _bounds(model, plane, poses[i, 0], cloud, gates.near)
         scored.append((score, float(explained[i, 0]), contradicted, bounds, i))
     # larger objects (or an unmeasurable span) last
-    scored.sort(key=lambda item: (not item[3][0] <= gates.max_overhang, -item[0]))
+    scored.sort(
+        key=lambda item: (
+            not item[3][0] <= gates.max_overhang,
+            -_lower_bound(item[0], patch_count(clouds[item[4]])),
+        )
+    )
     return _Coarse(poses, explained, seen), scored
+
+
+def _lower_bound(score: float, patches: int) -> float:
+    """A coarse ``score`` (a share) less ``EQUAL_WITHIN`` standard errors of a share over
+    ``patches`` independent patches (at least that of a share of 0.1, as
+    :func:`~jaxreg.pipeline._judge.evidence_gap` weighs them): a few dozen points of a
+    fragment fit any model as well as a whole view does, and say far less."""
+    return score - EQUAL_WITHIN * np.sqrt(max(score * (1.0 - score), 0.09) / max(patches, 1))
 
 
 def _bounds(model, plane, object_T_base: np.ndarray, points: np.ndarray, near) -> np.ndarray:
@@ -553,10 +567,13 @@ def refine_stage(
         fail(f"the final registration failed: {best.status_message()}")
     problems = []
     z = z_score(s.false_refusal)
-    allowed = z * np.hypot(sigmas_at(frame, noise, points), mismatch_sigma(model))
+    sigmas = sigmas_at(frame, noise, points)
+    allowed = z * np.hypot(sigmas, mismatch_sigma(model))
     explained, runs_on = continuing(
         model, answers[ranked[0]], points, float(fine_distances[-1]), allowed
     )
+    if plane is not None:  # the table's own points run on the model's bottom face
+        runs_on &= np.asarray(plane.height(points)) > z * sigmas
     share = explained.sum() / max(int((explained | runs_on).sum()), 1)
     record = dataclasses.replace(
         record, explained_away=int((~explained & ~runs_on).sum()), runs_on=int(runs_on.sum())
