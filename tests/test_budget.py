@@ -263,10 +263,12 @@ def test_the_region_covers_the_truth_on_most_unseen_frames_of_every_object():
     found = study.found()
     assert len(found) == len(study.frames) == 8
     assert not any(np.any(np.isnan(f.covariance)) for f in found)
-    assert study.coverage(0.95) >= 6 / 8  # 85-99% over many frames (benchmarks/)
-    assert study.coverage(0.95, translation=True) >= 6 / 8
+    # on these 8 frames the truth lies inside every 95% region (85-99% over the many frames of
+    # benchmarks/: one frame outside here is a change to look at, not noise to allow)
+    assert study.coverage(0.95) == 1.0
+    assert study.coverage(0.95, translation=True) == 1.0
     for name in ("box", "mug", "cylinder", "container"):
-        assert study.coverage(0.99, name) >= 0.5, name
+        assert study.coverage(0.99, name) == 1.0, name  # both of its frames
     # bars that are not uselessly wide: the equally good starts and turns, weighed by their
     # evidence, widen them beyond the sensor noise alone
     assert study.sharpness() <= 5

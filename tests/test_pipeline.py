@@ -348,8 +348,8 @@ def test_bad_arguments_raise_clear_errors(scene):
 
 def test_a_larger_box_of_a_similar_shape_is_not_taken_for_the_target(scene):
     """Seed 128: beside the 80 x 50 x 120 mm target stands an 89 x 61 x 114 mm box, which the
-    box model fits as well by inlier fraction, residual and image support (it was claimed
-    before the extent test); only its points reaching beyond the model tell them apart."""
+    box model fits as well by inlier fraction, residual and image support; only its faces
+    running on past the model's edges tell them apart."""
     from jaxreg.pipeline._judge import overhang
     from jaxreg.pipeline._model import _prepare_model
     from jaxreg.synth import tabletop_scene
@@ -364,8 +364,8 @@ def test_a_larger_box_of_a_similar_shape_is_not_taken_for_the_target(scene):
         pixel=(float(np.median(cols)), float(np.median(rows))),
     )
     assert prompted.pose is None and prompted.failed_stage == "register"
-    assert "beyond the model" in prompted.reason
-    assert max(prompted.stages["register"].overhang_mm) > 3
+    assert "carry the model's surface on past its edge" in prompted.reason
+    assert prompted.stages["register"].runs_on >= (0.012 / 0.004) ** 2  # a patch's worth
     est = estimate_pose(other.frame, model, symmetry=symmetry)
     assert est.failed_stage is None
     assert float(add_s(other.model_points, est.pose, other.truth)) < 0.005
@@ -467,16 +467,16 @@ def test_a_mask_on_another_object_claims_no_pose(scene):
     for label in (2, 3):
         est = estimate_pose(cluttered.frame, model, mask=cluttered.labels == label)
         assert est.pose is None and est.failed_stage in ("segment", "register"), label
-    # another scene's mug mask (every scene centres its target): moved beside the box, and
-    # where it lies, over most of the box (there the box may be found: a pose, not a wrong one)
+    # another scene's mug mask (every scene centres its target): moved beside the box, no
+    # pose; where it lies, over most of the box, the box is found (a pose, and the right one)
     over = tabletop_scene(5, object="mug").mask
     beside = np.roll(over, 300, axis=1)
     assert not (beside & cluttered.mask).any() and (over & cluttered.mask).mean() > 0
     est = estimate_pose(cluttered.frame, model, mask=beside, symmetry=symmetry)
     assert est.pose is None and est.failed_stage is not None
     est = estimate_pose(cluttered.frame, model, mask=over, symmetry=symmetry)
-    if est.pose is not None:
-        assert float(add_s(cluttered.model_points, est.pose, cluttered.truth)) < 0.005
+    assert est.success, est.reason
+    assert float(add_s(cluttered.model_points, est.pose, cluttered.truth)) < 0.005
 
 
 def test_a_model_in_other_units_is_refused_naming_the_units(scene):
@@ -603,12 +603,10 @@ def test_a_rival_that_looks_better_at_coarse_is_refined_before_either_is_claimed
     coarse poses turned it about its axis, so its handle spanned 17 mm beyond the model and
     the mug was set aside as a larger object; a can was claimed, 234 mm away. Both segments
     are now refined and probed first (within the model's span); the can's fit is not clearly
-    better, so neither is claimed."""
+    better, so neither is claimed: both are refused as twins, the reason naming both."""
     scene, est = _held_out(seed, "mug", 8192)
-    if est.success:
-        assert float(add_s(scene.model_points, est.pose, scene.truth)) < 0.0127
-    else:
-        assert "two separate segments fit the model equally well" in est.reason
+    assert not est.success and est.failed_stage == "register"
+    assert "two separate segments fit the model equally well" in est.reason
 
 
 def test_sunk_and_underneath_measure_a_pose_against_the_table():
@@ -751,10 +749,8 @@ def test_a_winner_that_sits_on_a_taller_neighbour_is_not_clearly_better():
     outscored it at coarse, and refined, the mug model sat on top of the can, 24 mm above the
     table with the can's points beneath it; a rule that let that fit be clearly better than
     the mug's own claimed the can, 151 mm away. A fit with the segment reaching below the
-    model now goes beyond what the frame allows and is never clearly better: the mug is
-    found, or both are refused as twins."""
+    model now goes beyond what the frame allows and is never clearly better, and the mug's
+    own fit is not clearly better than the can's either: both are refused as twins."""
     scene, est = _held_out(11510, "mug", 2048)
-    if est.success:
-        assert float(add_s(scene.model_points, est.pose, scene.truth)) < 0.0127
-    else:
-        assert "two separate segments fit the model equally well" in est.reason
+    assert not est.success and est.failed_stage == "register"
+    assert "two separate segments fit the model equally well" in est.reason
