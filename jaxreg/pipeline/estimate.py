@@ -124,6 +124,7 @@ from jaxreg.pipeline.segment import TablePlane
 from jaxreg.pipeline.settings import PipelineSettings
 from jaxreg.uncertainty import DepthNoise
 from jaxreg.uncertainty.budget import PoseBudget
+from jaxreg.uncertainty.calibrated import BudgetCalibration
 
 __all__ = ["PoseEstimate", "estimate_pose", "visibility"]
 
@@ -205,6 +206,7 @@ def estimate_pose(
     box: tuple[float, float, float, float] | None = None,
     settings: PipelineSettings | None = None,
     progress: Callable[[str], object] | None = None,
+    calibration: BudgetCalibration | None = None,
     **keywords,
 ) -> PoseEstimate:
     """Estimate ``base_T_object`` of a model in one depth frame (see the module docstring).
@@ -240,6 +242,9 @@ def estimate_pose(
             calibration's uncertainty, propagated into the budget's calibration term.
         intrinsics_sigma: ``(4,)`` standard deviations of ``(fx, fy, cx, cy)`` (pixels).
         depth_scale_sigma: relative standard deviation of the depth scale (0.01 = 1%).
+        calibration: a :class:`~jaxreg.uncertainty.calibrated.BudgetCalibration` fitted on
+            frames of this object and camera (:func:`jaxreg.studies.calibrate`): the budget's
+            terms and the covariance are calibrated by it; ``None``: as measured.
         key: PRNG key of the plane hypotheses (default ``PRNGKey(0)``).
         pixel, box: optional prompt ``(u, v)`` or ``(u0, v0, u1, v1)`` (pixels) naming the
             object's cluster instead of scoring every candidate.
@@ -269,7 +274,7 @@ def estimate_pose(
     model_points, model_normals = _checked_model(frame, model_points, model_normals)
     mask = _checked_prompt(frame, mask, pixel, box)
     settings = (settings or PipelineSettings()).replace(**keywords)
-    calibration = Calibration(hand_eye_covariance, intrinsics_sigma, depth_scale_sigma)
+    stated = Calibration(hand_eye_covariance, intrinsics_sigma, depth_scale_sigma)
     key = jax.random.PRNGKey(0) if key is None else key
     progress = progress or (lambda stage: None)
     model = _prepare_model(
@@ -297,12 +302,20 @@ def estimate_pose(
         records["lift"] = lifted.record
         progress("register")
         found = refine_stage(
-            frame, model, coarse, lifted, plane, settings, noise, symmetry, calibration, rng
+            frame, model, coarse, lifted, plane, settings, noise, symmetry, stated, rng
         )
         records["register"] = found.record
-        return _found(found, lifted, records, plane)
+        return calibrated(_found(found, lifted, records, plane), calibration)
     except _Failed as failure:
         return _refused(frame, failure, records, plane)
+
+
+def calibrated(estimate: PoseEstimate, calibration: BudgetCalibration | None) -> PoseEstimate:
+    """``estimate`` with its budget and covariance calibrated (a success; else as it is)."""
+    if calibration is None or estimate.budget is None:
+        return estimate
+    budget = calibration.apply(estimate.budget)
+    return dataclasses.replace(estimate, budget=budget, covariance=budget.total)
 
 
 def _in_order(records: dict[str, Any]) -> dict[str, Any]:

@@ -57,10 +57,18 @@ from jaxreg.pipeline._model import PROBE_ANGLES_DEG, _prepare_model, viewpoint
 from jaxreg.pipeline._register_stage import refine_stage, tolerances
 from jaxreg.pipeline._stages import _Failed, _padded
 from jaxreg.pipeline._surface import mask_surface
-from jaxreg.pipeline.estimate import PoseEstimate, _checked_model, _found, _noise, _refused
+from jaxreg.pipeline.estimate import (
+    PoseEstimate,
+    _checked_model,
+    _found,
+    _noise,
+    _refused,
+    calibrated,
+)
 from jaxreg.pipeline.records import CoarseSearch, RegisterRecord, SegmentRecord
 from jaxreg.pipeline.settings import PipelineSettings
 from jaxreg.uncertainty import DepthNoise
+from jaxreg.uncertainty.calibrated import BudgetCalibration
 
 __all__ = ["track"]
 
@@ -87,6 +95,7 @@ def track(
     intrinsics_sigma: Float[Any, " 4"] | None = None,
     depth_scale_sigma: float = 0.0,
     settings: PipelineSettings | None = None,
+    calibration: BudgetCalibration | None = None,
     **keywords,
 ) -> PoseEstimate:
     """``base_T_object`` in ``frame`` starting from its pose in the previous frame.
@@ -105,7 +114,8 @@ def track(
             refused as lost.
         model_normals: as for :func:`jaxreg.estimate_pose`, and so are ``symmetry``,
             ``depth_noise``, ``hand_eye_covariance``, ``intrinsics_sigma``,
-            ``depth_scale_sigma``, ``settings`` and ``**keywords`` (the settings' fields).
+            ``depth_scale_sigma``, ``settings``, ``calibration`` and ``**keywords`` (the
+            settings' fields).
 
     Returns:
         A :class:`PoseEstimate`; its ``stages`` are ``segment`` (the projected footprint:
@@ -124,7 +134,7 @@ def track(
             f"max_motion and max_turn_deg must be positive, got {max_motion}, {max_turn_deg}"
         )
     settings = (settings or PipelineSettings()).replace(**keywords)
-    calibration = Calibration(hand_eye_covariance, intrinsics_sigma, depth_scale_sigma)
+    stated = Calibration(hand_eye_covariance, intrinsics_sigma, depth_scale_sigma)
     model = _prepare_model(
         model_points, model_normals, settings.voxel_size, float(settings.coarse_distances[0]),
         float(settings.fine_distances.max()),
@@ -144,7 +154,7 @@ def track(
         coarse = dataclasses.replace(coarse, explained=float(explained[:count].mean()))
         carried, turn = _carry(previous, frame, model, coarse.poses[0], len(lifted.points))
         found = refine_stage(
-            frame, model, coarse, lifted, table, settings, noise, symmetry, calibration,
+            frame, model, coarse, lifted, table, settings, noise, symmetry, stated,
             np.random.default_rng(0), carried,
         )  # fmt: skip
         found = dataclasses.replace(
@@ -153,7 +163,7 @@ def track(
         )  # fmt: skip
         records["register"] = found.record
         _check_motion(base_T_object, found, max_motion, max_turn_deg, lifted, symmetry)
-        return _found(found, lifted, records, table)
+        return calibrated(_found(found, lifted, records, table), calibration)
     except _Failed as failure:
         failure.reason += "; re-detect with estimate_pose"
         return _refused(frame, failure, records, table, prefix="lost: ")

@@ -32,6 +32,7 @@ from jaxreg.studies.bop_scores import (
     TargetErrors as TargetErrors,
     bop_scores as bop_scores,
 )
+from jaxreg.studies.budget_calibration import calibrate as calibrate
 from jaxreg.studies.calibration import (
     CalibrationStudy as CalibrationStudy,
     FrameOutcome as FrameOutcome,

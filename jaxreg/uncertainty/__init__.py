@@ -12,6 +12,10 @@ from jaxreg.uncertainty._pose_statistics import (
     PoseStatistics as PoseStatistics,
     pose_statistics as pose_statistics,
 )
+from jaxreg.uncertainty.calibrated import (
+    BudgetCalibration as BudgetCalibration,
+    fit_budget_calibration as fit_budget_calibration,
+)
 from jaxreg.uncertainty.grasp import (
     GraspPrediction as GraspPrediction,
     grasp_axis as grasp_axis,
