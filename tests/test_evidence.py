@@ -5,7 +5,7 @@ and heights against the table judged by the pose's uncertainty."""
 import numpy as np
 import pytest
 
-from jaxreg.pipeline._evidence import continuing, height_tests, near_model, z_score
+from jaxreg.pipeline._evidence import continuing, height_tests, z_score
 from jaxreg.pipeline._model import _prepare_model
 from jaxreg.pipeline.segment import TablePlane
 
@@ -98,11 +98,6 @@ def test_a_neighbour_meeting_the_model_at_a_crease_is_explained_away(box):
     flush = np.concatenate([side, _wall(HALF[0])])
     _, runs_on = continuing(box, IDENTITY, flush, 0.006, np.full(len(flush), 0.003))
     assert not runs_on[: len(side)].any() and runs_on[len(side) :].mean() > 0.8
-
-
-def test_near_model_keeps_the_points_the_model_may_explain(box):
-    points = np.array([[0.0, 0.0, HALF[2] + 0.002], [0.0, 0.0, HALF[2] + 0.05]])
-    assert np.array_equal(near_model(box, IDENTITY, points, 0.01), points[:1])
 
 
 def test_heights_are_judged_against_the_poses_uncertainty(box):

@@ -28,7 +28,7 @@ from scipy.stats import norm
 from jaxreg.pipeline._model import _Model
 from jaxreg.search.normals import estimate_normals
 
-__all__ = ["continuing", "height_tests", "near_model", "sigmas_at"]
+__all__ = ["continuing", "height_tests", "sigmas_at"]
 
 # The pose's error-budget terms that move the model against the table and the segment (the
 # calibration moves both together; the ambiguity term is the alternatives', judged apart).
@@ -59,21 +59,6 @@ def sigmas_at(frame, noise, points: np.ndarray) -> np.ndarray:
     axis = np.asarray(camera.rotation().as_matrix(), np.float64)[:, 2]
     depth = (np.asarray(points, np.float64) - np.asarray(camera.translation(), np.float64)) @ axis
     return np.asarray(noise.axial_sigma(depth), np.float64)
-
-
-def near_model(model: _Model, object_T_base: np.ndarray, points: np.ndarray, distance: float):
-    """The rows of ``points`` ``(N, 3)`` (base frame) within ``distance`` (metres) of a model
-    point at the pose ``object_T_base`` ``(7,)``: the segment's points the model may explain,
-    whose extent says how large the object is (a touching neighbour's far side says
-    nothing)."""
-    points = np.asarray(points, np.float64)
-    if not len(points) or not np.all(np.isfinite(object_T_base)):
-        return points
-    rotation = Rotation.from_quat(np.asarray(object_T_base[:4], np.float64), scalar_first=True)
-    moved = rotation.apply(points) + np.asarray(object_T_base[4:], np.float64)
-    rows = np.all(np.isfinite(model.points), axis=1)
-    distances, _ = cKDTree(model.points[rows]).query(moved, distance_upper_bound=distance)
-    return points[distances <= distance]
 
 
 def continuing(

@@ -47,7 +47,6 @@ from jaxreg.pipeline._evidence import (
     LOCAL_TERMS,
     continuing,
     height_tests,
-    near_model,
     sigmas_at,
     z_score,
 )
@@ -110,8 +109,6 @@ class Tolerances:
     Attributes:
         distances: ``(30,)`` float32 the refinement's correspondence distances (metres, 15 mm
             down to the final one).
-        near: the coarse search's last correspondence distance (metres): a segment's points
-            farther than this from the model at a coarse pose are another object's.
         max_rmse: the largest inlier RMSE of a fit (metres).
         max_overhang: how far the segment may span beyond the model (metres).
         sigma_z: the depth noise's standard deviation at the segment's depth (metres).
@@ -122,7 +119,6 @@ class Tolerances:
     """
 
     distances: np.ndarray
-    near: float
     max_rmse: float
     max_overhang: float
     sigma_z: float
@@ -152,8 +148,7 @@ def tolerances(model, noise, depth: float, settings: PipelineSettings) -> Tolera
     expected = float(np.sqrt(rms**2 + sigma**2 + mismatch_sigma(model) ** 2))
     max_rmse = RESIDUAL_FACTOR * expected if r.max_inlier_rmse is None else r.max_inlier_rmse
     max_below = max(r.max_overhang, NOISE_SIGMAS * sigma)
-    near = float(settings.coarse_distances[-1])
-    return Tolerances(distances, near, max_rmse, r.max_overhang, sigma, max_below)
+    return Tolerances(distances, max_rmse, r.max_overhang, sigma, max_below)
 
 
 def _camera_depth(frame, points: np.ndarray) -> float:
@@ -339,7 +334,7 @@ def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, n
     rmses = np.concatenate([fit.rmses[first], rmses])
     passes = np.concatenate([first_passes, passes])
     within = np.array(
-        [_within(_bounds(model, plane, pose, points, gates.near), gates) for pose in poses]
+        [_within(_bounds(model, plane, pose, points), gates) for pose in poses]
     )
     kept = np.flatnonzero(within) if within.any() else np.arange(len(poses))
     top = kept[fit_order(scores[kept], rmses[kept])[0]]
@@ -387,7 +382,7 @@ def _refit(frame, model, plane, points, poses, explained, gates, settings, noise
     if len(ranked) > 1:  # (one fit ranks first whatever it keeps to)
         placed, _ = _onto_table(model, fitted, plane, settings)  # as answers are placed
         within = np.array(
-            [_within(_bounds(model, plane, p, points, gates.near), gates) for p in placed]
+            [_within(_bounds(model, plane, p, points), gates) for p in placed]
         )
         ranked = np.concatenate([ranked[within[ranked]], ranked[~within[ranked]]])
     return _Refit(source, trim, len(picks), results, scores, rmses, seen, ranked)
@@ -436,14 +431,13 @@ def _score(frame, plane, model, settings: PipelineSettings, clouds, rng, noise, 
     )
     scored = []
     for i, cloud in enumerate(clouds):
-        spans = [overhang(model, pose, near_model(model, pose, cloud, gates.near)).max()
-                 for pose in poses[i]]  # fmt: skip
+        spans = [overhang(model, pose, cloud).max() for pose in poses[i]]
         first = next((k for k, span in enumerate(spans) if span <= gates.max_overhang), 0)
         order = [first, *(k for k in range(len(spans)) if k != first)]
         poses[i], explained[i], seen[i] = poses[i, order], explained[i, order], seen[i, order]
         confirmed, contradicted, _ = _support(seen[i, 0])
         score = float(explained[i, 0]) * confirmed
-        bounds = _bounds(model, plane, poses[i, 0], cloud, gates.near)
+        bounds = _bounds(model, plane, poses[i, 0], cloud)
         scored.append((score, float(explained[i, 0]), contradicted, bounds, i))
     # larger objects (or an unmeasurable span) last
     scored.sort(
@@ -463,16 +457,14 @@ def _lower_bound(score: float, patches: int) -> float:
     return score - EQUAL_WITHIN * np.sqrt(max(score * (1.0 - score), 0.09) / max(patches, 1))
 
 
-def _bounds(model, plane, object_T_base: np.ndarray, points: np.ndarray, near) -> np.ndarray:
+def _bounds(model, plane, object_T_base: np.ndarray, points: np.ndarray) -> np.ndarray:
     """How far the pose ``object_T_base`` ``(7,)`` goes beyond what the frame allows (metres,
-    ``(3,)``): the largest span beyond the model of the segment ``points`` within ``near``
-    (metres) of it (:func:`~jaxreg.pipeline._evidence.near_model`: a touching neighbour's far
-    side is no evidence; :func:`~jaxreg.pipeline._judge.overhang`; NaN where it cannot be
-    measured), the model's
+    ``(3,)``): the segment ``points``' largest span beyond the model
+    (:func:`~jaxreg.pipeline._judge.overhang`; NaN where it cannot be measured), the model's
     depth in the table (:func:`~jaxreg.pipeline._judge.sunk`) and the segment's reach below
     the model (:func:`~jaxreg.pipeline._judge.underneath`)."""
     return np.array([
-        overhang(model, object_T_base, near_model(model, object_T_base, points, near)).max(),
+        overhang(model, object_T_base, points).max(),
         sunk(model, plane, object_T_base),
         underneath(model, plane, object_T_base, points),
     ])  # fmt: skip
@@ -572,8 +564,8 @@ def refine_stage(
     explained, runs_on = continuing(
         model, answers[ranked[0]], points, float(fine_distances[-1]), allowed
     )
-    if plane is not None:  # the table's own points run on the model's bottom face
-        runs_on &= np.asarray(plane.height(points)) > z * sigmas
+    if plane is not None:  # the table's own points, past the lift's band, run on no face
+        runs_on &= np.asarray(plane.height(points)) > 2 * z * sigmas
     share = explained.sum() / max(int((explained | runs_on).sum()), 1)
     record = dataclasses.replace(
         record, explained_away=int((~explained & ~runs_on).sum()), runs_on=int(runs_on.sum())
