@@ -22,9 +22,9 @@ from jaxreg.geometry.metrics import Symmetry, canonicalise
 from jaxreg.pipeline._coarse import DISTINCT_ANGLE, DISTINCT_DISTANCE, _starts_in_pieces
 from jaxreg.pipeline._judge import (
     EQUAL_WITHIN,
-    _confirmed_share,
     evidence_gap,
     judged_fits,
+    passes_gates,
 )
 from jaxreg.pipeline._model import PROBE_ANGLES_DEG, _bucketed_symmetry, _Model
 from jaxreg.pipeline.records import Alternatives, EquivalentPose, MeasuredView
@@ -136,13 +136,7 @@ def _probe(frame, plane, model, source, answer, trim, noise, distances, max_rmse
     refined = np.asarray(probed.pose.wxyz_xyz)
     poses, _ = _onto_table(model, refined, plane, settings)
     scores, rmses, seen = judged_fits(frame, plane, refined, model.points, probed, noise)
-    s = settings.register
-    passes = (
-        (rmses <= max_rmse)
-        & (np.asarray(probed.inlier_fraction) >= s.min_inlier_fraction)
-        & (_confirmed_share(seen) >= s.min_confirmed)
-        & (seen[:, 1] / seen[:, :3].sum(1).clip(min=1) <= s.max_contradicted)
-    )
+    passes = passes_gates(probed.inlier_fraction, rmses, seen, max_rmse, settings.register)
     return poses, scores, rmses, passes, seen
 
 

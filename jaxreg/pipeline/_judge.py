@@ -214,6 +214,20 @@ def judged_fits(frame, plane, poses, model_points, results, noise):
     return scores, rmses, seen
 
 
+def passes_gates(fractions, rmses, seen, max_rmse: float, register) -> np.ndarray:
+    """``(S,)`` bool: which fits pass the gates an answer must pass: residual ``rmses`` within
+    ``max_rmse`` (metres), explained ``fractions`` at least ``register.min_inlier_fraction``,
+    and of the image's counts ``seen`` ``(S, 5)`` the confirmed share at least
+    ``min_confirmed`` and the contradicted share at most ``max_contradicted``."""
+    seen = np.asarray(seen)
+    return (
+        (np.asarray(rmses) <= max_rmse)
+        & (np.asarray(fractions) >= register.min_inlier_fraction)
+        & (_confirmed_share(seen) >= register.min_confirmed)
+        & (seen[:, 1] / seen[:, :3].sum(1).clip(min=1) <= register.max_contradicted)
+    )
+
+
 def fit_order(scores: np.ndarray, rmses: np.ndarray) -> np.ndarray:
     """Indices of fits best first: the higher score to two decimals (fits closer than that
     are as good), then the smaller residual."""

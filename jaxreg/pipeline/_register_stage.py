@@ -63,6 +63,7 @@ from jaxreg.pipeline._judge import (
     fit_order,
     judged_fits,
     overhang,
+    passes_gates,
     patch_count,
     sunk,
     underneath,
@@ -320,14 +321,10 @@ def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, n
         frame, plane, model, fit.source, best, fit.trim, noise, gates.distances, gates.max_rmse,
         eye, settings,
     )  # fmt: skip
-    s = settings.register
-    judged = fit.seen[first, :3].sum(1).clip(min=1)
-    first_passes = (
-        (fit.rmses[first] <= gates.max_rmse)
-        & (np.asarray(fit.results.inlier_fraction)[first] >= s.min_inlier_fraction)
-        & (fit.seen[first, 0] / judged >= s.min_confirmed)
-        & (fit.seen[first, 1] / judged <= s.max_contradicted)
-    )
+    first_passes = passes_gates(
+        np.asarray(fit.results.inlier_fraction)[first], fit.rmses[first], fit.seen[first],
+        gates.max_rmse, settings.register,
+    )  # fmt: skip
     poses = np.concatenate([_onto_table(model, best[None], plane, settings)[0], poses])
     seen = np.concatenate([fit.seen[first], seen]).astype(np.float64)
     scores = np.concatenate([fit.scores[first], scores])
