@@ -5,10 +5,9 @@ import jax
 import numpy as np
 import pytest
 import trimesh
-from jaxlie import SE3
 
 from jaxreg.camera import RGBDFrame
-from jaxreg.geometry.metrics import Symmetry, add_s
+from jaxreg.geometry.metrics import Symmetry, add_s, pose_error
 from jaxreg.pipeline import estimate_pose
 
 
@@ -682,14 +681,16 @@ def test_a_target_whose_best_coarse_pose_spans_beyond_the_model_is_still_found()
     pose turned it about its axis, so its handle spanned 20 mm beyond the model; the mug was
     ranked after three small distractors and two of those were refused as twins. A candidate
     is now scored at its best coarse pose that keeps the segment within the model's span and
-    the model out of the table, and the refinement ranks such fits first: the right pose is
-    found. It is then refused, a false refusal this test holds until it is fixed: on the
-    2,048-sample model the handle's points lie past the sparse samples' edge in the plane of
-    their explained neighbours, and count as the model's surface running on."""
+    the model out of the table, and the refinement ranks such fits first. Its refined answer
+    is the mug turned half round (the handle on the hidden side, the seen handle's points
+    left unexplained), and the probe that turns it back explains clearly more of the segment:
+    the refinement answers again from that probe, and the mug is found with its handle where
+    the image shows it, on the sparse 2,048-sample model."""
     scene, est = _held_out(11204, "mug", 2048)
-    assert not est.success and "carry the model's surface on past its edge" in est.reason
-    tried = SE3.from_matrix(np.asarray(est.stages["register"].hypothesis))
-    assert float(add_s(scene.model_points, tried, scene.truth)) < 0.0127
+    assert est.success, est.reason
+    translation, rotation = pose_error(est.pose, scene.truth)
+    assert float(translation) < 0.005 and float(np.degrees(rotation)) < 5.0
+    assert est.stages["register"].runs_on < 10
 
 
 def test_the_model_flows_down_the_pipeline_modules_never_back_up():

@@ -23,6 +23,7 @@ from jaxreg.pipeline._coarse import DISTINCT_ANGLE, DISTINCT_DISTANCE, _starts_i
 from jaxreg.pipeline._judge import (
     EQUAL_WITHIN,
     evidence_gap,
+    fit_order,
     judged_fits,
     passes_gates,
 )
@@ -322,7 +323,7 @@ def _axis_angle(rotation: np.ndarray) -> tuple[np.ndarray, float]:
 def _alternatives(
     frame, plane, model, source, answers, best, scores, rmses, patches, trim, noise, distances,
     max_rmse, eye, symmetry, settings,
-) -> Alternatives:  # fmt: skip
+) -> tuple[Alternatives, np.ndarray]:  # fmt: skip
     """The refined starts (``answers`` ``(S, 7)`` object_T_base, their ``scores`` and
     ``rmses``, ``best`` the answer's row) and the answer's probes (:func:`_probe`) judged
     against the answer over the segment's ``patches``: which fit as well (within two
@@ -336,7 +337,13 @@ def _alternatives(
     matches itself within the fit's residual gate ``max_rmse`` (:func:`_alike_turns`) is as
     good as the answer whatever the fits' differences (they come from where the model's
     surface differs from the object's, not from the pose) when its refined fit passes the
-    answer's gates: weight 1, and part of a free arc."""
+    answer's gates: weight 1, and part of a free arc.
+
+    Also returns the probes ``(L, 7)`` (object_T_base, best first) that pass the answer's
+    gates and fit clearly better than the answer (it falls more than ``EQUAL_WITHIN``
+    standard errors short of each): the answer is then a turn of the object (a mug's body
+    fitted with its handle on the hidden side while the image shows it), and the refinement
+    answers again from them."""
     padded = _bucketed_symmetry(symmetry)
     gaps = evidence_gap(scores, rmses, scores[best], rmses[best], patches)
     equal = gaps <= EQUAL_WITHIN
@@ -347,6 +354,12 @@ def _alternatives(
     )  # fmt: skip
     probe_gaps = evidence_gap(probe_scores, probe_rmses, scores[best], rmses[best], patches)
     equal_probes = probe_gaps <= EQUAL_WITHIN
+    behind = np.array([
+        evidence_gap(scores[best:best + 1], rmses[best:best + 1], score, rmse, patches)[0]
+        for score, rmse in zip(probe_scores, probe_rmses, strict=True)
+    ])  # fmt: skip
+    leads = np.flatnonzero(probe_passes & (behind > EQUAL_WITHIN))
+    leads = leads[fit_order(probe_scores[leads], probe_rmses[leads])]
     _, _, probe_tangents = _finish(
         np.concatenate([answers[best][None], probes]), np.int32(0),
         np.concatenate([[False], equal_probes]), padded,
@@ -390,7 +403,7 @@ def _alternatives(
     return Alternatives(
         np.asarray(pose), np.asarray(spread), equal, equal_probes, tangents, weights, view_free,
         view_reason, equivalent,
-    )  # fmt: skip
+    ), probes[leads]  # fmt: skip
 
 
 def _carried(view: MeasuredView, answers, best, scores, rmses, patches, symmetry) -> Alternatives:

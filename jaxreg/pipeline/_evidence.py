@@ -42,6 +42,17 @@ EDGE_NEIGHBOURS = 12
 # that the model explains (or that run it on) lie in its tangent plane, IN_PLANE of them at
 # least; GROW_STEPS such steps reach out from the model's edge.
 IN_PLANE, GROW_RADIUS, GROW_STEPS = 4, 2.0, 4
+# A segment point is on a face of the model the camera sees when one of its SEEN_NEIGHBOURS
+# nearest model points within the gate faces the camera with a normal within PARALLEL_DEG of
+# the point's (and the point lies on its tangent plane within the noise), and a face runs on
+# through points on that plane whose normals agree that closely: a face's own points agree to
+# a few degrees; a support's top meeting the model's hidden bottom edge, a neighbour's face at
+# a crease, or a thin object lying on the face, differ by far more.
+SEEN_NEIGHBOURS, PARALLEL_DEG = 8, 30.0
+# A seen point's plane, which the surface running on from it must keep to: the principal axes
+# of its PLANE_NEIGHBOURS nearest seen points (a patch of the face, steadier than the
+# NORMAL_NEIGHBOURS that find each point's own normal among whatever lies around it).
+PLANE_NEIGHBOURS = 30
 # The 2% quantile of the segment's heights (underneath) lies this many depth-noise standard
 # deviations below its points' true lowest height (a Gaussian's 2% quantile).
 LOW_QUANTILE, LOW_QUANTILE_SIGMAS = 0.02, 2.054
@@ -63,19 +74,27 @@ def sigmas_at(frame, noise, points: np.ndarray) -> np.ndarray:
 
 def continuing(
     model: _Model, object_T_base: np.ndarray, points: np.ndarray, gate: float,
-    allowed: np.ndarray,
+    allowed: np.ndarray, eye: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """Which of the segment's ``points`` ``(N, 3)`` (base frame) the model explains at the
     pose ``object_T_base`` ``(7,)`` (within ``gate`` metres, the fit's final correspondence
     distance), and which carry the model's surface on past its edge (``(N,)`` bool each):
     farther than ``gate`` from every model point and past the model's edge
-    (:func:`_past_edge`), with half or more of the segment's explained or running-on points
-    within ``GROW_RADIUS`` gates of it (``IN_PLANE`` at least) in its tangent plane (its
-    normal from its ``NORMAL_NEIGHBOURS`` segment neighbours; ``allowed`` ``(N,)`` metres off
-    it), grown from the explained points outward for up to ``GROW_STEPS`` steps: the measured
-    surface runs on flat across the model's edge. A real object's own surface stays within the
-    gate of its model; a larger object's face runs on past it; a touching neighbour's face
-    meets the model's at a crease, and the background or an occluder lies off it."""
+    (:func:`_past_edge`), with half or more of the segment's seen or running-on points
+    within ``GROW_RADIUS`` gates of it (``IN_PLANE`` at least) carrying a plane that it lies
+    on (within ``allowed`` ``(N,)`` metres, its normal within ``PARALLEL_DEG`` of the
+    plane's; normals from ``NORMAL_NEIGHBOURS`` segment neighbours), grown from the seen
+    points outward for up to ``GROW_STEPS`` steps: the measured surface runs on flat across
+    the model's edge. The seen points are the explained ones on a face of the model that the
+    camera at ``eye`` ``(3,)`` (base frame) sees (:func:`_seen_faces`), each carrying the
+    plane of the seen surface around it (``PLANE_NEIGHBOURS``), and a running-on point
+    carries the plane it continues: a point
+    explained only by a face turned away (the bottom the object rests on) is where the
+    object meets what it stands on, and the top of a box it lies on runs on from there, not
+    from the object. A real object's own surface stays within the gate of its model; a
+    larger object's face runs on past it; a touching neighbour's face meets the model's at a
+    crease, something lying on the object stands off its face, and the background or an
+    occluder lies off it."""
     points = np.asarray(points, np.float64)
     if len(points) < 3:
         return np.zeros(len(points), bool), np.zeros(len(points), bool)
@@ -89,25 +108,55 @@ def continuing(
         return ~far, far
     normals = np.asarray(estimate_normals(moved, min(NORMAL_NEIGHBOURS, len(moved))), np.float64)
     allowed = np.broadcast_to(np.asarray(allowed, np.float64), far.shape)
+    camera = rotation.apply(np.asarray(eye, np.float64)) + np.asarray(object_T_base[4:])
+    seen = ~far & _seen_faces(model, rows, tree, moved, normals, gate, allowed, camera)
+    anchors, planes = moved.copy(), normals.copy()
+    if seen.sum() >= 3:  # each seen point's plane: the seen surface's around it
+        planes[seen] = estimate_normals(moved[seen], min(PLANE_NEIGHBOURS, int(seen.sum())))
     past = np.flatnonzero(far)[_past_edge(tree, model.points[rows], moved[far], normals[far])]
     runs_on = np.zeros(len(points), bool)
     if not len(past):
         return ~far, runs_on
     nearby = cKDTree(moved).query_ball_point(moved[past], GROW_RADIUS * gate)
-    for _ in range(GROW_STEPS):  # from the explained points outward, one radius a step
+    cos_parallel = np.cos(np.radians(PARALLEL_DEG))
+    for _ in range(GROW_STEPS):  # from the seen points outward, one radius a step
         grown = False
         for k, i in enumerate(past):
             if runs_on[i]:
                 continue
-            others = [j for j in nearby[k] if (~far[j] or runs_on[j]) and j != i]
+            others = [j for j in nearby[k] if (seen[j] or runs_on[j]) and j != i]
             if len(others) < IN_PLANE:
                 continue
-            across = np.abs((moved[others] - moved[i]) @ normals[i])
-            if np.mean(across <= allowed[i]) >= 0.5:
+            across = np.abs(np.sum((moved[i] - anchors[others]) * planes[others], axis=1))
+            parallel = np.abs(planes[others] @ normals[i]) >= cos_parallel
+            coplanar = (across <= allowed[i]) & parallel
+            if np.mean(coplanar) >= 0.5:  # on the seen face's plane: it carries it on
+                j = others[int(np.argmax(coplanar))]
+                anchors[i], planes[i] = anchors[j], planes[j]
                 runs_on[i] = grown = True
         if not grown:
             break
     return ~far, runs_on
+
+
+def _seen_faces(model, rows, tree, points, normals, gate, allowed, eye) -> np.ndarray:
+    """``(N,)`` bool: which of ``points`` ``(N, 3)`` (object frame, their unit ``normals``)
+    lie on a face of the model that the camera at ``eye`` ``(3,)`` (object frame) sees:
+    one of their ``SEEN_NEIGHBOURS`` nearest model points within ``gate`` (of the model's
+    ``rows``, in ``tree``) faces the camera with a normal within ``PARALLEL_DEG`` of the
+    point's, and the point lies within ``allowed`` ``(N,)`` metres of its tangent plane."""
+    outward = model.normals[rows] * (1.0 if model.oriented else -1.0)  # estimated face inward
+    facing = np.sum(outward * (eye - model.points[rows]), axis=1) > 0
+    _, near = tree.query(points, SEEN_NEIGHBOURS, distance_upper_bound=gate)
+    found = near < len(rows)
+    near = np.where(found, near, 0)
+    parallel = np.abs(np.einsum("nkd,nd->nk", outward[near], normals))
+    across = np.abs(np.einsum("nkd,nkd->nk", points[:, None] - model.points[rows][near],
+                              outward[near]))  # fmt: skip
+    return np.any(
+        found & facing[near] & (parallel >= np.cos(np.radians(PARALLEL_DEG)))
+        & (across <= allowed[:, None]), axis=1,
+    )  # fmt: skip
 
 
 def _past_edge(tree, model_points, points, normals) -> np.ndarray:

@@ -501,30 +501,39 @@ def refine_stage(
     fine_distances = gates.distances
     start = time.perf_counter()
     eye = viewpoint(model, frame)
-    fit = _refit(frame, model, plane, points, coarse_poses, coarse_fraction, gates, settings,
-                 noise, rng, eye)  # fmt: skip
-    source, trim, results, scores, rmses, seen, ranked = (
-        fit.source, fit.trim, fit.results, fit.scores, fit.rmses, fit.seen, fit.ranked
-    )
+    patches = patch_count(points)
+
+    def answer_from(starts):
+        fit = _refit(frame, model, plane, points, starts, coarse_fraction, gates, settings,
+                     noise, rng, eye)  # fmt: skip
+        answers, contact, lowest = _rest(
+            fit.source, model, fit.results, fit.ranked[0], plane, fit.trim, fine_distances,
+            settings, eye,
+        )  # fmt: skip
+        best = int(fit.ranked[0])
+        if carried is not None:
+            found = _carried(carried, answers, best, fit.scores, fit.rmses, patches, symmetry)
+            return fit, answers, contact, lowest, found, answers[:0]
+        found, leads = _alternatives(
+            frame, plane, model, fit.source, answers, best, fit.scores, fit.rmses, patches,
+            fit.trim, noise, fine_distances, gates.max_rmse, eye, symmetry, settings,
+        )  # fmt: skip
+        return fit, answers, contact, lowest, found, leads
+
+    fit, answers, contact, lowest, found, leads = answer_from(coarse_poses)
+    within = [_within(_bounds(model, plane, lead, points), gates) for lead in leads]
+    if any(within):  # a turn of the answer fits clearly better: answer again from it
+        lead = leads[within.index(True)]
+        fit, answers, contact, lowest, found, _ = answer_from(
+            np.concatenate([lead[None], coarse_poses])
+        )
+    trim, results, rmses, seen, ranked = fit.trim, fit.results, fit.rmses, fit.seen, fit.ranked
     fractions = np.asarray(results.inlier_fraction)
     best = results[int(ranked[0])]
     fraction, rmse = float(fractions[ranked[0]]), float(rmses[ranked[0]])
     confirmed, contradicted, judged = _support(seen[ranked[0]])
-    answers, contact, lowest = _rest(
-        source, model, results, ranked[0], plane, trim, fine_distances, settings, eye,
-    )  # fmt: skip
     low = sunk(model, plane, answers[ranked[0]])
     under = underneath(model, plane, answers[ranked[0]], points)
-    if carried is None:
-        found = _alternatives(
-            frame, plane, model, source, answers, int(ranked[0]), scores, rmses,
-            patch_count(points), trim, noise, fine_distances, gates.max_rmse, eye, symmetry,
-            settings,
-        )  # fmt: skip
-    else:
-        found = _carried(
-            carried, answers, int(ranked[0]), scores, rmses, patch_count(points), symmetry
-        )
     spread_mm, spread_deg = (float(x) for x in found.spread)
     matched = fraction > 0 and rmse < 1.0  # no match leaves ICP's empty-sum residual
     record = dataclasses.replace(
@@ -559,7 +568,8 @@ def refine_stage(
     sigmas = sigmas_at(frame, noise, points)
     allowed = z * np.hypot(sigmas, mismatch_sigma(model))
     explained, runs_on = continuing(
-        model, answers[ranked[0]], points, float(fine_distances[-1]), allowed
+        model, answers[ranked[0]], points, float(fine_distances[-1]), allowed,
+        np.asarray(frame.base_T_camera.translation(), np.float64),
     )
     if plane is not None:  # the table's own points, past the lift's band, run on no face
         runs_on &= np.asarray(plane.height(points)) > 2 * z * sigmas
