@@ -246,8 +246,9 @@ def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, set
 
     Rivals are the candidates that share no cluster with the winner nor with the pieces its pose
     explains (``joined``, :func:`_joined`: parts of one object are no rivals) and whose coarse
-    score is within ``CONTESTED_WITHIN`` standard errors of the winner's (or above it;
-    :func:`evidence_gap` over the winner's ``PATCH`` cubes), in the order of ``scored``. Both
+    score, or share shown occlusion aside (:func:`_shown`), is within ``CONTESTED_WITHIN``
+    standard errors of the winner's (or above it; :func:`evidence_gap` over the winner's
+    ``PATCH`` cubes), in the order of ``scored``. Both
     are refined and probed (:func:`_rival_fit`); a rival that no fit of the model passes the
     answer's gates on is no twin (a coarse score on 128 points says little: a mug's coarse
     pose fits a brick's corner), and one that does is a twin unless the winner's fit keeps to
@@ -275,8 +276,12 @@ def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, set
             )  # fmt: skip
         return fits[slot]
 
-    for other, _, _, bounds, slot in scored[1:]:
-        gap = evidence_gap([other], np.ones(1), score, 1.0, patches)[0]
+    for item in scored[1:]:
+        other, *_, bounds, slot = item
+        gap = min(
+            evidence_gap([other], np.ones(1), score, 1.0, patches)[0],
+            evidence_gap([_shown(item)], np.ones(1), _shown(scored[0]), 1.0, patches)[0],
+        )
         if group & set(candidates[slot][0]) or not gap <= CONTESTED_WITHIN:
             continue
         within = bounds[0] <= gates.max_overhang
@@ -286,6 +291,16 @@ def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, set
         if not (ours[2] and _clearly_better(ours[:2], theirs[:2], patches)):
             return slot
     return None
+
+
+def _shown(scored) -> float:
+    """A coarse candidate's ``(score, explained, contradicted, ...)`` (:func:`_score`) as the
+    share of its points the model explains times the share of the judged model surface not
+    seen through, occlusion aside: an object half hidden behind a neighbour scores low for
+    the view alone, and is as good a rival as a fragment fully in view."""
+    score, explained, contradicted = scored[:3]
+    confirmed = score / max(explained, 1e-9)
+    return explained * confirmed / max(confirmed + contradicted, 1e-9)
 
 
 def _clearly_better(fit, other, patches: int) -> bool:
