@@ -183,10 +183,10 @@ def test_a_failed_final_registration_fails_the_register_stage(scene, monkeypatch
 
 def test_an_overhang_that_cannot_be_measured_refuses(scene, monkeypatch):
     """A NaN overhang (a NaN comparison is False) must not pass the overhang test."""
-    from jaxreg.pipeline import _register_stage as stage
+    from jaxreg.pipeline import _evidence as evidence
 
     scene, model, symmetry = scene
-    monkeypatch.setattr(stage, "overhang", lambda *args: np.full(3, np.nan))
+    monkeypatch.setattr(evidence, "overhang", lambda *args: np.full(3, np.nan))
     est = estimate_pose(scene.frame, model, symmetry=symmetry)
     assert est.failed_stage == "register" and est.pose is None
     assert "could not be measured (NaN" in est.reason
@@ -350,7 +350,7 @@ def test_a_larger_box_of_a_similar_shape_is_not_taken_for_the_target(scene):
     """Seed 128: beside the 80 x 50 x 120 mm target stands an 89 x 61 x 114 mm box, which the
     box model fits as well by inlier fraction, residual and image support; only its faces
     running on past the model's edges tell them apart."""
-    from jaxreg.pipeline._judge import overhang
+    from jaxreg.pipeline._evidence import overhang
     from jaxreg.pipeline._model import _prepare_model
     from jaxreg.synth import tabletop_scene
 

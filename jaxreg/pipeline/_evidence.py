@@ -2,6 +2,8 @@
 weighed against the sensor's noise at the pose's own uncertainty, with a stated false-refusal
 rate (``RegisterSettings.false_refusal``, one-sided, per test) instead of fixed millimetres:
 
+- :func:`beyond_model`: the refusals :func:`continuing` gives evidence for (the share the
+  model explains, the segment's span beyond the model, its surface running on).
 - :func:`continuing`: the segment's points that carry the model's surface on past its edge
   (a larger object of a similar shape). Points the model does not explain and that do not
   continue its surface (a neighbour's face meeting it at a crease, the background behind a
@@ -25,10 +27,14 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from scipy.stats import norm
 
+from jaxreg.pipeline._error_sources import mismatch_sigma
+from jaxreg.pipeline._judge import LATERAL_PIXELS, PATCH, patch_count
 from jaxreg.pipeline._model import _Model
 from jaxreg.search.normals import estimate_normals
 
-__all__ = ["continuing", "height_tests", "sigmas_at"]
+__all__ = [
+    "beyond_model", "camera_depths", "continuing", "height_tests", "overhang", "sigmas_at"
+]
 
 # The pose's error-budget terms that move the model against the table and the segment (the
 # calibration moves both together; the ambiguity term is the alternatives', judged apart).
@@ -42,17 +48,11 @@ EDGE_NEIGHBOURS = 12
 # that the model explains (or that run it on) lie in its tangent plane, IN_PLANE of them at
 # least; GROW_STEPS such steps reach out from the model's edge.
 IN_PLANE, GROW_RADIUS, GROW_STEPS = 4, 2.0, 4
-# A segment point is on a face of the model the camera sees when one of its SEEN_NEIGHBOURS
-# nearest model points within the gate faces the camera with a normal within PARALLEL_DEG of
-# the point's (and the point lies on its tangent plane within the noise), and a face runs on
-# through points on that plane whose normals agree that closely: a face's own points agree to
-# a few degrees; a support's top meeting the model's hidden bottom edge, a neighbour's face at
-# a crease, or a thin object lying on the face, differ by far more.
-SEEN_NEIGHBOURS, PARALLEL_DEG = 8, 30.0
-# A seen point's plane, which the surface running on from it must keep to: the principal axes
-# of its PLANE_NEIGHBOURS nearest seen points (a patch of the face, steadier than the
-# NORMAL_NEIGHBOURS that find each point's own normal among whatever lies around it).
-PLANE_NEIGHBOURS = 30
+# Independent patches (PATCH cubes) that segment points carrying the model's surface on past
+# its edge must cover, and a patch's worth of voxels they must hold, before they say the object
+# is larger than the model: one patch can be a mask's border on a neighbour flush with the
+# object, or the model's own few millimetres; a few scattered points are flying pixels.
+RUNS_ON_PATCHES = 2
 # The 2% quantile of the segment's heights (underneath) lies this many depth-noise standard
 # deviations below its points' true lowest height (a Gaussian's 2% quantile).
 LOW_QUANTILE, LOW_QUANTILE_SIGMAS = 0.02, 2.054
@@ -63,38 +63,134 @@ def z_score(false_refusal: float) -> float:
     return float(norm.isf(false_refusal))
 
 
+def camera_depths(frame, points: np.ndarray) -> np.ndarray:
+    """``(N,)`` the camera depth (metres, along its optical axis) of each base-frame point of
+    ``points`` ``(N, 3)``."""
+    camera = frame.base_T_camera
+    axis = np.asarray(camera.rotation().as_matrix(), np.float64)[:, 2]
+    return (np.asarray(points, np.float64) - np.asarray(camera.translation(), np.float64)) @ axis
+
+
 def sigmas_at(frame, noise, points: np.ndarray) -> np.ndarray:
     """``(N,)`` the depth noise's axial standard deviation (metres) at the camera depth of each
     base-frame point of ``points`` ``(N, 3)``."""
-    camera = frame.base_T_camera
-    axis = np.asarray(camera.rotation().as_matrix(), np.float64)[:, 2]
-    depth = (np.asarray(points, np.float64) - np.asarray(camera.translation(), np.float64)) @ axis
-    return np.asarray(noise.axial_sigma(depth), np.float64)
+    return np.asarray(noise.axial_sigma(camera_depths(frame, points)), np.float64)
+
+
+def overhang(model: _Model, object_T_base: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """How far a segment spans beyond the model, along each of the model's principal axes
+    (metres, ``(3,)``): the span of ``points`` ``(N, 3)`` (base frame) moved by
+    ``object_T_base`` ``(7,)`` (wxyz_xyz), between their 2% and 98% quantiles, less the model's
+    full span. An object's own points stay within its extent up to the depth noise, whatever
+    part of it is visible (a partial view spans less: negative), so a positive overhang of
+    several millimetres says the segment is a larger object of a similar shape, or the object
+    merged with a neighbour. NaN without points."""
+    if not len(points):
+        return np.full(3, np.nan)
+    rotation = Rotation.from_quat(np.asarray(object_T_base[:4], np.float64), scalar_first=True)
+    moved = rotation.apply(np.asarray(points, np.float64)) + object_T_base[4:]
+    along = (moved - model.centroid) @ model.axes
+    low, high = np.quantile(along, [0.02, 0.98], axis=0)
+    return (high - low) - (model.bounds[1] - model.bounds[0])
+
+
+@dataclasses.dataclass(frozen=True)
+class BeyondModel:
+    """:func:`beyond_model`'s counts of the segment's points, its span beyond the model
+    ``overhang`` ``(3,)`` (metres, along the model's principal axes, longest first) and the
+    problems found (each a sentence for the refusal's reason; none when the model is there)."""
+
+    explained_away: int
+    runs_on: int
+    overhang: np.ndarray
+    problems: tuple[str, ...]
+
+
+def beyond_model(
+    frame, model: _Model, plane, object_T_base: np.ndarray, refined: np.ndarray,
+    points: np.ndarray, gate: float, sigma_z: float, noise, z: float, min_share: float,
+    voxel: float,
+) -> BeyondModel:  # fmt: skip
+    """The segment's ``points`` ``(N, 3)`` (base frame) that the model at the answer
+    ``object_T_base`` ``(7,)`` does not explain (:func:`continuing`, with ``gate`` the fit's
+    final correspondence distance), judged at ``z`` sigma of the noise (``noise`` the
+    camera's ``DepthNoise``, ``sigma_z`` its value at the segment's depth):
+
+    - the share the model explains of the points it could (all but those explained away) is
+      at least ``min_share``;
+    - the points not explained away span beyond the model, at ICP's ``refined`` pose
+      ``(7,)``, by at most ``z`` sigma of the depth noise, the lateral noise
+      (``LATERAL_PIXELS`` at the segment's depth) and the model's mismatch;
+    - fewer than a ``PATCH``'s worth of ``voxel`` cells, or fewer than ``RUNS_ON_PATCHES``
+      patches, carry the model's surface on past its edge.
+
+    The table's own points (up to ``2 z sigma`` above the table ``plane``, past the lift's
+    band) run on no face, nor do those within ``2 z sigma`` of the model's lowest height
+    (the top of a box the object lies on, in the plane of its hidden bottom)."""
+    sigmas = sigmas_at(frame, noise, points)
+    explained, runs_on = continuing(
+        model, object_T_base, points, gate, z * np.hypot(sigmas, mismatch_sigma(model))
+    )
+    if plane is not None:  # the table's own points, and the top of what the model rests on
+        height = np.asarray(plane.height(points), np.float64)
+        rotation = Rotation.from_quat(np.asarray(object_T_base[:4], np.float64), scalar_first=True)
+        placed = np.eye(4)
+        placed[:3, :3] = rotation.inv().as_matrix()
+        placed[:3, 3] = -placed[:3, :3] @ np.asarray(object_T_base[4:], np.float64)
+        lowest = _heights(model, plane, placed)[1].min()
+        runs_on &= (height > 2 * z * sigmas) & (np.abs(height - lowest) > 2 * z * sigmas)
+    away = int((~explained & ~runs_on).sum())
+    problems = []
+    share = explained.sum() / max(int((explained | runs_on).sum()), 1)
+    if share < min_share:
+        problems.append(
+            f"the model explains only {share:.0%} of the segment points it could (need "
+            f"{min_share:.0%}; {away} more lie off its surface: a neighbour, the background or "
+            "an occluder)"
+        )
+    reach = overhang(model, refined, points[explained | runs_on])
+    lateral = float(np.median(camera_depths(frame, points))) * LATERAL_PIXELS / float(
+        frame.intrinsics.fx
+    )
+    reach_allowed = z * float(np.sqrt(sigma_z**2 + mismatch_sigma(model) ** 2 + lateral**2))
+    if not np.isfinite(reach).all():
+        problems.append(
+            "the segment's span beyond the model could not be measured (NaN: a non-finite "
+            "pose or segment point)"
+        )
+    elif reach.max() > reach_allowed:
+        problems.append(
+            f"the segment's points on the model's surface span {reach.max() * 1e3:.0f} mm "
+            f"beyond the model along its "
+            f"{('longest', 'middle', 'shortest')[int(reach.argmax())]} axis (at most "
+            f"{reach_allowed * 1e3:.1f}: {z:.1f} sigma of the depth noise, the lateral noise "
+            "and the model's mismatch): a larger object of a similar shape"
+        )
+    if runs_on.sum() >= (PATCH / voxel) ** 2 and patch_count(points[runs_on]) >= RUNS_ON_PATCHES:
+        problems.append(
+            f"{int(runs_on.sum())} segment points carry the model's surface on past its edge "
+            f"(farther than {gate * 1e3:.1f} mm from it, in its faces' planes within {z:.1f} "
+            "sigma of the depth noise): a larger object of a similar shape, or a neighbour "
+            "flush with it; give a mask= that leaves the neighbour out"
+        )
+    return BeyondModel(away, int(runs_on.sum()), reach, tuple(problems))
 
 
 def continuing(
     model: _Model, object_T_base: np.ndarray, points: np.ndarray, gate: float,
-    allowed: np.ndarray, eye: np.ndarray,
+    allowed: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """Which of the segment's ``points`` ``(N, 3)`` (base frame) the model explains at the
     pose ``object_T_base`` ``(7,)`` (within ``gate`` metres, the fit's final correspondence
     distance), and which carry the model's surface on past its edge (``(N,)`` bool each):
     farther than ``gate`` from every model point and past the model's edge
-    (:func:`_past_edge`), with half or more of the segment's seen or running-on points
-    within ``GROW_RADIUS`` gates of it (``IN_PLANE`` at least) carrying a plane that it lies
-    on (within ``allowed`` ``(N,)`` metres, its normal within ``PARALLEL_DEG`` of the
-    plane's; normals from ``NORMAL_NEIGHBOURS`` segment neighbours), grown from the seen
-    points outward for up to ``GROW_STEPS`` steps: the measured surface runs on flat across
-    the model's edge. The seen points are the explained ones on a face of the model that the
-    camera at ``eye`` ``(3,)`` (base frame) sees (:func:`_seen_faces`), each carrying the
-    plane of the seen surface around it (``PLANE_NEIGHBOURS``), and a running-on point
-    carries the plane it continues: a point
-    explained only by a face turned away (the bottom the object rests on) is where the
-    object meets what it stands on, and the top of a box it lies on runs on from there, not
-    from the object. A real object's own surface stays within the gate of its model; a
-    larger object's face runs on past it; a touching neighbour's face meets the model's at a
-    crease, something lying on the object stands off its face, and the background or an
-    occluder lies off it."""
+    (:func:`_past_edge`), with half or more of the segment's explained or running-on points
+    within ``GROW_RADIUS`` gates of it (``IN_PLANE`` at least) in its tangent plane (its
+    normal from its ``NORMAL_NEIGHBOURS`` segment neighbours; ``allowed`` ``(N,)`` metres off
+    it), grown from the explained points outward for up to ``GROW_STEPS`` steps: the measured
+    surface runs on flat across the model's edge. A real object's own surface stays within the
+    gate of its model; a larger object's face runs on past it; a touching neighbour's face
+    meets the model's at a crease, and the background or an occluder lies off it."""
     points = np.asarray(points, np.float64)
     if len(points) < 3:
         return np.zeros(len(points), bool), np.zeros(len(points), bool)
@@ -108,55 +204,25 @@ def continuing(
         return ~far, far
     normals = np.asarray(estimate_normals(moved, min(NORMAL_NEIGHBOURS, len(moved))), np.float64)
     allowed = np.broadcast_to(np.asarray(allowed, np.float64), far.shape)
-    camera = rotation.apply(np.asarray(eye, np.float64)) + np.asarray(object_T_base[4:])
-    seen = ~far & _seen_faces(model, rows, tree, moved, normals, gate, allowed, camera)
-    anchors, planes = moved.copy(), normals.copy()
-    if seen.sum() >= 3:  # each seen point's plane: the seen surface's around it
-        planes[seen] = estimate_normals(moved[seen], min(PLANE_NEIGHBOURS, int(seen.sum())))
     past = np.flatnonzero(far)[_past_edge(tree, model.points[rows], moved[far], normals[far])]
     runs_on = np.zeros(len(points), bool)
     if not len(past):
         return ~far, runs_on
     nearby = cKDTree(moved).query_ball_point(moved[past], GROW_RADIUS * gate)
-    cos_parallel = np.cos(np.radians(PARALLEL_DEG))
-    for _ in range(GROW_STEPS):  # from the seen points outward, one radius a step
+    for _ in range(GROW_STEPS):  # from the explained points outward, one radius a step
         grown = False
         for k, i in enumerate(past):
             if runs_on[i]:
                 continue
-            others = [j for j in nearby[k] if (seen[j] or runs_on[j]) and j != i]
+            others = [j for j in nearby[k] if (~far[j] or runs_on[j]) and j != i]
             if len(others) < IN_PLANE:
                 continue
-            across = np.abs(np.sum((moved[i] - anchors[others]) * planes[others], axis=1))
-            parallel = np.abs(planes[others] @ normals[i]) >= cos_parallel
-            coplanar = (across <= allowed[i]) & parallel
-            if np.mean(coplanar) >= 0.5:  # on the seen face's plane: it carries it on
-                j = others[int(np.argmax(coplanar))]
-                anchors[i], planes[i] = anchors[j], planes[j]
+            across = np.abs((moved[others] - moved[i]) @ normals[i])
+            if np.mean(across <= allowed[i]) >= 0.5:
                 runs_on[i] = grown = True
         if not grown:
             break
     return ~far, runs_on
-
-
-def _seen_faces(model, rows, tree, points, normals, gate, allowed, eye) -> np.ndarray:
-    """``(N,)`` bool: which of ``points`` ``(N, 3)`` (object frame, their unit ``normals``)
-    lie on a face of the model that the camera at ``eye`` ``(3,)`` (object frame) sees:
-    one of their ``SEEN_NEIGHBOURS`` nearest model points within ``gate`` (of the model's
-    ``rows``, in ``tree``) faces the camera with a normal within ``PARALLEL_DEG`` of the
-    point's, and the point lies within ``allowed`` ``(N,)`` metres of its tangent plane."""
-    outward = model.normals[rows] * (1.0 if model.oriented else -1.0)  # estimated face inward
-    facing = np.sum(outward * (eye - model.points[rows]), axis=1) > 0
-    _, near = tree.query(points, SEEN_NEIGHBOURS, distance_upper_bound=gate)
-    found = near < len(rows)
-    near = np.where(found, near, 0)
-    parallel = np.abs(np.einsum("nkd,nd->nk", outward[near], normals))
-    across = np.abs(np.einsum("nkd,nkd->nk", points[:, None] - model.points[rows][near],
-                              outward[near]))  # fmt: skip
-    return np.any(
-        found & facing[near] & (parallel >= np.cos(np.radians(PARALLEL_DEG)))
-        & (across <= allowed[:, None]), axis=1,
-    )  # fmt: skip
 
 
 def _past_edge(tree, model_points, points, normals) -> np.ndarray:
@@ -171,6 +237,15 @@ def _past_edge(tree, model_points, points, normals) -> np.ndarray:
     mean = unit.sum(1)
     mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
     return np.all(np.sum(unit * mean[:, None], axis=2) > 0.0, axis=1)
+
+
+def _heights(model: _Model, plane, base_T_object: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The model's points ``(M, 3)`` (object frame, float64) and their heights ``(M,)``
+    (metres) above the table ``plane`` at the pose ``base_T_object`` ``(4, 4)``."""
+    pose = np.asarray(base_T_object, np.float64)
+    points = model.points[np.all(np.isfinite(model.points), axis=1)].astype(np.float64)
+    placed = points @ pose[:3, :3].T + pose[:3, 3]
+    return points, placed @ np.asarray(plane.normal, np.float64) + float(plane.offset)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -202,10 +277,8 @@ def height_tests(
     ``h`` by their ``LOW_QUANTILE`` height's shortfall, allowed ``z`` of those with the
     points' own noise ``sigma_points`` added, plus the quantile's noise offset."""
     rotation = np.asarray(base_T_object, np.float64)[:3, :3]
-    translation = np.asarray(base_T_object, np.float64)[:3, 3]
-    normal, offset = np.asarray(plane.normal, np.float64), float(plane.offset)
-    model_points = model.points[np.all(np.isfinite(model.points), axis=1)].astype(np.float64)
-    heights = (model_points @ rotation.T + translation) @ normal + offset
+    normal = np.asarray(plane.normal, np.float64)
+    model_points, heights = _heights(model, plane, base_T_object)
     low = int(np.argmin(heights))
     up = rotation.T @ normal
     jacobian = np.concatenate([up, np.cross(model_points[low], up)])
@@ -213,7 +286,7 @@ def height_tests(
     pose_var = max(float(jacobian @ sigma @ jacobian), 0.0)
     mismatch = float(model.plane_offset)
     sunk_sigma = np.sqrt(pose_var + sigma_table**2 + mismatch**2)
-    below = np.quantile(np.asarray(points, np.float64) @ normal + offset, LOW_QUANTILE)
+    below = np.quantile(np.asarray(plane.height(points), np.float64), LOW_QUANTILE)
     under_sigma = np.sqrt(pose_var + sigma_points**2 + mismatch**2)
     return HeightTests(
         sunk=float(-heights[low]),

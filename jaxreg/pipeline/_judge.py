@@ -1,8 +1,8 @@
 """The depth image's evidence about a model pose, for the stages of :func:`jaxreg.estimate_pose`:
 which model points the image confirms, contradicts or cannot judge (:func:`visibility`), how
-much of a segment the model explains, how far a segment reaches beyond the model
-(:func:`overhang`, :func:`underneath`) and how far a pose sinks the model into the table
-(:func:`sunk`). The model comes prepared by :mod:`jaxreg.pipeline._model`.
+much of a segment the model explains, how far a segment reaches below the model
+(:func:`underneath`) and how far a pose sinks the model into the table (:func:`sunk`). The
+model comes prepared by :mod:`jaxreg.pipeline._model`.
 
 Conventions of :mod:`jaxreg.pipeline.estimate`: the segment (source, base frame) is registered
 into the model (target, object frame), so ICP's poses are ``object_T_base``.
@@ -137,23 +137,6 @@ def _nearest_depth(depth: Float[Array, "H W"]) -> Float[Array, "H W"]:
     side = 2 * LATERAL_PIXELS + 1
     finite = jnp.where(jnp.isfinite(depth), depth, jnp.inf)
     return jax.lax.reduce_window(finite, jnp.inf, jax.lax.min, (side, side), (1, 1), "SAME")
-
-
-def overhang(model: _Model, object_T_base: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """How far a segment spans beyond the model, along each of the model's principal axes
-    (metres, ``(3,)``): the span of ``points`` ``(N, 3)`` (base frame) moved by
-    ``object_T_base`` ``(7,)`` (wxyz_xyz), between their 2% and 98% quantiles, less the model's
-    full span. An object's own points stay within its extent up to the depth noise, whatever
-    part of it is visible (a partial view spans less: negative), so a positive overhang of
-    several millimetres says the segment is a larger object of a similar shape, or the object
-    merged with a neighbour. NaN without points."""
-    if not len(points):
-        return np.full(3, np.nan)
-    rotation = Rotation.from_quat(np.asarray(object_T_base[:4], np.float64), scalar_first=True)
-    moved = rotation.apply(np.asarray(points, np.float64)) + object_T_base[4:]
-    along = (moved - model.centroid) @ model.axes
-    low, high = np.quantile(along, [0.02, 0.98], axis=0)
-    return (high - low) - (model.bounds[1] - model.bounds[0])
 
 
 def _lowest(model: _Model, plane: TablePlane, object_T_base: np.ndarray) -> float:

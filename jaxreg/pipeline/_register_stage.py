@@ -45,24 +45,22 @@ from jaxreg.pipeline._colour import colour_match, other_colour
 from jaxreg.pipeline._error_sources import _pixels, mismatch_sigma, pose_budget
 from jaxreg.pipeline._evidence import (
     LOCAL_TERMS,
-    continuing,
+    beyond_model,
+    camera_depths,
     height_tests,
-    sigmas_at,
+    overhang,
     z_score,
 )
 from jaxreg.pipeline._judge import (
     CONTESTED_WITHIN,
     EQUAL_WITHIN,
-    LATERAL_PIXELS,
     NOISE_SIGMAS,
-    PATCH,
     TOLERANCE,
     _near_model,
     _support,
     evidence_gap,
     fit_order,
     judged_fits,
-    overhang,
     passes_gates,
     patch_count,
     sunk,
@@ -88,13 +86,6 @@ __all__ = ["coarse_search", "refine_stage"]
 # Final ICP statuses that leave a pose to judge (the iteration bound leaves the last step's
 # pose); degenerate geometry passes too when a symmetry is given (its free directions).
 _USABLE = (ICPStatus.success, ICPStatus.max_iterations)
-
-
-# Independent patches (PATCH cubes) that segment points carrying the model's surface on past
-# its edge must cover, and a patch's worth of voxels they must hold, before they say the object
-# is larger than the model: one patch can be a mask's border on a neighbour flush with the
-# object, or the model's own few millimetres; a few scattered points are flying pixels.
-RUNS_ON_PATCHES = 2
 
 
 # A fit's residual may be this many times the one the depth noise, the model's sampling and
@@ -152,13 +143,6 @@ def tolerances(model, noise, depth: float, settings: PipelineSettings) -> Tolera
     return Tolerances(distances, max_rmse, r.max_overhang, sigma, max_below)
 
 
-def _camera_depth(frame, points: np.ndarray) -> float:
-    """The median camera depth (metres) of base-frame ``points`` ``(N, 3)``."""
-    camera = frame.base_T_camera
-    axis = np.asarray(camera.rotation().as_matrix(), np.float64)[:, 2]
-    return float(np.median((points - np.asarray(camera.translation(), np.float64)) @ axis))
-
-
 def coarse_search(
     frame, model, segmented: Segmented, settings: PipelineSettings, noise, rng
 ) -> CoarseSearch:
@@ -167,7 +151,8 @@ def coarse_search(
     Generator that subsamples the candidates."""
     start = time.perf_counter()
     clouds = [cloud for _, cloud in segmented.candidates]
-    gates = tolerances(model, noise, _camera_depth(frame, np.concatenate(clouds)), settings)
+    depth = float(np.median(camera_depths(frame, np.concatenate(clouds))))
+    gates = tolerances(model, noise, depth, settings)
     coarse, scored = _score(frame, segmented.plane, model, settings, clouds, rng, noise, gates)
     _, explained, *_, chosen = scored[0]
     poses = np.asarray(coarse.poses[chosen])  # object_T_base per start, best first
@@ -472,7 +457,7 @@ def _lower_bound(score: float, patches: int) -> float:
 def _bounds(model, plane, object_T_base: np.ndarray, points: np.ndarray) -> np.ndarray:
     """How far the pose ``object_T_base`` ``(7,)`` goes beyond what the frame allows (metres,
     ``(3,)``): the segment ``points``' largest span beyond the model
-    (:func:`~jaxreg.pipeline._judge.overhang`; NaN where it cannot be measured), the model's
+    (:func:`~jaxreg.pipeline._evidence.overhang`; NaN where it cannot be measured), the model's
     depth in the table (:func:`~jaxreg.pipeline._judge.sunk`) and the segment's reach below
     the model (:func:`~jaxreg.pipeline._judge.underneath`)."""
     return np.array([
@@ -579,25 +564,6 @@ def refine_stage(
     if not any(bool(best.status == status) for status in usable):
         fail(f"the final registration failed: {best.status_message()}")
     problems = []
-    z = z_score(s.false_refusal)
-    sigmas = sigmas_at(frame, noise, points)
-    allowed = z * np.hypot(sigmas, mismatch_sigma(model))
-    explained, runs_on = continuing(
-        model, answers[ranked[0]], points, float(fine_distances[-1]), allowed,
-        np.asarray(frame.base_T_camera.translation(), np.float64),
-    )
-    if plane is not None:  # the table's own points, past the lift's band, run on no face
-        runs_on &= np.asarray(plane.height(points)) > 2 * z * sigmas
-    share = explained.sum() / max(int((explained | runs_on).sum()), 1)
-    record = dataclasses.replace(
-        record, explained_away=int((~explained & ~runs_on).sum()), runs_on=int(runs_on.sum())
-    )
-    if share < s.min_inlier_fraction:
-        problems.append(
-            f"the model explains only {share:.0%} of the segment points it could (need "
-            f"{s.min_inlier_fraction:.0%}; {int((~explained & ~runs_on).sum())} more lie off "
-            "its surface: a neighbour, the background or an occluder)"
-        )
     if not matched:
         problems.append(
             f"no segment point lies within {fine_distances[-1] * 1e3:.0f} mm of the model"
@@ -622,36 +588,17 @@ def refine_stage(
             f"the camera sees through {contradicted:.0%} of the model's surface facing it (at "
             f"most {s.max_contradicted:.0%})"
         )
-    own = explained | runs_on  # the points not explained away
-    reach = overhang(model, np.asarray(results.pose.wxyz_xyz[ranked[0]]), points[own])
-    reach_allowed = z * float(np.sqrt(
-        gates.sigma_z**2 + mismatch_sigma(model) ** 2
-        + (_camera_depth(frame, points) * LATERAL_PIXELS / float(frame.intrinsics.fx)) ** 2
-    ))  # fmt: skip
-    record = dataclasses.replace(record, overhang_mm=[round(float(r) * 1e3, 1) for r in reach])
-    if not np.isfinite(reach).all():
-        problems.append(
-            "the segment's span beyond the model could not be measured (NaN: a non-finite "
-            "pose or segment point)"
-        )
-    elif reach.max() > reach_allowed:
-        problems.append(
-            f"the segment's points on the model's surface span {reach.max() * 1e3:.0f} mm "
-            f"beyond the model along its "
-            f"{('longest', 'middle', 'shortest')[int(reach.argmax())]} axis (at most "
-            f"{reach_allowed * 1e3:.1f}: {z:.1f} sigma of the depth noise, the lateral noise "
-            "and the model's mismatch): a larger object of a similar shape"
-        )
-    if (
-        runs_on.sum() >= (PATCH / settings.voxel_size) ** 2
-        and patch_count(points[runs_on]) >= RUNS_ON_PATCHES
-    ):
-        problems.append(
-            f"{int(runs_on.sum())} segment points carry the model's surface on past its edge "
-            f"(farther than {fine_distances[-1] * 1e3:.1f} mm from it, in its faces' planes "
-            f"within {z:.1f} sigma of the depth noise): a larger object of a similar shape, or "
-            "a neighbour flush with it; give a mask= that leaves the neighbour out"
-        )
+    z = z_score(s.false_refusal)
+    beyond = beyond_model(
+        frame, model, plane, answers[ranked[0]], np.asarray(results.pose.wxyz_xyz[ranked[0]]),
+        points, float(fine_distances[-1]), gates.sigma_z, noise, z, s.min_inlier_fraction,
+        settings.voxel_size,
+    )  # fmt: skip
+    record = dataclasses.replace(
+        record, explained_away=beyond.explained_away, runs_on=beyond.runs_on,
+        overhang_mm=[round(float(r) * 1e3, 1) for r in beyond.overhang],
+    )  # fmt: skip
+    problems += beyond.problems
     if problems:
         fail("the model is not there: " + "; ".join(problems))
     reason = (
