@@ -521,8 +521,14 @@ def refine_stage(
         return fit, answers, contact, lowest, found, leads
 
     fit, answers, contact, lowest, found, leads = answer_from(coarse_poses)
-    within = [_within(_bounds(model, plane, lead, points), gates) for lead in leads]
-    if any(within):  # a turn of the answer fits clearly better: answer again from it
+    # a lead must rest as the answer does: a turn floating over the table fits a part freely
+    _, restings = _onto_table(model, leads, plane, settings)
+    rests = [resting is not None or contact is None for resting in restings]
+    within = [
+        rest and _within(_bounds(model, plane, lead, points), gates)
+        for lead, rest in zip(leads, rests, strict=True)
+    ]
+    if any(within):  # a turn of the answer fits clearly better, as it rests: answer from it
         lead = leads[within.index(True)]
         fit, answers, contact, lowest, found, _ = answer_from(
             np.concatenate([lead[None], coarse_poses])
