@@ -32,9 +32,7 @@ from jaxreg.pipeline._judge import LATERAL_PIXELS, PATCH, patch_count
 from jaxreg.pipeline._model import _Model
 from jaxreg.search.normals import estimate_normals
 
-__all__ = [
-    "beyond_model", "camera_depths", "continuing", "height_tests", "overhang", "sigmas_at"
-]
+__all__ = ["beyond_model", "camera_depths", "continuing", "height_tests", "overhang"]
 
 # The pose's error-budget terms that move the model against the table and the segment (the
 # calibration moves both together; the ambiguity term is the alternatives', judged apart).
@@ -71,12 +69,6 @@ def camera_depths(frame, points: np.ndarray) -> np.ndarray:
     return (np.asarray(points, np.float64) - np.asarray(camera.translation(), np.float64)) @ axis
 
 
-def sigmas_at(frame, noise, points: np.ndarray) -> np.ndarray:
-    """``(N,)`` the depth noise's axial standard deviation (metres) at the camera depth of each
-    base-frame point of ``points`` ``(N, 3)``."""
-    return np.asarray(noise.axial_sigma(camera_depths(frame, points)), np.float64)
-
-
 def overhang(model: _Model, object_T_base: np.ndarray, points: np.ndarray) -> np.ndarray:
     """How far a segment spans beyond the model, along each of the model's principal axes
     (metres, ``(3,)``): the span of ``points`` ``(N, 3)`` (base frame) moved by
@@ -109,7 +101,7 @@ class BeyondModel:
 def beyond_model(
     frame, model: _Model, plane, object_T_base: np.ndarray, refined: np.ndarray,
     points: np.ndarray, gate: float, sigma_z: float, noise, z: float, min_share: float,
-    voxel: float,
+    voxel: float, lowest: float | None,
 ) -> BeyondModel:  # fmt: skip
     """The segment's ``points`` ``(N, 3)`` (base frame) that the model at the answer
     ``object_T_base`` ``(7,)`` does not explain (:func:`continuing`, with ``gate`` the fit's
@@ -125,19 +117,16 @@ def beyond_model(
       patches, carry the model's surface on past its edge.
 
     The table's own points (up to ``2 z sigma`` above the table ``plane``, past the lift's
-    band) run on no face, nor do those within ``2 z sigma`` of the model's lowest height
-    (the top of a box the object lies on, in the plane of its hidden bottom)."""
-    sigmas = sigmas_at(frame, noise, points)
+    band) run on no face, nor do those within ``2 z sigma`` of ``lowest``, the model's lowest
+    height above the table at the answer (metres; ``None`` without a table): the top of a box
+    the object lies on, in the plane of its hidden bottom."""
+    depths = camera_depths(frame, points)
+    sigmas = np.asarray(noise.axial_sigma(depths), np.float64)
     explained, runs_on = continuing(
         model, object_T_base, points, gate, z * np.hypot(sigmas, mismatch_sigma(model))
     )
     if plane is not None:  # the table's own points, and the top of what the model rests on
         height = np.asarray(plane.height(points), np.float64)
-        rotation = Rotation.from_quat(np.asarray(object_T_base[:4], np.float64), scalar_first=True)
-        placed = np.eye(4)
-        placed[:3, :3] = rotation.inv().as_matrix()
-        placed[:3, 3] = -placed[:3, :3] @ np.asarray(object_T_base[4:], np.float64)
-        lowest = _heights(model, plane, placed)[1].min()
         runs_on &= (height > 2 * z * sigmas) & (np.abs(height - lowest) > 2 * z * sigmas)
     away = int((~explained & ~runs_on).sum())
     problems = []
@@ -149,9 +138,7 @@ def beyond_model(
             "an occluder)"
         )
     reach = overhang(model, refined, points[explained | runs_on])
-    lateral = float(np.median(camera_depths(frame, points))) * LATERAL_PIXELS / float(
-        frame.intrinsics.fx
-    )
+    lateral = float(np.median(depths)) * LATERAL_PIXELS / float(frame.intrinsics.fx)
     reach_allowed = z * float(np.sqrt(sigma_z**2 + mismatch_sigma(model) ** 2 + lateral**2))
     if not np.isfinite(reach).all():
         problems.append(
@@ -239,15 +226,6 @@ def _past_edge(tree, model_points, points, normals) -> np.ndarray:
     return np.all(np.sum(unit * mean[:, None], axis=2) > 0.0, axis=1)
 
 
-def _heights(model: _Model, plane, base_T_object: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The model's points ``(M, 3)`` (object frame, float64) and their heights ``(M,)``
-    (metres) above the table ``plane`` at the pose ``base_T_object`` ``(4, 4)``."""
-    pose = np.asarray(base_T_object, np.float64)
-    points = model.points[np.all(np.isfinite(model.points), axis=1)].astype(np.float64)
-    placed = points @ pose[:3, :3].T + pose[:3, 3]
-    return points, placed @ np.asarray(plane.normal, np.float64) + float(plane.offset)
-
-
 @dataclasses.dataclass(frozen=True)
 class HeightTests:
     """:func:`height_tests`' results (metres): the model's depth in the table ``sunk`` and
@@ -277,8 +255,10 @@ def height_tests(
     ``h`` by their ``LOW_QUANTILE`` height's shortfall, allowed ``z`` of those with the
     points' own noise ``sigma_points`` added, plus the quantile's noise offset."""
     rotation = np.asarray(base_T_object, np.float64)[:3, :3]
-    normal = np.asarray(plane.normal, np.float64)
-    model_points, heights = _heights(model, plane, base_T_object)
+    translation = np.asarray(base_T_object, np.float64)[:3, 3]
+    normal, offset = np.asarray(plane.normal, np.float64), float(plane.offset)
+    model_points = model.points[np.all(np.isfinite(model.points), axis=1)].astype(np.float64)
+    heights = (model_points @ rotation.T + translation) @ normal + offset
     low = int(np.argmin(heights))
     up = rotation.T @ normal
     jacobian = np.concatenate([up, np.cross(model_points[low], up)])
@@ -286,7 +266,7 @@ def height_tests(
     pose_var = max(float(jacobian @ sigma @ jacobian), 0.0)
     mismatch = float(model.plane_offset)
     sunk_sigma = np.sqrt(pose_var + sigma_table**2 + mismatch**2)
-    below = np.quantile(np.asarray(plane.height(points), np.float64), LOW_QUANTILE)
+    below = np.quantile(np.asarray(points, np.float64) @ normal + offset, LOW_QUANTILE)
     under_sigma = np.sqrt(pose_var + sigma_points**2 + mismatch**2)
     return HeightTests(
         sunk=float(-heights[low]),

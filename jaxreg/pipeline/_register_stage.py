@@ -56,6 +56,7 @@ from jaxreg.pipeline._judge import (
     EQUAL_WITHIN,
     NOISE_SIGMAS,
     TOLERANCE,
+    _lowest,
     _near_model,
     _support,
     evidence_gap,
@@ -598,7 +599,7 @@ def refine_stage(
     beyond = beyond_model(
         frame, model, plane, answers[ranked[0]], np.asarray(results.pose.wxyz_xyz[ranked[0]]),
         points, float(fine_distances[-1]), gates.sigma_z, noise, z, s.min_inlier_fraction,
-        settings.voxel_size,
+        settings.voxel_size, None if plane is None else _lowest(model, plane, answers[ranked[0]]),
     )  # fmt: skip
     record = dataclasses.replace(
         record, explained_away=beyond.explained_away, runs_on=beyond.runs_on,
