@@ -23,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, cKDTree
 from scipy.spatial.transform import Rotation
 from scipy.stats import norm
 
@@ -170,14 +170,16 @@ def continuing(
     """Which of the segment's ``points`` ``(N, 3)`` (base frame) the model explains at the
     pose ``object_T_base`` ``(7,)`` (within ``gate`` metres, the fit's final correspondence
     distance), and which carry the model's surface on past its edge (``(N,)`` bool each):
-    farther than ``gate`` from every model point and past the model's edge
-    (:func:`_past_edge`), with half or more of the segment's explained or running-on points
+    farther than ``gate`` from every model point, outside the model's convex hull
+    (:func:`_outside_hull`) and past the model's edge (:func:`_past_edge`), with half or more of the segment's explained or running-on points
     within ``GROW_RADIUS`` gates of it (``IN_PLANE`` at least) in its tangent plane (its
     normal from its ``NORMAL_NEIGHBOURS`` segment neighbours; ``allowed`` ``(N,)`` metres off
     it), grown from the explained points outward for up to ``GROW_STEPS`` steps: the measured
     surface runs on flat across the model's edge. A real object's own surface stays within the
     gate of its model; a larger object's face runs on past it; a touching neighbour's face
-    meets the model's at a crease, and the background or an occluder lies off it."""
+    meets the model's at a crease, the background or an occluder lies off it, and depth across a concavity
+    (smeared over the narrow gap between a clamp's jaws, or something lying in a bowl) lies
+    within the hull."""
     points = np.asarray(points, np.float64)
     if len(points) < 3:
         return np.zeros(len(points), bool), np.zeros(len(points), bool)
@@ -191,7 +193,9 @@ def continuing(
         return ~far, far
     normals = np.asarray(estimate_normals(moved, min(NORMAL_NEIGHBOURS, len(moved))), np.float64)
     allowed = np.broadcast_to(np.asarray(allowed, np.float64), far.shape)
-    past = np.flatnonzero(far)[_past_edge(tree, model.points[rows], moved[far], normals[far])]
+    outside = _outside_hull(model.points[rows], moved[far]) > 0
+    past_edge = _past_edge(tree, model.points[rows], moved[far], normals[far])
+    past = np.flatnonzero(far)[past_edge & outside]
     runs_on = np.zeros(len(points), bool)
     if not len(past):
         return ~far, runs_on
@@ -210,6 +214,15 @@ def continuing(
         if not grown:
             break
     return ~far, runs_on
+
+
+def _outside_hull(model_points: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``(N,)`` how far each of ``points`` ``(N, 3)`` (object frame) lies outside the convex
+    hull of ``model_points`` ``(R, 3)`` (metres along the farthest facet's normal; 0 or less
+    inside). A surface the model lacks inside its hull fills a concavity (depth smeared across
+    a clamp's jaws, a mug's handle): it does not make the object larger."""
+    hull = ConvexHull(np.asarray(model_points, np.float64))
+    return np.max(points @ hull.equations[:, :3].T + hull.equations[:, 3], axis=1)
 
 
 def _past_edge(tree, model_points, points, normals) -> np.ndarray:

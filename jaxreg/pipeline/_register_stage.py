@@ -521,19 +521,43 @@ def refine_stage(
         )  # fmt: skip
         return fit, answers, contact, lowest, found, leads
 
+    def kept(turns, contact):  # a turn must rest as the answer does: one floating fits freely
+        _, restings = _onto_table(model, turns, plane, settings)
+        return [
+            (resting is not None or contact is None)
+            and _within(_bounds(model, plane, turn, points), gates)
+            for turn, resting in zip(turns, restings, strict=True)
+        ]
+
+    z = z_score(s.false_refusal)
+
+    def beyond_at(answer, refined):
+        lowest_height = None if plane is None else _lowest(model, plane, answer)
+        return beyond_model(
+            frame, model, plane, answer, refined, points, float(fine_distances[-1]),
+            gates.sigma_z, noise, z, s.min_inlier_fraction, settings.voxel_size, lowest_height,
+        )  # fmt: skip
+
     fit, answers, contact, lowest, found, leads = answer_from(coarse_poses)
-    # a lead must rest as the answer does: a turn floating over the table fits a part freely
-    _, restings = _onto_table(model, leads, plane, settings)
-    rests = [resting is not None or contact is None for resting in restings]
-    within = [
-        rest and _within(_bounds(model, plane, lead, points), gates)
-        for lead, rest in zip(leads, rests, strict=True)
-    ]
+    within = kept(leads, contact)
     if any(within):  # a turn of the answer fits clearly better, as it rests: answer from it
         lead = leads[within.index(True)]
         fit, answers, contact, lowest, found, _ = answer_from(
             np.concatenate([lead[None], coarse_poses])
         )
+    answer = answers[fit.ranked[0]]
+    beyond = beyond_at(answer, np.asarray(fit.results.pose.wxyz_xyz[fit.ranked[0]]))
+    if beyond.problems and found.equivalent:
+        # a turn that fits as well leaves no surface beyond the model: the evidence picks it
+        turns = np.stack([np.asarray(e.pose.inverse().wxyz_xyz) for e in found.equivalent])
+        clean = [
+            ok and not beyond_at(turn, turn).problems
+            for turn, ok in zip(turns, kept(turns, contact), strict=True)
+        ]
+        if any(clean):
+            fit, answers, contact, lowest, found, _ = answer_from(turns[clean.index(True)][None])
+            answer = answers[fit.ranked[0]]
+            beyond = beyond_at(answer, np.asarray(fit.results.pose.wxyz_xyz[fit.ranked[0]]))
     trim, results, rmses, seen, ranked = fit.trim, fit.results, fit.rmses, fit.seen, fit.ranked
     fractions = np.asarray(results.inlier_fraction)
     best = results[int(ranked[0])]
@@ -595,12 +619,6 @@ def refine_stage(
             f"the camera sees through {contradicted:.0%} of the model's surface facing it (at "
             f"most {s.max_contradicted:.0%})"
         )
-    z = z_score(s.false_refusal)
-    beyond = beyond_model(
-        frame, model, plane, answers[ranked[0]], np.asarray(results.pose.wxyz_xyz[ranked[0]]),
-        points, float(fine_distances[-1]), gates.sigma_z, noise, z, s.min_inlier_fraction,
-        settings.voxel_size, None if plane is None else _lowest(model, plane, answers[ranked[0]]),
-    )  # fmt: skip
     record = dataclasses.replace(
         record, explained_away=beyond.explained_away, runs_on=beyond.runs_on,
         overhang_mm=[round(float(r) * 1e3, 1) for r in beyond.overhang],
