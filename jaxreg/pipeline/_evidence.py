@@ -171,15 +171,15 @@ def continuing(
     pose ``object_T_base`` ``(7,)`` (within ``gate`` metres, the fit's final correspondence
     distance), and which carry the model's surface on past its edge (``(N,)`` bool each):
     farther than ``gate`` from every model point, outside the model's convex hull
-    (:func:`_outside_hull`) and past the model's edge (:func:`_past_edge`), with half or more of the segment's explained or running-on points
-    within ``GROW_RADIUS`` gates of it (``IN_PLANE`` at least) in its tangent plane (its
-    normal from its ``NORMAL_NEIGHBOURS`` segment neighbours; ``allowed`` ``(N,)`` metres off
-    it), grown from the explained points outward for up to ``GROW_STEPS`` steps: the measured
-    surface runs on flat across the model's edge. A real object's own surface stays within the
-    gate of its model; a larger object's face runs on past it; a touching neighbour's face
-    meets the model's at a crease, the background or an occluder lies off it, and depth across a concavity
-    (smeared over the narrow gap between a clamp's jaws, or something lying in a bowl) lies
-    within the hull."""
+    (:func:`_outside_hull`) and past the model's edge (:func:`_past_edge`), with half or more
+    of the segment's explained or running-on points within ``GROW_RADIUS`` gates of it
+    (``IN_PLANE`` at least) in its tangent plane (its normal from its ``NORMAL_NEIGHBOURS``
+    segment neighbours; ``allowed`` ``(N,)`` metres off it), grown from the explained points
+    outward for up to ``GROW_STEPS`` steps: the measured surface runs on flat across the
+    model's edge. A real object's own surface stays within the gate of its model; a larger
+    object's face runs on past it; a touching neighbour's face meets the model's at a crease,
+    the background or an occluder lies off it, and depth across a concavity (smeared over the
+    narrow gap between a clamp's jaws, or something lying in a bowl) lies within the hull."""
     points = np.asarray(points, np.float64)
     if len(points) < 3:
         return np.zeros(len(points), bool), np.zeros(len(points), bool)
