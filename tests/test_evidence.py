@@ -86,9 +86,7 @@ def test_a_neighbour_meeting_the_model_at_a_crease_is_explained_away(box):
     side (x = +40 mm) rising above its top is: depth cannot tell it from a taller box."""
     higher = _top((HALF[0] + 0.002, HALF[0] + 0.04)) + np.array([0.0, 0.0, 0.03])
     for points in (_wall(0.0), higher):
-        explained, runs_on = continuing(
-            box, IDENTITY, points, 0.006, np.full(len(points), 0.003)
-        )
+        explained, runs_on = continuing(box, IDENTITY, points, 0.006, np.full(len(points), 0.003))
         assert not runs_on.any()
         assert not explained.any()
     side = _face_grid(
@@ -125,3 +123,44 @@ def test_heights_are_judged_against_the_poses_uncertainty(box):
     raised[2, 3] += 0.02  # the segment's points now reach 20 mm below the model
     under = height_tests(box, plane, raised, tight, face + pose[:3, 3], 0.001, 0.001, z)
     assert under.under == pytest.approx(0.02, abs=1e-3) and under.under > under.under_allowed
+
+
+def _cuboid(low, high, step=0.004):
+    """Points on the six faces of the box from ``low`` to ``high`` ``(3,)`` (metres)."""
+    low, high = np.asarray(low, float), np.asarray(high, float)
+    faces = []
+    for axis in range(3):
+        u, v = [k for k in range(3) if k != axis]
+        for side in (low[axis], high[axis]):
+
+            def place(a, b, axis=axis, u=u, v=v, side=side):
+                p = np.empty(3)
+                p[axis], p[u], p[v] = side, a, b
+                return p
+
+            faces.append(
+                _face_grid((low[u], high[u] + 1e-9), (low[v], high[v] + 1e-9), step, place)
+            )
+    return np.concatenate(faces)
+
+
+def test_depth_across_a_concavity_is_explained_away_and_past_the_outline_runs_on():
+    """A U of two 20 mm prongs on a bar (a clamp's jaws, 40 mm apart): depth smeared across
+    the gap between the prongs, 2 mm behind their front faces (within the 3 mm the faces'
+    planes allow, so it would carry them on), lies within the model's convex hull and does not
+    make the object larger; the front face carried 30 mm past a prong's outer side does."""
+    prongs = [_cuboid((x, -0.01, -0.02), (x + 0.02, 0.01, 0.08)) for x in (-0.04, 0.02)]
+    bar = _cuboid((-0.04, -0.01, -0.04), (0.04, 0.01, -0.02))
+    u = _prepare_model(np.concatenate([*prongs, bar]).astype(np.float32), None, 0.004, 0.04, 0.015)
+
+    def front(x_range, y):
+        return _face_grid(x_range, (0.0, 0.072 + 1e-9), 0.004, lambda a, b: np.array([a, y, b]))
+
+    across = front((-0.02, 0.02 + 1e-9), 0.008)
+    explained, runs_on = continuing(u, IDENTITY, across, 0.006, np.full(len(across), 0.003))
+    gap = np.abs(across[:, 0]) < 0.014  # farther than the gate from both prongs
+    assert not runs_on.any() and not explained[gap].any()
+    beside = front((0.04, 0.07 + 1e-9), 0.01)
+    explained, runs_on = continuing(u, IDENTITY, beside, 0.006, np.full(len(beside), 0.003))
+    past = beside[:, 0] > 0.04 + 0.006 + 1e-6
+    assert runs_on[past].mean() > 0.8 and not explained[past].any()
