@@ -234,17 +234,16 @@ def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, set
     explains (``joined``, :func:`_joined`: parts of one object are no rivals) and whose coarse
     score, or share shown occlusion aside (:func:`_shown`), is within ``CONTESTED_WITHIN``
     standard errors of the winner's (or above it; :func:`evidence_gap` over the winner's
-    ``PATCH`` cubes), in the order of ``scored``. Both
-    are refined and probed (:func:`_rival_fit`); a rival that no fit of the model passes the
-    answer's gates on is no twin (a coarse score on 128 points says little: a mug's coarse
-    pose fits a brick's corner), and one that does is a twin unless the winner's fit keeps to
-    it and is better by more than ``EQUAL_WITHIN``
-    both in score and in how well the model fits what the segment shows
-    (:func:`_clearly_better`), or the rival's fits all go beyond it where its coarse span did
-    too. A coarse pose a few degrees off (a mug's handle where the image sees through it) can
-    put the object behind a neighbour that only resembles it, or make its segment seem to span
-    beyond the model. Refined fits never make a rival the winner: a failed search on the object
-    itself (a handle ICP cannot find) would hand the win to the neighbour.
+    ``PATCH`` cubes), in the order of ``scored``. Both are refined and probed
+    (:func:`_rival_fit`); a rival that no fit of the model passes the answer's gates and
+    evidence on is no twin (a coarse score on 128 points says little: a mug's coarse pose fits a
+    brick's corner), and one that does is a twin unless the winner's fit keeps to it and is
+    better by more than ``EQUAL_WITHIN`` both in score and in how well the model fits what the
+    segment shows (:func:`_clearly_better`), or the rival's fits all go beyond it where its
+    coarse span did too. A coarse pose a few degrees off (a mug's handle where the image sees
+    through it) can put the object behind a neighbour that only resembles it, or make its
+    segment seem to span beyond the model. Refined fits never make a rival the winner: a failed
+    search on the object itself (a handle ICP cannot find) would hand the win to the neighbour.
     """
     candidates = segmented.candidates
     score, *_, chosen = scored[0]
@@ -312,8 +311,12 @@ def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, n
     :func:`_within`, placed on the table where it rests on it). The best is among the fits that
     keep to it where there are any: a mug turned about its axis spans its handle beyond the
     model. ``fits``: whether any of its refined or probed fits passes the gates an answer must
-    pass (residual, explained, confirmed and contradicted shares): a segment that no fit of the
-    model passes is no rival, however its coarse score compares."""
+    pass (residual, explained, confirmed and contradicted shares), and the best one the
+    evidence an answer must on its ``points`` (:func:`~jaxreg.pipeline._evidence.beyond_model`,
+    its runs-on count in the segment grid's cells: the share explained, the span and the
+    surface running on past the model): a segment that no fit of the model passes is no rival,
+    however its coarse score compares (a mug's fit on a brick explains its top and its sides
+    run on)."""
     fit = _refit(frame, model, plane, points, poses, explained, gates, settings, noise, rng,
                  eye)  # fmt: skip
     first = fit.ranked[:1]
@@ -339,7 +342,18 @@ def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, n
     # score = explained * confirmed / judged, so explained * confirmed / (confirmed +
     # contradicted) = score * judged / (confirmed + contradicted)
     shown = scores[top] * seen[top, :3].sum() / max(seen[top, :2].sum(), 1.0)
-    return float(scores[top]), float(shown), bool(within[top]), bool(passes.any())
+    fits = bool(passes.any())
+    if fits:  # the evidence an answer must pass, on the candidate's grid points
+        depth = float(np.median(camera_depths(frame, points)))
+        spacing = depth * settings.segment.stride / float(frame.intrinsics.fx)
+        beyond = beyond_model(
+            frame, model, plane, poses[top], poses[top], points, float(gates.distances[-1]),
+            gates.sigma_z, noise, z_score(settings.register.false_refusal),
+            settings.register.min_inlier_fraction, max(settings.voxel_size, spacing),
+            None if plane is None else _lowest(model, plane, poses[top]),
+        )  # fmt: skip
+        fits = not beyond.problems
+    return float(scores[top]), float(shown), bool(within[top]), fits
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
