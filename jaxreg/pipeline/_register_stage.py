@@ -346,14 +346,25 @@ def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, n
     if fits:  # the evidence an answer must pass, on the candidate's grid points
         depth = float(np.median(camera_depths(frame, points)))
         spacing = depth * settings.segment.stride / float(frame.intrinsics.fx)
-        beyond = beyond_model(
-            frame, model, plane, poses[top], poses[top], points, float(gates.distances[-1]),
-            gates.sigma_z, noise, z_score(settings.register.false_refusal),
-            settings.register.min_inlier_fraction, max(settings.voxel_size, spacing),
-            None if plane is None else _lowest(model, plane, poses[top]),
-        )  # fmt: skip
+        cell = max(settings.voxel_size, spacing)
+        beyond = _beyond(frame, model, plane, poses[top], poses[top], points, gates, noise,
+                         settings, cell)  # fmt: skip
         fits = not beyond.problems
     return float(scores[top]), float(shown), bool(within[top]), fits
+
+
+def _beyond(frame, model, plane, answer, refined, points, gates, noise, settings, cell):
+    """:func:`~jaxreg.pipeline._evidence.beyond_model` of the segment ``points`` ``(N, 3)``
+    at the answer ``answer`` ``(7,)`` (object_T_base, placed on the table where it rests) and
+    ICP's ``refined`` pose ``(7,)``, judged at the refinement's final distance, the segment's
+    ``gates`` and the register settings' false-refusal rate, the runs-on count taken in
+    ``cell``-sized cells (metres: the lift's voxels, or a candidate grid's spacing)."""
+    r = settings.register
+    return beyond_model(
+        frame, model, plane, answer, refined, points, float(gates.distances[-1]), gates.sigma_z,
+        noise, z_score(r.false_refusal), r.min_inlier_fraction, cell,
+        None if plane is None else _lowest(model, plane, answer),
+    )  # fmt: skip
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -543,14 +554,9 @@ def refine_stage(
             for turn, resting in zip(turns, restings, strict=True)
         ]
 
-    z = z_score(s.false_refusal)
-
     def beyond_at(answer, refined):
-        lowest_height = None if plane is None else _lowest(model, plane, answer)
-        return beyond_model(
-            frame, model, plane, answer, refined, points, float(fine_distances[-1]),
-            gates.sigma_z, noise, z, s.min_inlier_fraction, settings.voxel_size, lowest_height,
-        )  # fmt: skip
+        return _beyond(frame, model, plane, answer, refined, points, gates, noise, settings,
+                       settings.voxel_size)  # fmt: skip
 
     fit, answers, contact, lowest, found, leads = answer_from(coarse_poses)
     within = kept(leads, contact)
@@ -564,12 +570,12 @@ def refine_stage(
     if beyond.problems and found.equivalent:
         # a turn that fits as well leaves no surface beyond the model: the evidence picks it
         turns = np.stack([np.asarray(e.pose.inverse().wxyz_xyz) for e in found.equivalent])
-        clean = [
-            ok and not beyond_at(turn, turn).problems
-            for turn, ok in zip(turns, kept(turns, contact), strict=True)
-        ]
-        if any(clean):
-            fit, answers, contact, lowest, found, _ = answer_from(turns[clean.index(True)][None])
+        clean = next((
+            turn for turn, ok in zip(turns, kept(turns, contact), strict=True)
+            if ok and not beyond_at(turn, turn).problems
+        ), None)  # fmt: skip
+        if clean is not None:
+            fit, answers, contact, lowest, found, _ = answer_from(clean[None])
             answer = answers[fit.ranked[0]]
             beyond = beyond_at(answer, np.asarray(fit.results.pose.wxyz_xyz[fit.ranked[0]]))
     trim, results, rmses, seen, ranked = fit.trim, fit.results, fit.rmses, fit.seen, fit.ranked
@@ -656,6 +662,7 @@ def refine_stage(
     )  # fmt: skip
     if plane is not None:
         local = sum(budget.terms[name] for name in LOCAL_TERMS)
+        z = z_score(s.false_refusal)
         heights = height_tests(
             model, plane, np.asarray(SE3(found.pose).as_matrix()), local, points,
             gates.sigma_z, gates.sigma_z, z,
