@@ -2,12 +2,23 @@
 surface that runs on past the model's edge against a neighbour's face meeting it at a crease,
 and heights against the table judged by the pose's uncertainty."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
+from jaxlie import SE3, SO3
 
-from jaxreg.pipeline._evidence import continuing, height_tests, z_score
+import jaxreg as jr
+from jaxreg.pipeline._evidence import (
+    axis_noise,
+    carried_past,
+    continuing,
+    height_tests,
+    z_score,
+)
 from jaxreg.pipeline._model import _prepare_model
 from jaxreg.pipeline.segment import TablePlane
+from jaxreg.uncertainty.noise import DepthNoise
 
 IDENTITY = np.array([1.0, 0, 0, 0, 0, 0, 0])
 HALF = np.array([0.04, 0.025, 0.06])  # an 80 x 50 x 120 mm box, centred at the origin
@@ -164,3 +175,47 @@ def test_depth_across_a_concavity_is_explained_away_and_past_the_outline_runs_on
     explained, runs_on = continuing(u, IDENTITY, beside, 0.006, np.full(len(beside), 0.003))
     past = beside[:, 0] > 0.04 + 0.006 + 1e-6
     assert runs_on[past].mean() > 0.8 and not explained[past].any()
+
+
+def test_the_span_allows_the_depth_noise_only_along_the_cameras_rays(box):
+    """A camera 1 m above the box looking straight down (its rays along the box's 120 mm
+    axis, the model's longest): that axis spreads by the structured-light camera's depth
+    noise at 1 m (1.9 mm), the two across the view by one pixel's width at 1 m (0.8 mm at
+    fx 1200); turned so the camera looks along the 50 mm axis (the shortest), the depth
+    noise moves with it."""
+    fx = 1200.0
+    camera = SE3.from_translation(np.array([0.0, 0.0, 1.0 + HALF[2]])) @ SE3.from_rotation(
+        SO3.from_x_radians(np.pi)
+    )
+    frame = SimpleNamespace(base_T_camera=camera, intrinsics=SimpleNamespace(fx=fx))
+    noise = DepthNoise.structured_light(np.array([fx, fx]))
+    points = _top((-0.01, 0.01))[:20]
+    axial = float(noise.axial_sigma(1.0))
+    lateral = 1.0 / fx
+    along = axis_noise(frame, box, IDENTITY, points, noise)
+    assert np.argmax(np.abs(box.axes[2])) == 0  # the 120 mm axis (z) is the longest
+    np.testing.assert_allclose(along, [axial, lateral, lateral], rtol=0.02)
+    assert axial > 2 * lateral
+    quarter = np.concatenate([SO3.from_x_radians(np.pi / 2).wxyz, np.zeros(3)])
+    turned = axis_noise(frame, box, quarter, points, noise)
+    np.testing.assert_allclose(turned, [lateral, lateral, axial], rtol=0.02)
+
+
+def test_a_neighbours_edge_the_masks_border_holds_carries_on_outside_it():
+    """A plate 0.8 m from the camera (columns 20-49) and a neighbour flush with it (columns
+    50-69) in front of a wall at 1 m; the mask holds the plate and 4 columns of the neighbour.
+    Those 4 columns' surface carries on outside the mask; the plate's left edge steps to the
+    wall, and a pixel farther inside than the border is not judged."""
+    fx, size = 500.0, 80
+    depth = np.full((size, size), 1.0)
+    depth[10:70, 20:70] = 0.8
+    mask = np.zeros((size, size), bool)
+    mask[10:70, 20:54] = True
+    frame = jr.RGBDFrame(depth, jr.Intrinsics(fx, fx, 40.0, 40.0, size, size))
+    noise = DepthNoise.structured_light(np.array([fx, fx]))
+    rows, cols = np.full(8, 40), np.array([50, 51, 52, 53, 20, 21, 30, 44])
+    z = depth[rows, cols]
+    points = np.stack([(cols - 40.0) * z / fx, (rows - 40.0) * z / fx, z], 1)
+    carried = carried_past(frame, mask, points, noise, border=5)
+    np.testing.assert_array_equal(carried, [True] * 4 + [False] * 4)
+    assert not carried_past(frame, mask, points, noise, border=0).any()

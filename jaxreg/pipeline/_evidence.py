@@ -7,7 +7,8 @@ rate (``RegisterSettings.false_refusal``, one-sided, per test) instead of fixed 
 - :func:`continuing`: the segment's points that carry the model's surface on past its edge
   (a larger object of a similar shape). Points the model does not explain and that do not
   continue its surface (a neighbour's face meeting it at a crease, the background behind a
-  mask's border, an occluder, the object it rests on) are explained away, not counted.
+  mask's border, an occluder, the object it rests on) are explained away, not counted, as
+  are those on a neighbour's edge a mask's border holds (:func:`carried_past`).
 - :func:`height_tests`: how far the pose sinks the model's lowest point into the table, and
   how far the segment reaches below the model, each against the standard deviation of that
   height under the pose's local error budget (depth, fit, mismatch, segmentation), the depth
@@ -23,16 +24,26 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from scipy import ndimage
 from scipy.spatial import ConvexHull, cKDTree
 from scipy.spatial.transform import Rotation
 from scipy.stats import norm
 
-from jaxreg.pipeline._error_sources import mismatch_sigma
+from jaxreg.pipeline._error_sources import _pixels, mismatch_sigma
 from jaxreg.pipeline._judge import LATERAL_PIXELS, PATCH, patch_count
 from jaxreg.pipeline._model import _Model
+from jaxreg.pipeline._surface import depth_step
 from jaxreg.search.normals import estimate_normals
 
-__all__ = ["beyond_model", "camera_depths", "continuing", "height_tests", "overhang"]
+__all__ = [
+    "axis_noise",
+    "beyond_model",
+    "camera_depths",
+    "carried_past",
+    "continuing",
+    "height_tests",
+    "overhang",
+]
 
 # The pose's error-budget terms that move the model against the table and the segment (the
 # calibration moves both together; the ambiguity term is the alternatives', judged apart).
@@ -100,26 +111,28 @@ class BeyondModel:
 
 def beyond_model(
     frame, model: _Model, plane, object_T_base: np.ndarray, refined: np.ndarray,
-    points: np.ndarray, gate: float, sigma_z: float, noise, z: float, min_share: float,
-    voxel: float, lowest: float | None,
+    points: np.ndarray, gate: float, noise, z: float, min_share: float, voxel: float,
+    lowest: float | None, region: np.ndarray | None = None, border: int = 0,
 ) -> BeyondModel:  # fmt: skip
     """The segment's ``points`` ``(N, 3)`` (base frame) that the model at the answer
     ``object_T_base`` ``(7,)`` does not explain (:func:`continuing`, with ``gate`` the fit's
     final correspondence distance), judged at ``z`` sigma of the noise (``noise`` the
-    camera's ``DepthNoise``, ``sigma_z`` its value at the segment's depth):
+    camera's ``DepthNoise``):
 
     - the share the model explains of the points it could (all but those explained away) is
       at least ``min_share``;
     - the points not explained away span beyond the model, at ICP's ``refined`` pose
-      ``(7,)``, by at most ``z`` sigma of the depth noise, the lateral noise
-      (``LATERAL_PIXELS`` at the segment's depth) and the model's mismatch;
+      ``(7,)``, by at most ``z`` sigma of the sensor's noise along each of the model's axes
+      (:func:`axis_noise`) and of the model's mismatch;
     - fewer than a ``PATCH``'s worth of ``voxel`` cells, or fewer than ``RUNS_ON_PATCHES``
       patches, carry the model's surface on past its edge.
 
     The table's own points (up to ``2 z sigma`` above the table ``plane``, past the lift's
     band) run on no face, nor do those within ``2 z sigma`` of ``lowest``, the model's lowest
     height above the table at the answer (metres; ``None`` without a table): the top of a box
-    the object lies on, in the plane of its hidden bottom."""
+    the object lies on, in the plane of its hidden bottom. Nor do those within ``border``
+    pixels of a caller's mask's ``region`` ``(H, W)`` whose surface carries on outside it
+    (:func:`carried_past`): a neighbour's edge the mask's border holds."""
     depths = camera_depths(frame, points)
     sigmas = np.asarray(noise.axial_sigma(depths), np.float64)
     explained, runs_on = continuing(
@@ -128,6 +141,8 @@ def beyond_model(
     if plane is not None:  # the table's own points, and the top of what the model rests on
         height = np.asarray(plane.height(points), np.float64)
         runs_on &= (height > 2 * z * sigmas) & (np.abs(height - lowest) > 2 * z * sigmas)
+    if region is not None and border and runs_on.any():  # a neighbour the mask's border holds
+        runs_on[runs_on] = ~carried_past(frame, region, points[runs_on], noise, border)
     away = int((~explained & ~runs_on).sum())
     problems = []
     share = explained.sum() / max(int((explained | runs_on).sum()), 1)
@@ -137,21 +152,22 @@ def beyond_model(
             f"{min_share:.0%}; {away} more lie off its surface: a neighbour, the background or "
             "an occluder)"
         )
-    reach = overhang(model, refined, points[explained | runs_on])
-    lateral = float(np.median(depths)) * LATERAL_PIXELS / float(frame.intrinsics.fx)
-    reach_allowed = z * float(np.sqrt(sigma_z**2 + mismatch_sigma(model) ** 2 + lateral**2))
+    kept = points[explained | runs_on]
+    reach = overhang(model, refined, kept)
+    reach_allowed = z * np.hypot(axis_noise(frame, model, refined, kept, noise),
+                                 mismatch_sigma(model))  # fmt: skip
     if not np.isfinite(reach).all():
         problems.append(
             "the segment's span beyond the model could not be measured (NaN: a non-finite "
             "pose or segment point)"
         )
-    elif reach.max() > reach_allowed:
+    elif np.any(reach > reach_allowed):
+        axis = int(np.argmax(reach - reach_allowed))
         problems.append(
-            f"the segment's points on the model's surface span {reach.max() * 1e3:.0f} mm "
-            f"beyond the model along its "
-            f"{('longest', 'middle', 'shortest')[int(reach.argmax())]} axis (at most "
-            f"{reach_allowed * 1e3:.1f}: {z:.1f} sigma of the depth noise, the lateral noise "
-            "and the model's mismatch): a larger object of a similar shape"
+            f"the segment's points on the model's surface span {reach[axis] * 1e3:.0f} mm "
+            f"beyond the model along its {('longest', 'middle', 'shortest')[axis]} axis (at "
+            f"most {reach_allowed[axis] * 1e3:.1f}: {z:.1f} sigma of the sensor's noise along "
+            "that axis and of the model's mismatch): a larger object of a similar shape"
         )
     if runs_on.sum() >= (PATCH / voxel) ** 2 and patch_count(points[runs_on]) >= RUNS_ON_PATCHES:
         problems.append(
@@ -161,6 +177,47 @@ def beyond_model(
             "flush with it; give a mask= that leaves the neighbour out"
         )
     return BeyondModel(away, int(runs_on.sum()), reach, tuple(problems))
+
+
+def axis_noise(frame, model: _Model, object_T_base: np.ndarray, points: np.ndarray,
+               noise) -> np.ndarray:  # fmt: skip
+    """``(3,)`` the sensor's noise (metres, RMS over ``points`` ``(N, 3)``, base frame) along
+    each of the model's principal axes at the pose ``object_T_base`` ``(7,)``: a point's depth
+    noise (``noise.axial_sigma``) lies along the camera's ray through it and its lateral noise
+    (``LATERAL_PIXELS`` at its depth) across it, so an axis the camera looks along spreads by
+    the depth noise and one across its view by a pixel's width. NaN without points."""
+    if not len(points):
+        return np.full(3, np.nan)
+    points = np.asarray(points, np.float64)
+    rays = points - np.asarray(frame.base_T_camera.translation(), np.float64)
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+    rotation = Rotation.from_quat(np.asarray(object_T_base[:4], np.float64), scalar_first=True)
+    along = (rotation.apply(rays) @ model.axes) ** 2  # (N, 3) squared cosines
+    depths = camera_depths(frame, points)
+    axial = np.asarray(noise.axial_sigma(depths), np.float64)[:, None]
+    lateral = (depths * LATERAL_PIXELS / float(frame.intrinsics.fx))[:, None]
+    return np.sqrt(np.mean(axial**2 * along + lateral**2 * (1.0 - along), axis=0))
+
+
+def carried_past(frame, region: np.ndarray, points: np.ndarray, noise, border: int) -> np.ndarray:
+    """``(N,)`` bool: which of ``points`` ``(N, 3)`` (base frame, seen in ``region`` ``(H, W)``)
+    lie on a surface that carries on outside the region: the nearest pixel outside it with
+    depth is at most ``border`` pixels from the point's, and its depth differs from the
+    point's by at most :func:`~jaxreg.pipeline._surface.depth_step` (the steps of a surface
+    seen by a noisy camera, ``noise``) for each pixel between them. Across the object's own
+    silhouette the depth steps to the background or the table behind it; a neighbour that a
+    mask's border holds carries on."""
+    depth = np.asarray(frame.depth, np.float64)
+    outside = ~np.asarray(region, bool) & np.isfinite(depth)
+    if not outside.any():
+        return np.zeros(len(points), bool)
+    distance, (rows, cols) = ndimage.distance_transform_edt(~outside, return_indices=True)
+    row, col = _pixels(frame, np.asarray(points, np.float64)).T
+    z = camera_depths(frame, points)
+    step = depth_step(z, np.asarray(noise.axial_sigma(z), np.float64), float(frame.intrinsics.fx))
+    apart = distance[row, col]
+    beyond = depth[rows[row, col], cols[row, col]]
+    return (apart <= border) & (np.abs(beyond - z) <= apart * step)
 
 
 def continuing(

@@ -165,14 +165,22 @@ def coarse_search(
     if twin is not None:
         groups = (segmented.candidates[chosen], segmented.candidates[twin])
         centres = np.stack([np.mean(cloud, axis=0) for _, cloud in groups])
-        places = "; ".join(
+        places = [
             f"clusters {list(group)} at pixel ({col}, {row})"
             for (group, _), (row, col) in zip(groups, _pixels(frame, centres), strict=True)
-        )
+        ]
+        merged = next(item[3][0] for item in scored if item[4] == twin) > gates.max_overhang
         raise _Failed(
             "register",
-            f"two separate segments fit the model equally well ({places}): the depth cannot "
-            "tell which is the object; give pixel=, box= or mask= to say which",
+            (
+                f"the model fits {places[0]}, and part of {places[1]} fits it better, which "
+                "spans beyond the model (the object touching a neighbour, or a larger object "
+                "of a similar shape)"
+                if merged
+                else f"two separate segments fit the model equally well ({'; '.join(places)})"
+            )
+            + ": the depth cannot tell which is the object; give pixel=, box= or mask= to say "
+            "which",
             RegisterRecord(
                 ms=0.0, starts=starts, candidates=candidates,
                 coarse_kept_starts=int(poses.shape[0]),
@@ -190,7 +198,8 @@ def coarse_search(
         coarse_kept_starts=int(poses.shape[0]),
         chosen_clusters=None if joined is None else list(joined),
     )  # fmt: skip
-    return CoarseSearch(region, poses, explained, gates, record.with_ms(start))
+    border = settings.segment.mask_border if segmented.clusters is None else 0
+    return CoarseSearch(region, poses, explained, gates, record.with_ms(start), border)
 
 
 def _painted(frame, region: np.ndarray, palette: np.ndarray, tolerance: float) -> np.ndarray:
@@ -244,6 +253,14 @@ def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, set
     through it) can put the object behind a neighbour that only resembles it, or make its
     segment seem to span beyond the model. Refined fits never make a rival the winner: a failed
     search on the object itself (a handle ICP cannot find) would hand the win to the neighbour.
+
+    A candidate that spans beyond the model (ranked after those that keep within it: the
+    object merged with a neighbour it touches, or a larger object of a similar shape) is a
+    rival without refinement when the lower bounds (:func:`_lower_bound`, over its own
+    ``PATCH`` cubes) of its coarse score and of its share shown are both above the winner's:
+    a fragment whose pose hides most of the model is not claimed while the model fits a
+    cluster holding a neighbour clearly better; a whole view of the object beside a larger
+    look-alike is.
     """
     candidates = segmented.candidates
     score, *_, chosen = scored[0]
@@ -261,15 +278,23 @@ def _twin(frame, model, segmented: Segmented, coarse, scored, joined, gates, set
             )  # fmt: skip
         return fits[slot]
 
+    ours_within = scored[0][3][0] <= gates.max_overhang
     for item in scored[1:]:
         other, *_, bounds, slot = item
+        if group & set(candidates[slot][0]):
+            continue
+        within = bounds[0] <= gates.max_overhang
+        if ours_within and not within:  # its evidence's lower bounds against the winner's
+            count = patch_count(candidates[slot][1])
+            lower = (_lower_bound(other, count), _lower_bound(_shown(item), count))
+            if lower[0] > score and lower[1] > _shown(scored[0]):
+                return slot
         gap = min(
             evidence_gap([other], np.ones(1), score, 1.0, patches)[0],
             evidence_gap([_shown(item)], np.ones(1), _shown(scored[0]), 1.0, patches)[0],
         )
-        if group & set(candidates[slot][0]) or not gap <= CONTESTED_WITHIN:
+        if not gap <= CONTESTED_WITHIN:
             continue
-        within = bounds[0] <= gates.max_overhang
         ours, theirs = fit(chosen), fit(slot)
         if not theirs[3] or not (within or theirs[2]):
             continue
@@ -353,17 +378,20 @@ def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, n
     return float(scores[top]), float(shown), bool(within[top]), fits
 
 
-def _beyond(frame, model, plane, answer, refined, points, gates, noise, settings, cell):
+def _beyond(frame, model, plane, answer, refined, points, gates, noise, settings, cell,
+            masked=(None, 0)):  # fmt: skip
     """:func:`~jaxreg.pipeline._evidence.beyond_model` of the segment ``points`` ``(N, 3)``
     at the answer ``answer`` ``(7,)`` (object_T_base, placed on the table where it rests) and
     ICP's ``refined`` pose ``(7,)``, judged at the refinement's final distance, the segment's
     ``gates`` and the register settings' false-refusal rate, the runs-on count taken in
-    ``cell``-sized cells (metres: the lift's voxels, or a candidate grid's spacing)."""
+    ``cell``-sized cells (metres: the lift's voxels, or a candidate grid's spacing);
+    ``masked``: a caller's mask's region ``(H, W)`` and the pixels of its border that may hold
+    its neighbours (``(None, 0)`` for clusters)."""
     r = settings.register
     return beyond_model(
-        frame, model, plane, answer, refined, points, float(gates.distances[-1]), gates.sigma_z,
-        noise, z_score(r.false_refusal), r.min_inlier_fraction, cell,
-        None if plane is None else _lowest(model, plane, answer),
+        frame, model, plane, answer, refined, points, float(gates.distances[-1]), noise,
+        z_score(r.false_refusal), r.min_inlier_fraction, cell,
+        None if plane is None else _lowest(model, plane, answer), *masked,
     )  # fmt: skip
 
 
@@ -556,7 +584,7 @@ def refine_stage(
 
     def beyond_at(answer, refined):
         return _beyond(frame, model, plane, answer, refined, points, gates, noise, settings,
-                       settings.voxel_size)  # fmt: skip
+                       settings.voxel_size, (coarse.region, coarse.border))  # fmt: skip
 
     fit, answers, contact, lowest, found, leads = answer_from(coarse_poses)
     within = kept(leads, contact)

@@ -286,6 +286,8 @@ class CoarseSearch:
         tolerances: the register stage's distances and gates for the segment's depth
             (:class:`~jaxreg.pipeline._register_stage.Tolerances`).
         record: the register stage's record so far (its coarse part).
+        border: pixels of ``region``'s border that may hold what borders the object (a
+            caller's mask's ``SegmentSettings.mask_border``; 0 for clusters).
     """
 
     region: np.ndarray
@@ -293,6 +295,7 @@ class CoarseSearch:
     explained: float
     tolerances: Any
     record: RegisterRecord
+    border: int = 0
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -41,6 +41,10 @@ class SegmentSettings:
             balance or colour noise moves one paint's chromaticity more.
         min_color_share: a cluster whose judged pixels show the model's colours less often
             than this is another object, and no candidate (a look-alike of another paint).
+        mask_border: pixels of a caller's mask's border that may hold what borders the
+            object (a network's or a hand label's mask misses the silhouette by 2-5 pixels):
+            a surface the mask holds there that carries on outside it is a neighbour's, and
+            does not run the model's surface on.
     """
 
     stride: int = 4
@@ -52,8 +56,11 @@ class SegmentSettings:
     max_candidates: int = 4
     color_tolerance: float = 0.03
     min_color_share: float = 0.3
+    mask_border: int = 5
 
     def __post_init__(self):
+        if self.mask_border < 0:
+            raise ValueError(f"mask_border must be 0 or more pixels, got {self.mask_border!r}")
         if not 0.0 < self.color_tolerance < 1.0 or not 0.0 <= self.min_color_share <= 1.0:
             raise ValueError(
                 "color_tolerance must lie in (0, 1) and min_color_share in [0, 1], got "
