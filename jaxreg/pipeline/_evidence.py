@@ -25,7 +25,7 @@ import dataclasses
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import ConvexHull, cKDTree
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from scipy.stats import norm
 
@@ -250,7 +250,7 @@ def continuing(
         return ~far, far
     normals = np.asarray(estimate_normals(moved, min(NORMAL_NEIGHBOURS, len(moved))), np.float64)
     allowed = np.broadcast_to(np.asarray(allowed, np.float64), far.shape)
-    outside = _outside_hull(model.points[rows], moved[far]) > 0
+    outside = _outside_hull(model.hull, moved[far]) > 0
     past_edge = _past_edge(tree, model.points[rows], moved[far], normals[far])
     past = np.flatnonzero(far)[past_edge & outside]
     runs_on = np.zeros(len(points), bool)
@@ -273,13 +273,12 @@ def continuing(
     return ~far, runs_on
 
 
-def _outside_hull(model_points: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """``(N,)`` how far each of ``points`` ``(N, 3)`` (object frame) lies outside the convex
-    hull of ``model_points`` ``(R, 3)`` (metres along the farthest facet's normal; 0 or less
-    inside). A surface the model lacks inside its hull fills a concavity (depth smeared across
-    a clamp's jaws, a mug's handle): it does not make the object larger."""
-    hull = ConvexHull(np.asarray(model_points, np.float64))
-    return np.max(points @ hull.equations[:, :3].T + hull.equations[:, 3], axis=1)
+def _outside_hull(hull: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``(N,)`` how far each of ``points`` ``(N, 3)`` (object frame) lies outside the model's
+    convex ``hull`` ``(F, 4)`` (``_Model.hull``; metres along the farthest facet's normal, 0 or
+    less inside). A surface the model lacks inside its hull fills a concavity (depth smeared
+    across a clamp's jaws, a mug's handle): it does not make the object larger."""
+    return np.max(points @ hull[:, :3].T + hull[:, 3], axis=1)
 
 
 def _past_edge(tree, model_points, points, normals) -> np.ndarray:

@@ -12,7 +12,7 @@ import hashlib
 import math
 
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, cKDTree
 from scipy.spatial.transform import Rotation
 
 from jaxreg.geometry.metrics import Symmetry, diameter
@@ -42,6 +42,7 @@ class _Model:
     plane_offset: float  # metres: see _plane_offset
     self_misfits: np.ndarray  # (3, len(PROBE_ANGLES_DEG)) metres: see _self_misfits
     centre: np.ndarray  # (3,) the centre of the given points' bounding box (object frame)
+    hull: np.ndarray  # (F, 4) the voxelled points' convex hull: facets' outward normal, offset
     oriented: bool  # normals given (a mesh's, pointing out): ICP matches only faces seen
     key: tuple = ()  # the model's digest, shape and the settings it was prepared with
     # _coarse_problem's, per schedule (not in the repr that keys stored programs)
@@ -165,6 +166,7 @@ def _prepare_model(
         plane_offset=_plane_offset(points, normals),
         self_misfits=_self_misfits(points, centroid + axes @ given_centre, axes),
         centre=0.5 * (model_points.min(0) + model_points.max(0)).astype(np.float64),
+        hull=ConvexHull(points.astype(np.float64)).equations,
         oriented=model_normals is not None,
         key=key,
     )
