@@ -120,3 +120,29 @@ def test_the_command_line_exits_2_with_one_line_on_bad_input(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and err.startswith("jaxreg pose: "), err
         assert expected in err and "Traceback" not in err
+
+
+def test_a_thin_mask_is_lifted_at_every_pixel_where_the_grid_holds_too_few():
+    """A rod 3 pixels wide and 50 tall in the mask (a marker far from the camera) holds 12
+    points on the 4-pixel grid, fewer than a registration needs: its candidate is every pixel
+    of its surface (150), not a refusal."""
+    import jax
+
+    from jaxreg.pipeline._model import _prepare_model
+    from jaxreg.pipeline._segment_stage import MIN_MASK_POINTS, segment_stage
+    from jaxreg.pipeline.settings import PipelineSettings
+    from jaxreg.uncertainty import DepthNoise
+
+    depth = np.full((H, W), 0.6)
+    mask = np.zeros((H, W), bool)
+    mask[30:80, 78:81] = True
+    depth[mask] = 0.5
+    assert (mask[::4, ::4]).sum() < MIN_MASK_POINTS
+    rod = _model() * np.array([0.125, 0.2, 1.0], np.float32)  # 10 x 10 x 120 mm
+    settings = PipelineSettings()
+    model = _prepare_model(rod, None, settings.voxel_size, 0.04, 0.015)
+    segmented = segment_stage(
+        _frame(depth), model, settings.segment, jax.random.PRNGKey(0),
+        DepthNoise((0.0, 0.0, 2.5e-3)), mask=mask, lift=settings.lift,
+    )  # fmt: skip
+    assert segmented.record.mask_grid_points == mask.sum() == 150

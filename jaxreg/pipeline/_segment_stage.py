@@ -195,6 +195,10 @@ def _by_colour(judged, match, other_points, labels, live, settings):
     return other, stripped
 
 
+# Fewest points with depth a mask's surface must hold to be registered.
+MIN_MASK_POINTS = 15
+
+
 def _mask_route(
     frame, model, settings: SegmentSettings, mask, key, noise, lift: LiftSettings
 ) -> Segmented:
@@ -215,7 +219,9 @@ def _mask_route(
     standing on the same table, whose depth the table's meets smoothly. Without a table (no
     plane, or the object not on it) there is no band, and the resting starts' share of the
     coarse search goes to the rotation grid. The candidate is the surface's grid points (every
-    ``stride``-th pixel)."""
+    ``stride``-th pixel), or all its pixels where the grid holds fewer than
+    ``MIN_MASK_POINTS`` (a thin object far away, whose depth the camera keeps in a few
+    pixels)."""
     s = settings
     start = time.perf_counter()
     depth = np.asarray(frame.depth)
@@ -224,9 +230,15 @@ def _mask_route(
     seg = _segment(outside, model, s, key)
     grid = np.zeros_like(mask)
     grid[:: s.stride, :: s.stride] = True
+
+    def candidate(surface):  # the grid's points, or every pixel's where the grid holds few
+        rows, cols = np.nonzero(surface & grid)
+        if len(rows) < MIN_MASK_POINTS:
+            rows, cols = np.nonzero(surface)
+        return lift_pixels(frame, rows, cols)
+
     surface = mask_surface(depth, mask, noise, float(frame.intrinsics.fx))
-    rows, cols = np.nonzero(surface & grid)
-    cloud = lift_pixels(frame, rows, cols)
+    cloud = candidate(surface)
     plane = None
     if seg.status in (SegmentStatus.success, SegmentStatus.no_clusters) and len(cloud):
         height = cloud @ np.asarray(seg.plane.normal) + float(seg.plane.offset)
@@ -235,8 +247,7 @@ def _mask_route(
             plane = seg.plane
             table = below_band(frame, mask, plane, noise, lift)
             surface = mask_surface(depth, mask & ~table, noise, float(frame.intrinsics.fx))
-            rows, cols = np.nonzero(surface & grid)
-            cloud = lift_pixels(frame, rows, cols)
+            cloud = candidate(surface)
             height = cloud @ np.asarray(plane.normal) + float(plane.offset)
             cloud = cloud[height > s.min_height]
     record = SegmentRecord(
@@ -252,12 +263,12 @@ def _mask_route(
     def fail(reason: str):
         raise _Failed("segment", reason, record.with_ms(start))
 
-    if len(cloud) < 15:
+    if len(cloud) < MIN_MASK_POINTS:
         fail(
             f"the mask's {int(mask.sum())} pixels hold {len(cloud)} points with depth"
             + ("" if plane is None else " above the table")
-            + f" on the {s.stride}-pixel grid (need 15): a mask on a hole in the depth, "
-            "or on the table, or an object too small to register at this distance"
+            + f" (need {MIN_MASK_POINTS}): a mask on a hole in the depth, or on the table, or "
+            "an object too small to register at this distance"
         )
     span = diameter(cloud)
     if span > 3 * model.diameter:
