@@ -122,10 +122,11 @@ def test_the_command_line_exits_2_with_one_line_on_bad_input(tmp_path, capsys):
         assert expected in err and "Traceback" not in err
 
 
-def test_a_thin_mask_is_lifted_at_every_pixel_where_the_grid_holds_too_few():
+def test_a_thin_mask_or_box_is_lifted_at_every_pixel_where_the_grid_holds_too_few():
     """A rod 3 pixels wide and 50 tall in the mask (a marker far from the camera) holds 12
     points on the 4-pixel grid, fewer than a registration needs: its candidate is every pixel
-    of its surface (150), not a refusal."""
+    of its surface (150), not a refusal. A box around it holds no cluster (fewer grid points
+    than a cluster needs): the box is taken as a mask, with the same candidate."""
     import jax
 
     from jaxreg.pipeline._model import _prepare_model
@@ -146,3 +147,8 @@ def test_a_thin_mask_is_lifted_at_every_pixel_where_the_grid_holds_too_few():
         DepthNoise((0.0, 0.0, 2.5e-3)), mask=mask, lift=settings.lift,
     )  # fmt: skip
     assert segmented.record.mask_grid_points == mask.sum() == 150
+    boxed = segment_stage(
+        _frame(depth), model, settings.segment, jax.random.PRNGKey(0),
+        DepthNoise((0.0, 0.0, 2.5e-3)), box=(76, 28, 82, 81), lift=settings.lift,
+    )  # fmt: skip
+    assert boxed.clusters is None and boxed.record.mask_grid_points == 150

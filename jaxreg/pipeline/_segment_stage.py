@@ -35,14 +35,21 @@ def segment_stage(
     """The candidates of ``frame`` for the prepared ``model``: the object's surface in the
     caller's ``mask`` ``(H, W)`` (:func:`_mask_route`), or the table route's clusters
     (:func:`_table_route`; a ``pixel`` ``(u, v)`` or ``box`` ``(u0, v0, u1, v1)`` prompt names
-    the seed cluster). ``key``: the plane hypotheses' PRNG key; ``noise``: the camera's
-    ``DepthNoise``; ``lift``: the lift's settings, whose band above the table the mask route's
-    surface leaves out; ``palette``: the model's chromaticities
+    the seed cluster). A box that holds no cluster (a thin object far away, whose depth the
+    camera keeps in fewer grid points than a cluster needs) is taken as a mask: its surface
+    above the table is the candidate (:func:`_mask_route`). ``key``: the plane hypotheses'
+    PRNG key; ``noise``: the camera's ``DepthNoise``; ``lift``: the lift's settings, whose
+    band above the table the mask route's surface leaves out; ``palette``: the model's chromaticities
     (:func:`~jaxreg.pipeline._colour.model_palette`) or ``None``. Raises ``_Failed`` when no
     candidate can be the model."""
     if mask is not None:
         return _mask_route(frame, model, settings, mask, key, noise, lift)
-    return _table_route(frame, model, settings, key, pixel, box, palette)
+    segmented = _table_route(frame, model, settings, key, pixel, box, palette)
+    if segmented is None:
+        return _mask_route(
+            frame, model, settings, _box_pixels(box, frame.depth.shape), key, noise, lift
+        )  # fmt: skip
+    return segmented
 
 
 def height_ceiling(model, settings: SegmentSettings) -> float:
@@ -64,14 +71,17 @@ def _segment(frame: RGBDFrame, model, settings: SegmentSettings, key):
     )  # fmt: skip
 
 
-def _table_route(frame, model, settings: SegmentSettings, key, pixel, box, palette) -> Segmented:
+def _table_route(
+    frame, model, settings: SegmentSettings, key, pixel, box, palette
+) -> Segmented | None:
     """Plane and clusters; every cluster (or the one a ``pixel`` prompt names), alone and with
     the clusters within 1.2 model radii of it, whose diameter is at most the model's plus
     ``cluster_margin``, the largest first, then those larger than the model (an object
     touching its neighbours), nearest the model's size first; ``max_candidates`` in all. A
     ``box`` prompt's candidates are the clusters it holds, most grid points inside first, each
     cut to the box whatever its size: a detector's box holds the object and the neighbours it
-    touches, which the model's fit explains away (:mod:`jaxreg.pipeline._evidence`).
+    touches, which the model's fit explains away (:mod:`jaxreg.pipeline._evidence`); ``None``
+    when the box holds no cluster.
     Unprompted, with a ``palette`` and the frame's RGB, the clusters whose pixels do not show
     the model's colours are no candidates, and the grid points of another colour are left out
     of the others' (:func:`_by_colour`)."""
@@ -96,6 +106,8 @@ def _table_route(frame, model, settings: SegmentSettings, key, pixel, box, palet
     def fail(reason: str):
         raise _Failed("segment", reason, record.with_ms(start))
 
+    if seg.status == SegmentStatus.no_clusters and box is not None:
+        return None
     if seg.status != SegmentStatus.success:
         fail(seg.status_message())
     grid_points = np.asarray(seg.points)
@@ -108,7 +120,7 @@ def _table_route(frame, model, settings: SegmentSettings, key, pixel, box, palet
         counts = np.bincount(labels[inside & (labels >= 0)], minlength=len(sizes))
         seeds = [int(k) for k in np.argsort(-counts, kind="stable") if counts[k] > 0]
         if not seeds:
-            fail(f"the prompt {box} touches no cluster")
+            return None
     elif pixel is not None:
         chosen = choose_cluster(seg, pixel=pixel)
         if chosen is None:
