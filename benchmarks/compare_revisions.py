@@ -63,7 +63,8 @@ def timed(module, name, label):
     setattr(module, name, wrapper)
 
 timed("jaxreg.pipeline._answer", "_probe", "probes")  # the answer's
-timed("jaxreg.pipeline._register_stage", "_probe", "probes")  # a rival's
+timed("jaxreg.pipeline._register_stage", "_probe", "probes")  # a rival's, at older revisions
+timed("jaxreg.pipeline._fits", "_probe", "probes")  # a rival's
 timed("jaxreg.pipeline._register_stage", "pose_budget", "budget")
 timed("jaxreg.pipeline.estimate", "coarse_search", "coarse")
 scenes = {}

@@ -156,11 +156,11 @@ def test_a_failed_final_registration_fails_the_register_stage(scene, monkeypatch
     the ICP status's message."""
     import equinox as eqx
 
-    from jaxreg.pipeline import _register_stage as stage
+    from jaxreg.pipeline import _fits as fits
     from jaxreg.registration.icp import ICPStatus
 
     scene, model, symmetry = scene
-    refine = stage._starts_in_pieces
+    refine = fits._starts_in_pieces
 
     def ending(status, symmetric):
         def starts(*args, **options):
@@ -168,7 +168,7 @@ def test_a_failed_final_registration_fails_the_register_stage(scene, monkeypatch
             code = np.full(results.status._value.shape, status._value, np.int32)
             return eqx.tree_at(lambda r: r.status._value, results, jax.numpy.asarray(code))
 
-        monkeypatch.setattr(stage, "_starts_in_pieces", starts)
+        monkeypatch.setattr(fits, "_starts_in_pieces", starts)
         return estimate_pose(scene.frame, model, symmetry=symmetry if symmetric else None)
 
     est = ending(ICPStatus.non_finite, True)
@@ -561,14 +561,14 @@ def test_pieces_of_one_object_are_not_twins(monkeypatch):
     pieces joined. The coarse search runs one concurrent call per core, each on every second
     candidate slot: in two pieces the candidates' scores and the answer are those of the
     search in one call."""
-    from jaxreg.pipeline import _register_stage as stage
+    from jaxreg.pipeline import _fits as fits
     from jaxreg.synth import StereoSensor, tabletop_scene
 
     scene = tabletop_scene(9309, object="mug", distractors=3)
     noise = StereoSensor.d435().depth_noise(scene.frame.intrinsics)
 
     def estimate(pieces):
-        monkeypatch.setattr(stage, "lane_pieces", lambda lanes, per_piece=8: min(pieces, lanes))
+        monkeypatch.setattr(fits, "lane_pieces", lambda lanes, per_piece=8: min(pieces, lanes))
         return estimate_pose(
             scene.frame, scene.model_points, symmetry=scene.symmetry, depth_noise=noise
         )

@@ -39,9 +39,9 @@ def segment_stage(
     camera keeps in fewer grid points than a cluster needs) is taken as a mask: its surface
     above the table is the candidate (:func:`_mask_route`). ``key``: the plane hypotheses'
     PRNG key; ``noise``: the camera's ``DepthNoise``; ``lift``: the lift's settings, whose
-    band above the table the mask route's surface leaves out; ``palette``: the model's chromaticities
-    (:func:`~jaxreg.pipeline._colour.model_palette`) or ``None``. Raises ``_Failed`` when no
-    candidate can be the model."""
+    band above the table the mask route's surface leaves out; ``palette``: the model's
+    chromaticities (:func:`~jaxreg.pipeline._colour.model_palette`) or ``None``. Raises
+    ``_Failed`` when no candidate can be the model."""
     if mask is not None:
         return _mask_route(frame, model, settings, mask, key, noise, lift)
     segmented = _table_route(frame, model, settings, key, pixel, box, palette)
