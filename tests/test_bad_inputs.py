@@ -152,3 +152,13 @@ def test_a_thin_mask_or_box_is_lifted_at_every_pixel_where_the_grid_holds_too_fe
         DepthNoise((0.0, 0.0, 2.5e-3)), box=(76, 28, 82, 81), lift=settings.lift,
     )  # fmt: skip
     assert boxed.clusters is None and boxed.record.mask_grid_points == 150
+
+
+def test_a_box_on_the_bare_table_is_refused_naming_the_box():
+    """A box that holds no cluster is read as a mask; on the bare table it holds no point
+    above it, and the refusal names the box, not a mask."""
+    frame = _frame(np.full((H, W), 0.6))
+    est = estimate_pose(frame, _model(), box=(40, 30, 70, 60))
+    assert est.pose is None and est.failed_stage == "segment"
+    assert est.reason.startswith("the box's 961 pixels hold 0 points with depth"), est.reason
+    assert "a box on a hole in the depth" in est.reason and "mask" not in est.reason

@@ -190,8 +190,7 @@ def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, n
     surface running on past the model): a segment that no fit of the model passes is no rival,
     however its coarse score compares (a mug's fit on a brick explains its top and its sides
     run on)."""
-    fit = refit(frame, model, plane, points, poses, explained, gates, settings, noise, rng,
-                 eye)  # fmt: skip
+    fit = refit(frame, model, plane, points, poses, explained, gates, settings, noise, rng, eye)
     first = fit.ranked[:1]
     best = np.asarray(fit.results.pose.wxyz_xyz[first[0]])
     poses, scores, rmses, passes, seen = _probe(
@@ -220,14 +219,16 @@ def _rival_fit(frame, model, plane, points, poses, explained, gates, settings, n
         depth = float(np.median(camera_depths(frame, points)))
         spacing = depth * settings.segment.stride / float(frame.intrinsics.fx)
         cell = max(settings.voxel_size, spacing)
-        beyond = judged_beyond(frame, model, plane, poses[top], poses[top], points, gates, noise,
-                         settings, cell)  # fmt: skip
+        beyond = judged_beyond(
+            frame, model, plane, poses[top], poses[top], points, gates, noise, settings, cell
+        )
         fits = not beyond.problems
     return float(scores[top]), float(shown), bool(within[top]), fits
 
 
-def judged_beyond(frame, model, plane, answer, refined, points, gates, noise, settings, cell,
-            masked=(None, 0)):  # fmt: skip
+def judged_beyond(
+    frame, model, plane, answer, refined, points, gates, noise, settings, cell, masked=(None, 0)
+):
     """:func:`~jaxreg.pipeline._evidence.beyond_model` of the segment ``points`` ``(N, 3)``
     at the answer ``answer`` ``(7,)`` (object_T_base, placed on the table where it rests) and
     ICP's ``refined`` pose ``(7,)``, judged at the refinement's final distance, the segment's

@@ -230,8 +230,9 @@ def refine_stage(
     patches = patch_count(points)
 
     def answer_from(starts):
-        fit = refit(frame, model, plane, points, starts, coarse_fraction, gates, settings,
-                     noise, rng, eye)  # fmt: skip
+        fit = refit(
+            frame, model, plane, points, starts, coarse_fraction, gates, settings, noise, rng, eye
+        )
         answers, contact, lowest = _rest(
             fit.source, model, fit.results, fit.ranked[0], plane, fit.trim, fine_distances,
             settings, eye,
@@ -255,8 +256,10 @@ def refine_stage(
         ]
 
     def beyond_at(answer, refined):
-        return judged_beyond(frame, model, plane, answer, refined, points, gates, noise, settings,
-                       settings.voxel_size, (coarse.region, coarse.border))  # fmt: skip
+        return judged_beyond(
+            frame, model, plane, answer, refined, points, gates, noise, settings,
+            settings.voxel_size, (coarse.region, coarse.border),
+        )  # fmt: skip
 
     fit, answers, contact, lowest, found, leads = answer_from(coarse_poses)
     within = kept(leads, contact)

@@ -47,7 +47,8 @@ def segment_stage(
     segmented = _table_route(frame, model, settings, key, pixel, box, palette)
     if segmented is None:
         return _mask_route(
-            frame, model, settings, _box_pixels(box, frame.depth.shape), key, noise, lift
+            frame, model, settings, _box_pixels(box, frame.depth.shape), key, noise, lift,
+            prompt="box",
         )  # fmt: skip
     return segmented
 
@@ -212,8 +213,9 @@ MIN_MASK_POINTS = 15
 
 
 def _mask_route(
-    frame, model, settings: SegmentSettings, mask, key, noise, lift: LiftSettings
-) -> Segmented:
+    frame, model, settings: SegmentSettings, mask, key, noise, lift: LiftSettings,
+    prompt: str = "mask",
+) -> Segmented:  # fmt: skip
     """The object's surface in the caller's mask as the one candidate: the mask's pixels
     that the depth image connects to the object (:func:`~jaxreg.pipeline._surface.
     mask_surface`: not the background behind it or an occluder in front, which a mask's
@@ -233,7 +235,8 @@ def _mask_route(
     coarse search goes to the rotation grid. The candidate is the surface's grid points (every
     ``stride``-th pixel), or all its pixels where the grid holds fewer than
     ``MIN_MASK_POINTS`` (a thin object far away, whose depth the camera keeps in a few
-    pixels)."""
+    pixels). ``prompt`` names the caller's region in a refusal's reason (``"mask"``, or
+    ``"box"`` for a box read as a mask)."""
     s = settings
     start = time.perf_counter()
     depth = np.asarray(frame.depth)
@@ -277,21 +280,24 @@ def _mask_route(
 
     if len(cloud) < MIN_MASK_POINTS:
         fail(
-            f"the mask's {int(mask.sum())} pixels hold {len(cloud)} points with depth"
+            f"the {prompt}'s {int(mask.sum())} pixels hold {len(cloud)} points with depth"
             + ("" if plane is None else " above the table")
-            + f" (need {MIN_MASK_POINTS}): a mask on a hole in the depth, or on the table, or "
-            "an object too small to register at this distance"
+            + f" (need {MIN_MASK_POINTS}): a {prompt} on a hole in the depth, or on the table, "
+            "or an object too small to register at this distance"
         )
     span = diameter(cloud)
     if span > 3 * model.diameter:
         fail(
-            f"the masked segment spans {span * 1e3:.0f} mm, more than 3 times the model's "
+            f"the {prompt}'s segment spans {span * 1e3:.0f} mm, more than 3 times the model's "
             f"{model.diameter * 1e3:.0f} mm: give model_points in the frame's units (metres; "
-            "jaxreg pose --model-units), or a mask on the object alone"
+            f"jaxreg pose --model-units), or a {prompt} on the object alone"
         )
     hint = _units_hint(model, span)
     if hint:
-        fail("the masked segment is far smaller than the model (a mask on another object?)" + hint)
+        fail(
+            f"the {prompt}'s segment is far smaller than the model (a {prompt} on another "
+            "object?)" + hint
+        )
     return Segmented(plane, [((), cloud)], None, surface, record.with_ms(start))
 
 
