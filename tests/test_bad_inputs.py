@@ -125,12 +125,15 @@ def test_the_command_line_exits_2_with_one_line_on_bad_input(tmp_path, capsys):
 def test_a_thin_mask_or_box_is_lifted_at_every_pixel_where_the_grid_holds_too_few():
     """A rod 3 pixels wide and 50 tall in the mask (a marker far from the camera) holds 12
     points on the 4-pixel grid, fewer than a registration needs: its candidate is every pixel
-    of its surface (150), not a refusal. A box around it holds no cluster (fewer grid points
-    than a cluster needs): the box is taken as a mask, with the same candidate."""
+    of its surface (150), not a refusal. A box around it holds its cluster: 12 grid points are
+    a candidate for a model this thin (half of its 10 x 10 mm silhouette covers less than a
+    grid step at 0.5 m), and no candidate for the 80 x 50 x 120 mm box, which the frame shows
+    nowhere."""
     import jax
 
     from jaxreg.pipeline._model import _prepare_model
     from jaxreg.pipeline._segment_stage import MIN_MASK_POINTS, segment_stage
+    from jaxreg.pipeline._stages import _Failed
     from jaxreg.pipeline.settings import PipelineSettings
     from jaxreg.uncertainty import DepthNoise
 
@@ -141,17 +144,22 @@ def test_a_thin_mask_or_box_is_lifted_at_every_pixel_where_the_grid_holds_too_fe
     assert (mask[::4, ::4]).sum() < MIN_MASK_POINTS
     rod = _model() * np.array([0.125, 0.2, 1.0], np.float32)  # 10 x 10 x 120 mm
     settings = PipelineSettings()
-    model = _prepare_model(rod, None, settings.voxel_size, 0.04, 0.015)
-    segmented = segment_stage(
-        _frame(depth), model, settings.segment, jax.random.PRNGKey(0),
-        DepthNoise((0.0, 0.0, 2.5e-3)), mask=mask, lift=settings.lift,
-    )  # fmt: skip
-    assert segmented.record.mask_grid_points == mask.sum() == 150
-    boxed = segment_stage(
-        _frame(depth), model, settings.segment, jax.random.PRNGKey(0),
-        DepthNoise((0.0, 0.0, 2.5e-3)), box=(76, 28, 82, 81), lift=settings.lift,
-    )  # fmt: skip
-    assert boxed.clusters is None and boxed.record.mask_grid_points == 150
+    noise = DepthNoise((0.0, 0.0, 2.5e-3))
+
+    def segmented(points, **prompt):
+        model = _prepare_model(points, None, settings.voxel_size, 0.04, 0.015)
+        return segment_stage(
+            _frame(depth), model, settings.segment, jax.random.PRNGKey(0), noise,
+            lift=settings.lift, **prompt,
+        )  # fmt: skip
+
+    assert segmented(rod, mask=mask).record.mask_grid_points == mask.sum() == 150
+    for prompt in ({"box": (76, 28, 82, 81)}, {}):
+        boxed = segmented(rod, **prompt)
+        assert boxed.clusters is not None and len(boxed.candidates) == 1
+        assert len(boxed.candidates[0][1]) == mask[::4, ::4].sum()
+    with pytest.raises(_Failed, match="nothing of the model's size stands on the table"):
+        segmented(_model())
 
 
 def test_a_box_on_the_bare_table_is_refused_naming_the_box():

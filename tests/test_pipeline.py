@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from jaxreg.camera import RGBDFrame
+from jaxreg.camera import Intrinsics, RGBDFrame
 from jaxreg.geometry.metrics import Symmetry, add_s, pose_error
 from jaxreg.pipeline import estimate_pose
 
@@ -217,6 +217,28 @@ def test_no_judged_surface_and_too_little_confirmed_surface_refuse(scene, monkey
     assert est.failed_stage == "register" and est.pose is None
     assert "the image judges none of the model's surface" in est.reason
     assert est.stages["register"].model_confirmed is None
+
+
+def test_a_model_mostly_outside_the_image_is_refused_as_too_little_in_view(scene):
+    """With a fifth of the box's width in the image, the model's fit confirms what is seen,
+    but most of its surface facing the camera lies outside the image: a corner fits the
+    corner of many objects, so the pose is refused, by mask or without a prompt, naming the
+    share seen. With half of it in view the box is found."""
+    scene, model, symmetry = scene
+    cols = np.nonzero(scene.mask.any(0))[0]
+    k = scene.frame.intrinsics
+    for part, found in ((0.2, False), (0.5, True)):
+        keep = int(cols.min() + part * (cols.max() - cols.min()))
+        frame = RGBDFrame(
+            np.asarray(scene.frame.depth)[:, :keep],
+            Intrinsics(k.fx, k.fy, k.cx, k.cy, keep, k.height), None, scene.frame.base_T_camera,
+        )  # fmt: skip
+        for prompt in ({}, {"mask": scene.mask[:, :keep]}):
+            est = estimate_pose(frame, model, symmetry=symmetry, **prompt)
+            assert (est.pose is not None) == found, est.reason
+            if not found:
+                assert "too little of the model is in view" in est.reason, est.reason
+                assert est.failed_stage == "register"
 
 
 def test_the_image_judges_a_pose_within_the_depth_noise_at_its_depth():

@@ -180,6 +180,14 @@ def _confirmed_share(counts: Array) -> Array:
     return counts[..., 0] / counts[..., :3].sum(-1).clip(min=1)
 
 
+def seen_share(counts: np.ndarray) -> np.ndarray:
+    """Confirmed over the model points facing the camera that nothing nearer hides
+    (confirmed, contradicted, unknown: outside the image or over a depth hole), ``(...)``,
+    of counts ``(..., 5)`` (:func:`visibility`)."""
+    counts = np.asarray(counts)
+    return counts[..., 0] / (counts[..., :2].sum(-1) + counts[..., 3]).clip(min=1)
+
+
 def judged_fits(frame, plane, poses, model_points, results, noise):
     """ICP ``results`` ``(S,)`` at ``poses`` ``(S, 7)`` (object_T_base: theirs, or moved
     since) as the register stage weighs fits: scores ``(S,)``, the share of source points
@@ -201,13 +209,15 @@ def passes_gates(fractions, rmses, seen, max_rmse: float, register) -> np.ndarra
     """``(S,)`` bool: which fits pass the gates an answer must pass: residual ``rmses`` within
     ``max_rmse`` (metres), explained ``fractions`` at least ``register.min_inlier_fraction``,
     and of the image's counts ``seen`` ``(S, 5)`` the confirmed share at least
-    ``min_confirmed`` and the contradicted share at most ``max_contradicted``."""
+    ``min_confirmed``, the contradicted share at most ``max_contradicted`` and the share
+    seen (:func:`seen_share`) at least ``min_seen``."""
     seen = np.asarray(seen)
     return (
         (np.asarray(rmses) <= max_rmse)
         & (np.asarray(fractions) >= register.min_inlier_fraction)
         & (_confirmed_share(seen) >= register.min_confirmed)
         & (seen[:, 1] / seen[:, :3].sum(1).clip(min=1) <= register.max_contradicted)
+        & (seen_share(seen) >= register.min_seen)
     )
 
 

@@ -58,6 +58,7 @@ from jaxreg.pipeline._judge import (
     NOISE_SIGMAS,
     _support,
     patch_count,
+    seen_share,
 )
 from jaxreg.pipeline._model import viewpoint
 from jaxreg.pipeline._stages import _Failed
@@ -340,6 +341,13 @@ def refine_stage(
         problems.append(
             f"the camera sees through {contradicted:.0%} of the model's surface facing it (at "
             f"most {s.max_contradicted:.0%})"
+        )
+    shown = float(seen_share(seen[ranked[0]]))
+    if judged and shown < s.min_seen:
+        problems.append(
+            f"the image confirms only {shown:.0%} of the model's surface facing it where "
+            f"nothing hides it (need {s.min_seen:.0%}; the rest lies outside the image or over "
+            "depth holes): too little of the model is in view to tell it from another object"
         )
     record = dataclasses.replace(
         record, explained_away=beyond.explained_away, runs_on=beyond.runs_on,

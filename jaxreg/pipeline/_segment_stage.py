@@ -27,6 +27,12 @@ from jaxreg.pipeline.settings import LiftSettings, SegmentSettings
 
 __all__ = ["segment_stage"]
 
+# The fewest grid points a cluster holds, whatever the model (a 2 x 3 block of the grid):
+# fewer are a few flying pixels at a depth edge. The segmentation keeps clusters of this size
+# (one compiled program for every model); the table route then asks each for the grid points
+# the model could show at its depth (:func:`_least_points`).
+FEWEST_GRID_POINTS = 6
+
 
 def segment_stage(
     frame: RGBDFrame, model, settings: SegmentSettings, key, noise, *, mask=None, pixel=None,
@@ -67,7 +73,7 @@ def _segment(frame: RGBDFrame, model, settings: SegmentSettings, key):
         segment_frame(
             frame, key=key, stride=s.stride, plane_distance=s.plane_distance,
             min_height=s.min_height, max_height=height_ceiling(model, s),
-            cluster_distance=s.cluster_distance,
+            cluster_distance=s.cluster_distance, min_cluster_size=FEWEST_GRID_POINTS,
         )
     )  # fmt: skip
 
@@ -113,13 +119,23 @@ def _table_route(
         fail(seg.status_message())
     grid_points = np.asarray(seg.points)
     labels = np.asarray(seg.clusters.labels)
-    live = [k for k in range(len(sizes)) if sizes[k] > 0]
+    least = _least_points(frame, model, np.asarray(seg.centroids), s)
+    live = [k for k in range(len(sizes)) if sizes[k] > 0 and sizes[k] >= least[k]]
+    if not live:
+        if box is not None:
+            return None
+        fail(
+            f"nothing of the model's size stands on the table: the clusters hold "
+            f"{record.cluster_sizes} grid points, fewer than half of what the model's smallest "
+            "silhouette would cover at their depth (or min_cluster_size); is the object in view, "
+            "and its depth measured?"
+        )
     inside, bounds = labels >= 0, None
     if box is not None:  # every cluster in the box, cut to it: the model's fit carves
         bounds = _box_pixels(box, frame.depth.shape)
         inside = bounds[:: s.stride, :: s.stride][: labels.shape[0], : labels.shape[1]]
         counts = np.bincount(labels[inside & (labels >= 0)], minlength=len(sizes))
-        seeds = [int(k) for k in np.argsort(-counts, kind="stable") if counts[k] > 0]
+        seeds = [int(k) for k in np.argsort(-counts, kind="stable") if counts[k] and k in live]
         if not seeds:
             return None
     elif pixel is not None:
@@ -179,6 +195,19 @@ def _table_route(
     if too_small:
         fail("every cluster is far smaller than the model (is it in view?)" + too_small)
     return Segmented(seg.plane, candidates, seg, None, record.with_ms(start), used, bounds)
+
+
+def _least_points(frame, model, centroids: np.ndarray, settings: SegmentSettings) -> np.ndarray:
+    """``(C,)`` the grid points a cluster with centroid ``centroids`` ``(C, 3)`` (base frame)
+    must hold to be the model or a piece of it: ``min_cluster_size``, or half of the grid
+    points the model's smallest silhouette (its two shorter extents) covers at the cluster's
+    depth where that is fewer, at least :data:`FEWEST_GRID_POINTS`."""
+    extents = np.sort(model.bounds[1] - model.bounds[0])
+    eye = np.asarray(frame.base_T_camera.translation(), np.float64)
+    depth = np.linalg.norm(np.asarray(centroids, np.float64) - eye, axis=1)
+    cell = depth * settings.stride / float(frame.intrinsics.fx)  # a grid step there (metres)
+    cover = extents[0] * extents[1] / np.maximum(cell, 1e-9) ** 2
+    return np.clip(np.ceil(cover / 2), FEWEST_GRID_POINTS, settings.min_cluster_size)
 
 
 def _box_pixels(box, shape: tuple[int, int]) -> np.ndarray:

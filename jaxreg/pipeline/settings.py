@@ -30,6 +30,11 @@ class SegmentSettings:
             the model's diameter plus ``cluster_margin`` when the model is taller, so a
             target is never cut.
         cluster_distance: grid points nearer than this (metres) join one cluster.
+        min_cluster_size: a cluster is a candidate (or a piece of one) when it holds this many
+            grid points, or half of those the model's smallest silhouette (its two shorter
+            extents) covers at the cluster's depth where that is fewer: a marker 18 mm across
+            standing 1 m from the camera keeps about ten. Never fewer than
+            :data:`~jaxreg.pipeline._segment_stage.FEWEST_GRID_POINTS`.
         cluster_margin: a candidate's diameter may exceed the model's by this (metres): a
             partial view's points can lie farther from its centroid than the model's radius.
         max_candidates: the largest clusters (by grid points) scored by registration.
@@ -52,6 +57,7 @@ class SegmentSettings:
     min_height: float = 0.01
     max_height: float = 0.5
     cluster_distance: float = 0.015
+    min_cluster_size: int = 15
     cluster_margin: float = 0.02
     max_candidates: int = 4
     color_tolerance: float = 0.03
@@ -59,6 +65,10 @@ class SegmentSettings:
     mask_border: int = 5
 
     def __post_init__(self):
+        if self.min_cluster_size < 1:
+            raise ValueError(
+                f"min_cluster_size must be 1 grid point or more, got {self.min_cluster_size!r}"
+            )
         if self.mask_border < 0:
             raise ValueError(f"mask_border must be 0 or more pixels, got {self.mask_border!r}")
         if not 0.0 < self.color_tolerance < 1.0 or not 0.0 <= self.min_color_share <= 1.0:
@@ -130,6 +140,10 @@ class RegisterSettings:
             hidden by an occluder. With no judged surface at all the pose is refused.
         max_contradicted: largest share of the model's judged surface the image may see
             through.
+        min_seen: smallest share of the model's surface facing the camera and hidden by
+            nothing nearer that the image confirms, where the parts outside the image or over
+            depth holes count as unconfirmed: a corner of the model in view (the rest cut off
+            by the image's edge or lost to holes) fits the corner of many objects.
         max_overhang: how far (metres) a candidate's segment may span beyond the model along
             one of its principal axes at a coarse or rival pose (2% to 98% quantiles, which
             hold the depth noise's tails), in the coarse search's ranking and the contest
@@ -158,6 +172,7 @@ class RegisterSettings:
     max_inlier_rmse: float | None = None
     min_confirmed: float = 0.2
     max_contradicted: float = 0.25
+    min_seen: float = 0.2
     max_overhang: float = 0.003
     false_refusal: float = 0.001
 
