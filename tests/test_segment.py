@@ -41,6 +41,9 @@ def test_table_plane_and_target_cluster_on_a_rendered_scene(scene):
     # the prompt under the target's centre pixel names that cluster; its mask covers the target
     rows, cols = np.nonzero(scene.mask)
     assert choose_cluster(seg, pixel=(cols.mean(), rows.mean())) == k
+    # of the clusters a caller keeps (those of the model's size): none there when k is not
+    kept = [j for j in range(int(seg.clusters.num_clusters)) if j != k]
+    assert choose_cluster(seg, pixel=(cols.mean(), rows.mean()), among=kept) is None
     mask = cluster_mask(seg, k, scene.mask.shape)
     assert np.mean(mask[scene.mask]) > 0.8
     # several clusters: the union of their masks, and no pixel of a cluster not named

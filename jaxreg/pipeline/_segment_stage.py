@@ -139,9 +139,9 @@ def _table_route(
         if not seeds:
             return None
     elif pixel is not None:
-        chosen = choose_cluster(seg, pixel=pixel)
+        chosen = choose_cluster(seg, pixel=pixel, among=live)
         if chosen is None:
-            fail(f"the prompt {pixel} touches no cluster")
+            fail(f"the prompt {pixel} touches no cluster of the model's size")
         seeds = [chosen]
     else:
         seeds = live

@@ -517,15 +517,19 @@ def choose_cluster(
     *,
     pixel: tuple[float, float] | None = None,
     box: tuple[float, float, float, float] | None = None,
+    among: Sequence[int] | None = None,
 ) -> int | None:
     """The cluster a prompt points at (host): the one under ``pixel`` ``(u, v)`` (else the
     nearest within 3 grid steps), or the one with the most grid points inside ``box``
-    ``(u0, v0, u1, v1)`` (pixels, inclusive). ``None`` when the prompt touches no cluster."""
+    ``(u0, v0, u1, v1)`` (pixels, inclusive); of the clusters ``among`` when given (every
+    cluster otherwise). ``None`` when the prompt touches no such cluster."""
     if (pixel is None) == (box is None):
         raise ValueError("give exactly one prompt: pixel=(u, v) or box=(u0, v0, u1, v1)")
     labels = np.asarray(segmentation.clusters.labels)
     s = segmentation.stride
-    rows, cols = np.nonzero(labels >= 0)
+    rows, cols = np.nonzero(
+        labels >= 0 if among is None else np.isin(labels, np.asarray(among, int))
+    )
     if len(rows) == 0:
         return None
     if pixel is not None:
