@@ -227,13 +227,24 @@ def test_a_model_mostly_outside_the_image_is_refused_as_too_little_in_view(scene
     scene, model, symmetry = scene
     cols = np.nonzero(scene.mask.any(0))[0]
     k = scene.frame.intrinsics
+    width = k.width
     for part, found in ((0.2, False), (0.5, True)):
+        # the image's columns moved right so that column `keep` is its last, the principal
+        # point with them: every pixel keeps its ray, the rest of the box lies past the edge
         keep = int(cols.min() + part * (cols.max() - cols.min()))
+        shift = width - keep
+
+        def moved(image, fill):
+            out = np.full_like(image, fill)
+            out[:, shift:] = image[:, :keep]
+            return out
+
         frame = RGBDFrame(
-            np.asarray(scene.frame.depth)[:, :keep],
-            Intrinsics(k.fx, k.fy, k.cx, k.cy, keep, k.height), None, scene.frame.base_T_camera,
+            moved(np.asarray(scene.frame.depth), np.nan),
+            Intrinsics(k.fx, k.fy, k.cx + shift, k.cy, width, k.height), None,
+            scene.frame.base_T_camera,
         )  # fmt: skip
-        for prompt in ({}, {"mask": scene.mask[:, :keep]}):
+        for prompt in ({}, {"mask": moved(scene.mask, False)}):
             est = estimate_pose(frame, model, symmetry=symmetry, **prompt)
             assert (est.pose is not None) == found, est.reason
             if not found:
