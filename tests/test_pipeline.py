@@ -227,24 +227,23 @@ def test_a_model_mostly_outside_the_image_is_refused_as_too_little_in_view(scene
     scene, model, symmetry = scene
     cols = np.nonzero(scene.mask.any(0))[0]
     k = scene.frame.intrinsics
-    width = k.width
+
+    def moved(image, keep, fill):
+        """``image``'s first ``keep`` columns moved right to end at its right edge."""
+        out = np.full_like(image, fill)
+        out[:, k.width - keep :] = image[:, :keep]
+        return out
+
     for part, found in ((0.2, False), (0.5, True)):
-        # the image's columns moved right so that column `keep` is its last, the principal
-        # point with them: every pixel keeps its ray, the rest of the box lies past the edge
+        # the principal point moves with the columns: every pixel keeps its ray, and the rest
+        # of the box lies past the image's edge
         keep = int(cols.min() + part * (cols.max() - cols.min()))
-        shift = width - keep
-
-        def moved(image, fill):
-            out = np.full_like(image, fill)
-            out[:, shift:] = image[:, :keep]
-            return out
-
         frame = RGBDFrame(
-            moved(np.asarray(scene.frame.depth), np.nan),
-            Intrinsics(k.fx, k.fy, k.cx + shift, k.cy, width, k.height), None,
+            moved(np.asarray(scene.frame.depth), keep, np.nan),
+            Intrinsics(k.fx, k.fy, k.cx + k.width - keep, k.cy, k.width, k.height), None,
             scene.frame.base_T_camera,
         )  # fmt: skip
-        for prompt in ({}, {"mask": moved(scene.mask, False)}):
+        for prompt in ({}, {"mask": moved(scene.mask, keep, False)}):
             est = estimate_pose(frame, model, symmetry=symmetry, **prompt)
             assert (est.pose is not None) == found, est.reason
             if not found:

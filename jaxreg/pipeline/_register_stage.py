@@ -342,10 +342,10 @@ def refine_stage(
             f"the camera sees through {contradicted:.0%} of the model's surface facing it (at "
             f"most {s.max_contradicted:.0%})"
         )
-    shown = float(seen_share(seen[ranked[0]]))
-    if judged and shown < s.min_seen:
+    in_view = float(seen_share(seen[ranked[0]]))
+    if judged and in_view < s.min_seen:
         problems.append(
-            f"the image confirms only {shown:.0%} of the model's surface facing it where "
+            f"the image confirms only {in_view:.0%} of the model's surface facing it where "
             f"nothing hides it (need {s.min_seen:.0%}; the rest lies outside the image or over "
             "depth holes): too little of the model is in view to tell it from another object"
         )

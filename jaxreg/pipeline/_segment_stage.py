@@ -199,7 +199,7 @@ def _table_route(
 
 def _least_points(frame, model, centroids: np.ndarray, settings: SegmentSettings) -> np.ndarray:
     """``(C,)`` the grid points a cluster with centroid ``centroids`` ``(C, 3)`` (base frame)
-    must hold to be the model or a piece of it: ``min_cluster_size``, or half of the grid
+    must hold to be a candidate, alone or in a group: ``min_cluster_size``, or half of the grid
     points the model's smallest silhouette (its two shorter extents) covers at the cluster's
     depth where that is fewer, at least :data:`FEWEST_GRID_POINTS`."""
     extents = np.sort(model.bounds[1] - model.bounds[0])

@@ -30,10 +30,11 @@ class SegmentSettings:
             the model's diameter plus ``cluster_margin`` when the model is taller, so a
             target is never cut.
         cluster_distance: grid points nearer than this (metres) join one cluster.
-        min_cluster_size: a cluster is a candidate (or a piece of one) when it holds this many
-            grid points, or half of those the model's smallest silhouette (its two shorter
-            extents) covers at the cluster's depth where that is fewer: a marker 18 mm across
-            standing 1 m from the camera keeps about ten. Never fewer than
+        min_cluster_size: a cluster is a candidate, alone or grouped with the clusters near it,
+            when it holds this many grid points, or half of those the model's smallest
+            silhouette (its two shorter extents) covers at the cluster's depth where that is
+            fewer: a marker 18 mm across standing 1 m from the camera keeps about ten. Never
+            fewer than
             :data:`~jaxreg.pipeline._segment_stage.FEWEST_GRID_POINTS`.
         cluster_margin: a candidate's diameter may exceed the model's by this (metres): a
             partial view's points can lie farther from its centroid than the model's radius.
